@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# One idempotent set-up step for a fresh machine of this project's kind (Debian 12, Rust toolchain,
+# CPython 3.11). Safe to run twice; when everything is present it only checks and returns in a second.
+#
+# Installs:
+#   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (HDF5 dataset I/O)
+#   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
+#   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+DEPS="$ROOT/.deps"
+ORT_VERSION="1.31.1"
+PY_PACKAGES=(numpy h5py)
+
+log() { printf '[setup] %s\n' "$*" >&2; }
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+
+# --- apt packages -------------------------------------------------------------------------------
+APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv)
+missing=()
+for p in "${APT_PACKAGES[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$p")
+  fi
+done
+if [ "${#missing[@]}" -gt 0 ]; then
+  log "apt: installing ${missing[*]}"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+else
+  log "apt: all present"
+fi
+
+mkdir -p "$DEPS"
+
+# --- Python venv (h5py for cross-checks with the reference reader) ------------------------------
+PY="$DEPS/venv/bin/python"
+if [ ! -x "$PY" ]; then
+  log "python: creating venv in .deps/venv"
+  python3 -m venv "$DEPS/venv"
+fi
+if ! "$PY" -c 'import numpy, h5py' 2>/dev/null; then
+  log "python: installing ${PY_PACKAGES[*]}"
+  "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
+else
+  log "python: venv ready"
+fi
+
+# --- ONNX Runtime shared library from the PyPI wheel ---------------------------------------------
+ORT_DIR="$DEPS/onnxruntime"
+ORT_LIB="$ORT_DIR/libonnxruntime.so.$ORT_VERSION"
+if [ ! -f "$ORT_LIB" ]; then
+  log "onnxruntime: fetching the onnxruntime==$ORT_VERSION wheel"
+  tmp="$(mktemp -d)"
+  trap 'rm -rf "$tmp"' EXIT
+  "$PY" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
+    "onnxruntime==$ORT_VERSION" -d "$tmp"
+  wheel="$(ls "$tmp"/onnxruntime-*.whl)"
+  mkdir -p "$ORT_DIR.partial"
+  unzip -q -o -j "$wheel" "onnxruntime/capi/libonnxruntime.so.$ORT_VERSION" -d "$ORT_DIR.partial"
+  rm -rf "$ORT_DIR"
+  mv "$ORT_DIR.partial" "$ORT_DIR"
+  ln -sf "libonnxruntime.so.$ORT_VERSION" "$ORT_DIR/libonnxruntime.so"
+else
+  log "onnxruntime: $ORT_LIB present"
+fi
+log "done"

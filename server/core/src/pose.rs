@@ -1,0 +1,136 @@
+//! Camera poses, the two camera-axis conventions, and conversion to and from HPointLoc's fields.
+
+use nalgebra::{Isometry3, Matrix3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+/// Which way a camera's own axes point.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum CameraAxes {
+    /// Habitat / OpenGL: x right, y up, the camera looks along -z. HPointLoc's `quat` uses this.
+    Habitat,
+    /// OpenCV: x right, y down, the camera looks along +z. Pixel back-projection uses this.
+    OpenCv,
+}
+
+/// Errors when a pose read from outside is not a rigid transform.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PoseError {
+    /// A component is NaN or infinite.
+    #[error("pose has a non-finite component: {0}")]
+    NonFinite(String),
+    /// The quaternion is too far from unit length to be a rotation (norm given).
+    #[error("quaternion norm {0} is not close to 1 (expected a unit quaternion w,x,y,z)")]
+    NotUnit(f64),
+}
+
+/// The rotation that turns one camera-axis convention into the other. Both conventions share x; y and
+/// z are negated, so the matrix is its own inverse.
+fn flip_yz() -> Rotation3<f64> {
+    Rotation3::from_matrix_unchecked(Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)))
+}
+
+/// Re-express `world_from_camera` for a camera whose axes follow `to` instead of `from`.
+///
+/// The camera centre does not move; only the rotation's columns 1 and 2 are negated.
+pub fn convert_axes(
+    world_from_camera: &Isometry3<f64>,
+    from: CameraAxes,
+    to: CameraAxes,
+) -> Isometry3<f64> {
+    if from == to {
+        return *world_from_camera;
+    }
+    let flip = UnitQuaternion::from_rotation_matrix(&flip_yz());
+    Isometry3::from_parts(
+        world_from_camera.translation,
+        world_from_camera.rotation * flip,
+    )
+}
+
+/// Build `world_from_camera` (Habitat axes) from HPointLoc's `gps` (tx, ty, tz) and `quat` (w, x, y, z).
+///
+/// The quaternion is normalised; one whose norm is outside 0.9..1.1 or that has a non-finite component
+/// is refused, because it is a corrupt record rather than rounding.
+pub fn pose_from_hpointloc(gps: [f64; 3], quat_wxyz: [f64; 4]) -> Result<Isometry3<f64>, PoseError> {
+    if gps.iter().chain(quat_wxyz.iter()).any(|v| !v.is_finite()) {
+        return Err(PoseError::NonFinite(format!(
+            "gps={gps:?} quat(w,x,y,z)={quat_wxyz:?}"
+        )));
+    }
+    let q = Quaternion::new(quat_wxyz[0], quat_wxyz[1], quat_wxyz[2], quat_wxyz[3]);
+    let norm = q.norm();
+    if !(0.9..=1.1).contains(&norm) {
+        return Err(PoseError::NotUnit(norm));
+    }
+    Ok(Isometry3::from_parts(
+        Translation3::new(gps[0], gps[1], gps[2]),
+        UnitQuaternion::from_quaternion(q),
+    ))
+}
+
+/// The inverse of [`pose_from_hpointloc`]: `(gps, quat_wxyz)` of a Habitat-axes `world_from_camera`.
+/// The quaternion is returned with w >= 0.
+pub fn pose_to_hpointloc(world_from_camera: &Isometry3<f64>) -> ([f64; 3], [f64; 4]) {
+    let t = world_from_camera.translation.vector;
+    let q = world_from_camera.rotation.quaternion();
+    let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+    (
+        [t.x, t.y, t.z],
+        [s * q.w, s * q.i, s * q.j, s * q.k],
+    )
+}
+
+/// Geodesic angle between two rotations, in degrees: the angle of `a^T b`, in 0..=180.
+pub fn rotation_angle_deg(a: &UnitQuaternion<f64>, b: &UnitQuaternion<f64>) -> f64 {
+    a.angle_to(b).to_degrees()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn habitat_camera_looks_along_minus_z_and_opencv_along_plus_z() {
+        // A Habitat camera with yaw 90 degrees about world y looks along world -x.
+        let wfc = Isometry3::from_parts(
+            Translation3::new(1.0, 1.25, 2.0),
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2),
+        );
+        let forward_habitat = wfc.rotation * Vector3::new(0.0, 0.0, -1.0);
+        assert!((forward_habitat - Vector3::new(-1.0, 0.0, 0.0)).norm() < 1e-12);
+        let cv = convert_axes(&wfc, CameraAxes::Habitat, CameraAxes::OpenCv);
+        let forward_cv = cv.rotation * Vector3::new(0.0, 0.0, 1.0);
+        assert!((forward_cv - forward_habitat).norm() < 1e-12);
+        // Image "down" in OpenCV is world -y for an upright camera.
+        assert!((cv.rotation * Vector3::y() - Vector3::new(0.0, -1.0, 0.0)).norm() < 1e-12);
+        assert_eq!(cv.translation, wfc.translation);
+        let back = convert_axes(&cv, CameraAxes::OpenCv, CameraAxes::Habitat);
+        assert!(rotation_angle_deg(&back.rotation, &wfc.rotation) < 1e-9);
+    }
+
+    #[test]
+    fn hpointloc_round_trip_and_refusals() {
+        let wfc = pose_from_hpointloc([1.0, 2.0, 3.0], [0.5, 0.5, -0.5, 0.5]).unwrap();
+        let (g, q) = pose_to_hpointloc(&wfc);
+        assert_eq!(g, [1.0, 2.0, 3.0]);
+        for (a, b) in q.iter().zip([0.5, 0.5, -0.5, 0.5]) {
+            assert!((a - b).abs() < 1e-12);
+        }
+        assert!(matches!(
+            pose_from_hpointloc([f64::NAN, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]),
+            Err(PoseError::NonFinite(_))
+        ));
+        assert!(matches!(
+            pose_from_hpointloc([0.0; 3], [0.0; 4]),
+            Err(PoseError::NotUnit(_))
+        ));
+    }
+
+    #[test]
+    fn geodesic_angle_is_not_folded() {
+        let a = UnitQuaternion::identity();
+        let b = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), std::f64::consts::PI);
+        assert!((rotation_angle_deg(&a, &b) - 180.0).abs() < 1e-9);
+        let c = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 0.3);
+        assert!((rotation_angle_deg(&a, &c) - 0.3f64.to_degrees()).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,74 @@
+//! The HPointLoc dataset on disk: find scenes and Points, read and write their HDF5 files.
+//!
+//! Layout (see `shared/docs/hpointloc.md`): `<root>/HPointLoc_dataset/<scene>/<scene>_point<N>.hdf5`,
+//! one file per Point, holding the Point's database views (`rgb_base`, `depth_base`, `semantic_base`,
+//! `gps_base`, `quat_base`) and its queries (`rgb`, `depth`, `gps`, `quat`).
+//!
+//! Why it is built this way:
+//! - The reader validates every field's presence, dtype and shape when a file is opened, and names the
+//!   file and field in every error. HDF5 converts numeric types silently (a float dataset read as u8
+//!   "works"), so dtypes are checked explicitly before any read.
+//! - Views are read one at a time through hyperslab selections, so an evaluation over 76k queries never
+//!   holds more than one frame per worker; [`PointReader::read_all`] exists for small scenes and tests.
+//! - The writer produces what h5py produces by default (no "latest" file format), so the files open
+//!   with h5py and with the HPointLoc code exactly like the real dataset, and it writes to a temporary
+//!   name and renames, so an interrupted write never leaves a half file under the final name.
+//! - Poses come out as `world_from_camera` in Habitat camera axes, exactly as stored; conversion to
+//!   OpenCV axes is an explicit call into `pntr_core`.
+
+mod error;
+pub mod layout;
+mod reader;
+mod writer;
+
+pub use error::DatasetError;
+pub use layout::{DatasetIndex, PointEntry, SceneEntry};
+pub use reader::PointReader;
+pub use writer::{write_point, WriteOptions};
+
+use nalgebra::Isometry3;
+use pntr_core::{DepthMap, LabelMap, RgbImage};
+
+/// Whether a view is one of a Point's database images or one of its queries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    /// `*_base` fields: the map's images.
+    Database,
+    /// The plain fields: query images.
+    Query,
+}
+
+impl Role {
+    /// The HDF5 field name of `stem` (`rgb`, `depth`, `semantic`, `gps`, `quat`) for this role.
+    pub fn field(self, stem: &str) -> String {
+        match self {
+            Role::Database => format!("{stem}_base"),
+            Role::Query => stem.to_string(),
+        }
+    }
+}
+
+/// One RGB-D frame with its ground-truth pose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct View {
+    /// Camera-to-world pose, Habitat camera axes (as stored in the file).
+    pub world_from_camera: Isometry3<f64>,
+    /// The colour image.
+    pub rgb: RgbImage,
+    /// Planar depth in metres (0 = invalid).
+    pub depth: DepthMap,
+    /// Per-pixel instance ids, where the file has them (database views only in HPointLoc).
+    pub semantic: Option<LabelMap>,
+}
+
+/// Everything one Point file holds.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct PointRecord {
+    /// The database views (6 in HPointLoc: yaw 0, 60, ..., 300 degrees).
+    pub db: Vec<View>,
+    /// The query views taken near this Point.
+    pub queries: Vec<View>,
+    /// Category id (index into `pntr_core::categories::CATEGORIES`) of each instance id, where known.
+    /// Stored as the extra field `semantic_category`, which readers of the real dataset ignore.
+    pub instance_categories: Option<Vec<u8>>,
+}

@@ -1,0 +1,353 @@
+//! Validating, view-at-a-time reader of one Point file.
+
+use std::path::{Path, PathBuf};
+
+use hdf5::types::{FloatSize, IntSize, TypeDescriptor};
+use nalgebra::Isometry3;
+use ndarray::{s, Array2, ArrayD};
+use pntr_core::{pose_from_hpointloc, DepthMap, LabelMap, RgbImage};
+
+use crate::{DatasetError, PointRecord, Role, View};
+
+/// What element type a field must have.
+#[derive(Clone, Copy)]
+enum Expect {
+    U8,
+    Float,
+    Int,
+}
+
+/// Validated shape information for one role's fields.
+#[derive(Debug, Clone)]
+struct RoleInfo {
+    count: usize,
+    has_semantic: bool,
+    depth_has_channel: bool,
+    semantic_has_channel: bool,
+    world_from_camera: Vec<Isometry3<f64>>,
+}
+
+/// An open Point file whose fields have been checked. Poses are read eagerly (they are small);
+/// images are read per view.
+pub struct PointReader {
+    path: PathBuf,
+    file: hdf5::File,
+    width: u32,
+    height: u32,
+    db: RoleInfo,
+    query: RoleInfo,
+}
+
+impl std::fmt::Debug for PointReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PointReader")
+            .field("path", &self.path)
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("db", &self.db.count)
+            .field("queries", &self.query.count)
+            .finish()
+    }
+}
+
+fn h5err(path: &Path, field: &str) -> impl FnOnce(hdf5::Error) -> DatasetError {
+    let path = path.to_path_buf();
+    let field = field.to_string();
+    move |e| DatasetError::field(&path, &field, format!("read failed: {e}"))
+}
+
+impl PointReader {
+    /// Open `path` and validate every field HPointLoc defines.
+    pub fn open(path: &Path) -> Result<Self, DatasetError> {
+        if !path.is_file() {
+            return Err(DatasetError::Open {
+                path: path.to_path_buf(),
+                message: "no such file".into(),
+            });
+        }
+        let file = hdf5::File::open(path).map_err(|e| DatasetError::Open {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        let mut size: Option<(usize, usize)> = None;
+        let db = Self::validate_role(path, &file, Role::Database, &mut size)?;
+        let query = Self::validate_role(path, &file, Role::Query, &mut size)?;
+        let (h, w) = size.expect("validate_role sets the size");
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+            width: w as u32,
+            height: h as u32,
+            db,
+            query,
+        })
+    }
+
+    fn dataset(path: &Path, file: &hdf5::File, field: &str) -> Result<hdf5::Dataset, DatasetError> {
+        file.dataset(field)
+            .map_err(|_| DatasetError::field(path, field, "missing"))
+    }
+
+    fn check_dtype(
+        path: &Path,
+        ds: &hdf5::Dataset,
+        field: &str,
+        expect: Expect,
+    ) -> Result<(), DatasetError> {
+        let desc = ds
+            .dtype()
+            .and_then(|t| t.to_descriptor())
+            .map_err(|e| DatasetError::field(path, field, format!("unreadable dtype: {e}")))?;
+        let ok = match expect {
+            Expect::U8 => matches!(desc, TypeDescriptor::Unsigned(IntSize::U1)),
+            Expect::Float => matches!(
+                desc,
+                TypeDescriptor::Float(FloatSize::U4) | TypeDescriptor::Float(FloatSize::U8)
+            ),
+            Expect::Int => matches!(
+                desc,
+                TypeDescriptor::Unsigned(IntSize::U1 | IntSize::U2 | IntSize::U4)
+                    | TypeDescriptor::Integer(IntSize::U1 | IntSize::U2 | IntSize::U4)
+            ),
+        };
+        if !ok {
+            let want = match expect {
+                Expect::U8 => "uint8",
+                Expect::Float => "float32 or float64",
+                Expect::Int => "an integer type of at most 32 bits",
+            };
+            return Err(DatasetError::field(
+                path,
+                field,
+                format!("dtype is {desc:?}, expected {want}"),
+            ));
+        }
+        Ok(())
+    }
+
+    fn validate_role(
+        path: &Path,
+        file: &hdf5::File,
+        role: Role,
+        size: &mut Option<(usize, usize)>,
+    ) -> Result<RoleInfo, DatasetError> {
+        let f_rgb = role.field("rgb");
+        let f_depth = role.field("depth");
+        let f_sem = role.field("semantic");
+        let f_gps = role.field("gps");
+        let f_quat = role.field("quat");
+
+        let rgb = Self::dataset(path, file, &f_rgb)?;
+        Self::check_dtype(path, &rgb, &f_rgb, Expect::U8)?;
+        let shape = rgb.shape();
+        if shape.len() != 4 || shape[3] != 3 || shape[1] == 0 || shape[2] == 0 {
+            return Err(DatasetError::field(
+                path,
+                &f_rgb,
+                format!("shape {shape:?}, expected (N, H, W, 3)"),
+            ));
+        }
+        let (n, h, w) = (shape[0], shape[1], shape[2]);
+        match size {
+            Some((sh, sw)) if (*sh, *sw) != (h, w) => {
+                return Err(DatasetError::field(
+                    path,
+                    &f_rgb,
+                    format!("image size {h}x{w} differs from the other role's {sh}x{sw}"),
+                ))
+            }
+            _ => *size = Some((h, w)),
+        }
+
+        let depth = Self::dataset(path, file, &f_depth)?;
+        Self::check_dtype(path, &depth, &f_depth, Expect::Float)?;
+        let dshape = depth.shape();
+        let depth_has_channel = match dshape.as_slice() {
+            [dn, dh, dw] if (*dn, *dh, *dw) == (n, h, w) => false,
+            [dn, dh, dw, 1] if (*dn, *dh, *dw) == (n, h, w) => true,
+            _ => {
+                return Err(DatasetError::field(
+                    path,
+                    &f_depth,
+                    format!("shape {dshape:?}, expected ({n}, {h}, {w}, 1) or ({n}, {h}, {w}) to match `{f_rgb}`"),
+                ))
+            }
+        };
+
+        let (has_semantic, semantic_has_channel) = match file.dataset(&f_sem) {
+            Err(_) => (false, false),
+            Ok(sem) => {
+                Self::check_dtype(path, &sem, &f_sem, Expect::Int)?;
+                let sshape = sem.shape();
+                let ch = match sshape.as_slice() {
+                    [sn, sh, sw] if (*sn, *sh, *sw) == (n, h, w) => false,
+                    [sn, sh, sw, 1] if (*sn, *sh, *sw) == (n, h, w) => true,
+                    _ => {
+                        return Err(DatasetError::field(
+                            path,
+                            &f_sem,
+                            format!("shape {sshape:?}, expected ({n}, {h}, {w}) or ({n}, {h}, {w}, 1)"),
+                        ))
+                    }
+                };
+                (true, ch)
+            }
+        };
+
+        let gps = Self::read_table(path, file, &f_gps, n, 3)?;
+        let quat = Self::read_table(path, file, &f_quat, n, 4)?;
+        let mut world_from_camera = Vec::with_capacity(n);
+        for i in 0..n {
+            let g = [gps[[i, 0]], gps[[i, 1]], gps[[i, 2]]];
+            let q = [quat[[i, 0]], quat[[i, 1]], quat[[i, 2]], quat[[i, 3]]];
+            let pose = pose_from_hpointloc(g, q).map_err(|e| {
+                DatasetError::field(path, &format!("{f_gps}/{f_quat}"), format!("row {i}: {e}"))
+            })?;
+            world_from_camera.push(pose);
+        }
+        Ok(RoleInfo {
+            count: n,
+            has_semantic,
+            depth_has_channel,
+            semantic_has_channel,
+            world_from_camera,
+        })
+    }
+
+    fn read_table(
+        path: &Path,
+        file: &hdf5::File,
+        field: &str,
+        rows: usize,
+        cols: usize,
+    ) -> Result<Array2<f64>, DatasetError> {
+        let ds = Self::dataset(path, file, field)?;
+        Self::check_dtype(path, &ds, field, Expect::Float)?;
+        let shape = ds.shape();
+        if shape != [rows, cols] {
+            return Err(DatasetError::field(
+                path,
+                field,
+                format!("shape {shape:?}, expected ({rows}, {cols})"),
+            ));
+        }
+        ds.read_2d::<f64>().map_err(h5err(path, field))
+    }
+
+    /// The file this reader reads.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Image width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Image height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    fn info(&self, role: Role) -> &RoleInfo {
+        match role {
+            Role::Database => &self.db,
+            Role::Query => &self.query,
+        }
+    }
+
+    /// Number of views of `role`.
+    pub fn count(&self, role: Role) -> usize {
+        self.info(role).count
+    }
+
+    /// Poses (`world_from_camera`, Habitat axes) of every view of `role`.
+    pub fn poses(&self, role: Role) -> &[Isometry3<f64>] {
+        &self.info(role).world_from_camera
+    }
+
+    fn read_frame<T: hdf5::H5Type>(&self, field: &str, i: usize) -> Result<Vec<T>, DatasetError> {
+        let ds = self
+            .file
+            .dataset(field)
+            .map_err(|_| DatasetError::field(&self.path, field, "missing"))?;
+        let arr: ArrayD<T> = match ds.ndim() {
+            3 => ds.read_slice(s![i, .., ..]),
+            _ => ds.read_slice(s![i, .., .., ..]),
+        }
+        .map_err(h5err(&self.path, field))?;
+        let (v, _) = arr.into_raw_vec_and_offset();
+        Ok(v)
+    }
+
+    /// Read view `i` of `role`.
+    pub fn view(&self, role: Role, i: usize) -> Result<View, DatasetError> {
+        let info = self.info(role);
+        if i >= info.count {
+            return Err(DatasetError::field(
+                &self.path,
+                &role.field("rgb"),
+                format!("view {i} requested, the file has {}", info.count),
+            ));
+        }
+        let (w, h) = (self.width, self.height);
+        let f_rgb = role.field("rgb");
+        let rgb = RgbImage::new(w, h, self.read_frame::<u8>(&f_rgb, i)?)
+            .map_err(|e| DatasetError::field(&self.path, &f_rgb, e.to_string()))?;
+        let f_depth = role.field("depth");
+        let raw = self.read_frame::<f32>(&f_depth, i)?;
+        let depth = DepthMap::from_hpointloc(w, h, &raw)
+            .map_err(|e| DatasetError::field(&self.path, &f_depth, e.to_string()))?;
+        let semantic = if info.has_semantic {
+            let f_sem = role.field("semantic");
+            let labels = self.read_frame::<u32>(&f_sem, i)?;
+            Some(
+                LabelMap::new(w, h, labels)
+                    .map_err(|e| DatasetError::field(&self.path, &f_sem, e.to_string()))?,
+            )
+        } else {
+            None
+        };
+        let _ = (info.depth_has_channel, info.semantic_has_channel);
+        Ok(View {
+            world_from_camera: info.world_from_camera[i],
+            rgb,
+            depth,
+            semantic,
+        })
+    }
+
+    /// The instance-to-category table (`semantic_category`), if the file has one.
+    pub fn instance_categories(&self) -> Result<Option<Vec<u8>>, DatasetError> {
+        let field = "semantic_category";
+        match self.file.dataset(field) {
+            Err(_) => Ok(None),
+            Ok(ds) => {
+                Self::check_dtype(&self.path, &ds, field, Expect::U8)?;
+                if ds.ndim() != 1 {
+                    return Err(DatasetError::field(
+                        &self.path,
+                        field,
+                        format!("shape {:?}, expected one dimension", ds.shape()),
+                    ));
+                }
+                Ok(Some(ds.read_raw::<u8>().map_err(h5err(&self.path, field))?))
+            }
+        }
+    }
+
+    /// Read every view of the file.
+    pub fn read_all(&self) -> Result<PointRecord, DatasetError> {
+        let db = (0..self.db.count)
+            .map(|i| self.view(Role::Database, i))
+            .collect::<Result<_, _>>()?;
+        let queries = (0..self.query.count)
+            .map(|i| self.view(Role::Query, i))
+            .collect::<Result<_, _>>()?;
+        Ok(PointRecord {
+            db,
+            queries,
+            instance_categories: self.instance_categories()?,
+        })
+    }
+}
