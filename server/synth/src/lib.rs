@@ -1,0 +1,342 @@
+//! Synthetic HPointLoc: procedural apartments rendered to RGB-D under HPointLoc's protocol and written
+//! in its exact on-disk layout.
+//!
+//! Why it exists: the real dataset is not downloadable here, and every test, benchmark and demo of
+//! pntr must run on data made on the spot. The generator follows the protocol to the letter (2 m grid
+//! of key positions in free space, camera at 1.25 m, six database views at yaw 0..300 step 60,
+//! queries within 0.5 m with random yaw, 256x256 at 90 degrees, planar depth clipped at 10 m, sensor
+//! noise of 0.02) so that code written against these files runs unchanged on the real ones.
+//!
+//! How: [`scene`] builds an apartment of axis-aligned boxes (rooms split with doors, furniture,
+//! pictures, windows) with procedural [`texture`]s; [`protocol`] places the cameras; [`render`] ray
+//! casts each view. Points render in parallel (rayon), each into its own file; everything is a pure
+//! function of the seed, so a dataset is reproducible bit for bit.
+
+pub mod protocol;
+pub mod render;
+pub mod scene;
+pub mod texture;
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use pntr_core::Intrinsics;
+use pntr_dataset::{layout, write_point, DatasetError, PointRecord, View, WriteOptions};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+
+pub use protocol::PointPlan;
+pub use render::{Frame, Renderer};
+pub use scene::{Scene, SceneOptions};
+pub use texture::TextureImage;
+
+/// What to generate.
+#[derive(Debug, Clone)]
+pub struct SynthConfig {
+    /// Number of scenes (apartments).
+    pub scenes: usize,
+    /// Points (key positions) per scene.
+    pub points_per_scene: usize,
+    /// Query poses drawn per Point (some are discarded when not in free space).
+    pub queries_per_point: usize,
+    /// Seed of everything.
+    pub seed: u64,
+    /// Standard deviation of query pitch and roll, degrees.
+    pub tilt_sigma_deg: f64,
+    /// Extra image textures.
+    pub textures: Vec<Arc<TextureImage>>,
+    /// How files are written.
+    pub write: WriteOptions,
+}
+
+impl Default for SynthConfig {
+    /// One Val-sized scene: 23 Points, 50 queries drawn per Point.
+    fn default() -> Self {
+        Self {
+            scenes: 1,
+            points_per_scene: 23,
+            queries_per_point: 50,
+            seed: 0,
+            tilt_sigma_deg: 2.0,
+            textures: Vec::new(),
+            write: WriteOptions::default(),
+        }
+    }
+}
+
+/// What was generated for one scene.
+#[derive(Debug, Clone)]
+pub struct SceneSummary {
+    /// Scene name.
+    pub name: String,
+    /// Number of Points.
+    pub points: usize,
+    /// Number of database views.
+    pub db_views: usize,
+    /// Number of queries kept.
+    pub queries: usize,
+    /// Number of query poses discarded (not in free space).
+    pub discarded_queries: usize,
+    /// Number of rooms.
+    pub rooms: usize,
+    /// Number of boxes in the scene geometry.
+    pub boxes: usize,
+    /// Apartment size (x, z), metres.
+    pub size_m: (f32, f32),
+}
+
+/// What a synthesis run produced.
+#[derive(Debug, Clone)]
+pub struct Summary {
+    /// Per scene.
+    pub scenes: Vec<SceneSummary>,
+    /// Frames rendered and written.
+    pub frames: u64,
+    /// Wall-clock time of the whole run, seconds.
+    pub seconds: f64,
+    /// The dataset root (holding `HPointLoc_dataset`).
+    pub root: PathBuf,
+}
+
+/// Errors of a synthesis run.
+#[derive(Debug, thiserror::Error)]
+pub enum SynthError {
+    /// Writing the dataset failed.
+    #[error(transparent)]
+    Dataset(#[from] DatasetError),
+    /// A file-system operation failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The configuration cannot be honoured.
+    #[error("invalid synth configuration: {0}")]
+    Config(String),
+}
+
+/// The name of scene `i` of a run.
+pub fn scene_name(i: usize) -> String {
+    format!("synth{i:03}")
+}
+
+/// A generated scene with its planned Points.
+pub struct PlannedScene {
+    /// The geometry.
+    pub scene: Scene,
+    /// The Points, in file order.
+    pub points: Vec<PointPlan>,
+}
+
+/// Generate scene `index` of `cfg` and plan its Points. Grows the apartment until the 2 m grid holds
+/// `points_per_scene` key positions in free space, then keeps that many.
+pub fn plan_scene(cfg: &SynthConfig, index: usize) -> PlannedScene {
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ (index as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    let opts = SceneOptions {
+        images: cfg.textures.clone(),
+    };
+    // About 4 m^2 of floor per grid node, plus room for walls and furniture.
+    let mut area = (cfg.points_per_scene as f32 * 4.0 * 1.45).max(12.0);
+    loop {
+        let scene = scene::generate(&scene_name(index), &mut rng, area, &opts);
+        let obstacles = scene.obstacles();
+        let keys = protocol::key_positions(&scene, &obstacles, &mut rng);
+        if keys.len() >= cfg.points_per_scene {
+            let keys = protocol::choose_points(keys, cfg.points_per_scene, &mut rng);
+            let points = keys
+                .into_iter()
+                .map(|k| {
+                    protocol::plan_point(
+                        k,
+                        &scene,
+                        &obstacles,
+                        cfg.queries_per_point,
+                        cfg.tilt_sigma_deg,
+                        &mut rng,
+                    )
+                })
+                .collect();
+            return PlannedScene { scene, points };
+        }
+        area *= 1.15;
+    }
+}
+
+fn frame_seed(seed: u64, scene: usize, point: usize, view: usize) -> u64 {
+    seed.wrapping_mul(0x2545_f491_4f6c_dd1d)
+        ^ ((scene as u64) << 40)
+        ^ ((point as u64) << 20)
+        ^ view as u64
+}
+
+/// Render every view of one Point.
+pub fn render_point(
+    renderer: &Renderer,
+    plan: &PointPlan,
+    k: &Intrinsics,
+    seeds: (u64, usize, usize),
+    on_frame: &(dyn Fn() + Sync),
+) -> PointRecord {
+    let view = |pose: &nalgebra::Isometry3<f64>, i: usize| {
+        let f = renderer.render(pose, k, frame_seed(seeds.0, seeds.1, seeds.2, i));
+        on_frame();
+        View {
+            world_from_camera: *pose,
+            rgb: f.rgb,
+            depth: f.depth,
+            semantic: Some(f.labels),
+        }
+    };
+    let db = plan.db.iter().enumerate().map(|(i, p)| view(p, i)).collect();
+    let queries = plan
+        .queries
+        .iter()
+        .enumerate()
+        .map(|(i, p)| view(p, 1000 + i))
+        .collect();
+    PointRecord {
+        db,
+        queries,
+        instance_categories: None,
+    }
+}
+
+/// Total frames a run will render (for progress bars).
+pub fn planned_frames(planned: &[PlannedScene]) -> u64 {
+    planned
+        .iter()
+        .flat_map(|s| s.points.iter())
+        .map(|p| (p.db.len() + p.queries.len()) as u64)
+        .sum()
+}
+
+/// Generate, render and write a dataset under `root` (files go to `root/HPointLoc_dataset/<scene>/`).
+///
+/// Each scene is written into a temporary folder and moved into place when complete; an existing
+/// scene folder of the same name is replaced only then, so an interrupted run leaves the old data.
+/// `on_frame` is called after every rendered frame (from worker threads).
+pub fn synthesize(
+    cfg: &SynthConfig,
+    root: &Path,
+    planned: Vec<PlannedScene>,
+    on_frame: &(dyn Fn() + Sync),
+) -> Result<Summary, SynthError> {
+    if cfg.points_per_scene == 0 || cfg.scenes == 0 {
+        return Err(SynthError::Config(
+            "scenes and points per scene must be at least 1".into(),
+        ));
+    }
+    let start = Instant::now();
+    let k = Intrinsics::hpointloc();
+    let frames = AtomicU64::new(0);
+    let count = || {
+        frames.fetch_add(1, Ordering::Relaxed);
+        on_frame();
+    };
+    let base = root.join(layout::DATASET_DIR);
+    std::fs::create_dir_all(&base).map_err(|source| SynthError::Io {
+        path: base.clone(),
+        source,
+    })?;
+    let mut summaries = Vec::new();
+    for (si, ps) in planned.iter().enumerate() {
+        let name = &ps.scene.name;
+        let final_dir = base.join(name);
+        let tmp_dir = base.join(format!(".{name}.partial-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&tmp_dir);
+        let tmp_root = tmp_dir.clone();
+        let renderer = Renderer::new(&ps.scene);
+        let table = ps.scene.instance_categories.clone();
+        ps.points
+            .par_iter()
+            .enumerate()
+            .try_for_each(|(pi, plan)| {
+                let mut rec = render_point(&renderer, plan, &k, (cfg.seed, si, pi), &count);
+                rec.instance_categories = Some(table.clone());
+                let path = tmp_root.join(format!("{name}_point{pi}.hdf5"));
+                write_point(&path, &rec, &cfg.write)
+            })?;
+        let old = base.join(format!(".{name}.old-{}", std::process::id()));
+        if final_dir.exists() {
+            std::fs::rename(&final_dir, &old).map_err(|source| SynthError::Io {
+                path: final_dir.clone(),
+                source,
+            })?;
+        }
+        std::fs::rename(&tmp_dir, &final_dir).map_err(|source| SynthError::Io {
+            path: final_dir.clone(),
+            source,
+        })?;
+        let _ = std::fs::remove_dir_all(&old);
+        summaries.push(SceneSummary {
+            name: name.clone(),
+            points: ps.points.len(),
+            db_views: ps.points.iter().map(|p| p.db.len()).sum(),
+            queries: ps.points.iter().map(|p| p.queries.len()).sum(),
+            discarded_queries: ps.points.iter().map(|p| p.discarded).sum(),
+            rooms: ps.scene.rooms.len(),
+            boxes: ps.scene.boxes.len(),
+            size_m: (ps.scene.width_m, ps.scene.depth_m),
+        });
+    }
+    Ok(Summary {
+        scenes: summaries,
+        frames: frames.load(Ordering::Relaxed),
+        seconds: start.elapsed().as_secs_f64(),
+        root: root.to_path_buf(),
+    })
+}
+
+/// Plan all scenes of `cfg` (cheap; no rendering).
+pub fn plan_all(cfg: &SynthConfig) -> Vec<PlannedScene> {
+    (0..cfg.scenes).into_par_iter().map(|i| plan_scene(cfg, i)).collect()
+}
+
+/// Load every PNG/JPEG image in `dir` as a texture.
+pub fn load_textures(dir: &Path) -> Result<Vec<Arc<TextureImage>>, SynthError> {
+    let io = |source| SynthError::Io {
+        path: dir.to_path_buf(),
+        source,
+    };
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| matches!(e.to_ascii_lowercase().as_str(), "png" | "jpg" | "jpeg"))
+        })
+        .collect();
+    paths.sort();
+    let mut out = Vec::new();
+    for p in paths {
+        let img = image::open(&p)
+            .map_err(|e| SynthError::Config(format!("{}: cannot decode image: {e}", p.display())))?
+            .to_rgb8();
+        let (width, height) = img.dimensions();
+        if width == 0 || height == 0 {
+            continue;
+        }
+        let data = img
+            .pixels()
+            .map(|px| [px[0] as f32 / 255.0, px[1] as f32 / 255.0, px[2] as f32 / 255.0])
+            .collect();
+        out.push(Arc::new(TextureImage {
+            width,
+            height,
+            data,
+        }));
+    }
+    if out.is_empty() {
+        return Err(SynthError::Config(format!(
+            "{}: no PNG or JPEG images found",
+            dir.display()
+        )));
+    }
+    Ok(out)
+}
