@@ -11,7 +11,11 @@ use std::path::PathBuf;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "pntr", version, about = "Indoor RGB-D localization (PNTR pipeline): tools")]
+#[command(
+    name = "pntr",
+    version,
+    about = "Indoor RGB-D localization (PNTR pipeline): tools"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

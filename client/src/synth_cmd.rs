@@ -6,7 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use pntr_dataset::{DatasetIndex, Role, WriteOptions};
-use pntr_synth::{SynthConfig, Summary};
+use pntr_synth::{Summary, SynthConfig};
 use serde_json::json;
 
 /// Arguments of `pntr synth`.
@@ -157,7 +157,13 @@ pub fn info(dataset: &Path, as_json: bool) -> Result<()> {
             q += r.count(Role::Query);
             size = Some((r.width(), r.height()));
         }
-        scenes.push((scene.name.clone(), scene.points.len(), db, q, size.unwrap_or((0, 0))));
+        scenes.push((
+            scene.name.clone(),
+            scene.points.len(),
+            db,
+            q,
+            size.unwrap_or((0, 0)),
+        ));
     }
     if as_json {
         let v: Vec<_> = scenes
@@ -168,7 +174,10 @@ pub fn info(dataset: &Path, as_json: bool) -> Result<()> {
             .collect();
         println!("{}", serde_json::to_string_pretty(&json!({ "scenes": v }))?);
     } else {
-        println!("{:<16} {:>6} {:>8} {:>8} {:>9}", "scene", "points", "db_views", "queries", "size");
+        println!(
+            "{:<16} {:>6} {:>8} {:>8} {:>9}",
+            "scene", "points", "db_views", "queries", "size"
+        );
         for (n, p, d, q, (w, h)) in scenes {
             println!("{n:<16} {p:>6} {d:>8} {q:>8} {:>9}", format!("{w}x{h}"));
         }

@@ -192,12 +192,8 @@ mod tests {
 
     #[test]
     fn hpointloc_depth_decoding_marks_invalid() {
-        let d = DepthMap::from_hpointloc(
-            3,
-            2,
-            &[0.0, 0.25, f32::NAN, 1.0, -0.1, f32::INFINITY],
-        )
-        .unwrap();
+        let d = DepthMap::from_hpointloc(3, 2, &[0.0, 0.25, f32::NAN, 1.0, -0.1, f32::INFINITY])
+            .unwrap();
         assert_eq!(d.get(0, 0), None);
         assert_eq!(d.get(1, 0), Some(2.5));
         assert_eq!(d.get(2, 0), None);

@@ -78,7 +78,11 @@ impl Intrinsics {
 
     /// Back-project pixel (u, v) with planar depth `z_m` to a point in the OpenCV camera frame.
     pub fn backproject(&self, u: f64, v: f64, z_m: f64) -> Point3<f64> {
-        Point3::new((u - self.cx) / self.fx * z_m, (v - self.cy) / self.fy * z_m, z_m)
+        Point3::new(
+            (u - self.cx) / self.fx * z_m,
+            (v - self.cy) / self.fy * z_m,
+            z_m,
+        )
     }
 
     /// Project an OpenCV-frame point to pixel coordinates; `None` behind the camera.

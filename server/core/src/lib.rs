@@ -24,8 +24,7 @@ pub mod pose;
 pub use image::{DepthMap, ImageError, LabelMap, RgbImage};
 pub use intrinsics::{Intrinsics, IntrinsicsError};
 pub use pose::{
-    convert_axes, pose_from_hpointloc, pose_to_hpointloc, rotation_angle_deg, CameraAxes,
-    PoseError,
+    convert_axes, pose_from_hpointloc, pose_to_hpointloc, rotation_angle_deg, CameraAxes, PoseError,
 };
 
 /// HPointLoc stores depth normalised to 0..1 where 1.0 is this many metres.

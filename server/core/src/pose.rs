@@ -50,7 +50,10 @@ pub fn convert_axes(
 ///
 /// The quaternion is normalised; one whose norm is outside 0.9..1.1 or that has a non-finite component
 /// is refused, because it is a corrupt record rather than rounding.
-pub fn pose_from_hpointloc(gps: [f64; 3], quat_wxyz: [f64; 4]) -> Result<Isometry3<f64>, PoseError> {
+pub fn pose_from_hpointloc(
+    gps: [f64; 3],
+    quat_wxyz: [f64; 4],
+) -> Result<Isometry3<f64>, PoseError> {
     if gps.iter().chain(quat_wxyz.iter()).any(|v| !v.is_finite()) {
         return Err(PoseError::NonFinite(format!(
             "gps={gps:?} quat(w,x,y,z)={quat_wxyz:?}"
@@ -73,10 +76,7 @@ pub fn pose_to_hpointloc(world_from_camera: &Isometry3<f64>) -> ([f64; 3], [f64;
     let t = world_from_camera.translation.vector;
     let q = world_from_camera.rotation.quaternion();
     let s = if q.w < 0.0 { -1.0 } else { 1.0 };
-    (
-        [t.x, t.y, t.z],
-        [s * q.w, s * q.i, s * q.j, s * q.k],
-    )
+    ([t.x, t.y, t.z], [s * q.w, s * q.i, s * q.j, s * q.k])
 }
 
 /// Geodesic angle between two rotations, in degrees: the angle of `a^T b`, in 0..=180.

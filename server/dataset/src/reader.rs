@@ -186,7 +186,9 @@ impl PointReader {
                         return Err(DatasetError::field(
                             path,
                             &f_sem,
-                            format!("shape {sshape:?}, expected ({n}, {h}, {w}) or ({n}, {h}, {w}, 1)"),
+                            format!(
+                                "shape {sshape:?}, expected ({n}, {h}, {w}) or ({n}, {h}, {w}, 1)"
+                            ),
                         ))
                     }
                 };

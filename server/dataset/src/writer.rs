@@ -156,7 +156,11 @@ fn write_role(
     let arr = ArrayView4::from_shape((n, h, w, 1), &depth).expect("sized above");
     let b = file.new_dataset_builder().with_data(arr);
     match gz {
-        Some(l) => b.chunk((1, h, w, 1)).shuffle().deflate(l).create(f.as_str()),
+        Some(l) => b
+            .chunk((1, h, w, 1))
+            .shuffle()
+            .deflate(l)
+            .create(f.as_str()),
         None => b.create(f.as_str()),
     }
     .map_err(h5(tmp, &f))?;

@@ -5,6 +5,8 @@
 //! `synth_point` renders all views of one Point (6 database + the queries) with rayon over views, the
 //! unit of work `pntr synth` parallelises, and reports frames per second.
 
+#![allow(missing_docs)] // criterion_group! generates undocumented functions
+
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use pntr_core::Intrinsics;
 use pntr_synth::{plan_scene, Renderer, SynthConfig};

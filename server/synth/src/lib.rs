@@ -136,7 +136,8 @@ pub struct PlannedScene {
 /// Generate scene `index` of `cfg` and plan its Points. Grows the apartment until the 2 m grid holds
 /// `points_per_scene` key positions in free space, then keeps that many.
 pub fn plan_scene(cfg: &SynthConfig, index: usize) -> PlannedScene {
-    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ (index as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    let mut rng =
+        ChaCha8Rng::seed_from_u64(cfg.seed ^ (index as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15));
     let opts = SceneOptions {
         images: cfg.textures.clone(),
     };
@@ -192,7 +193,12 @@ pub fn render_point(
             semantic: Some(f.labels),
         }
     };
-    let db = plan.db.iter().enumerate().map(|(i, p)| view(p, i)).collect();
+    let db = plan
+        .db
+        .iter()
+        .enumerate()
+        .map(|(i, p)| view(p, i))
+        .collect();
     let queries = plan
         .queries
         .iter()
@@ -294,7 +300,10 @@ pub fn synthesize(
 
 /// Plan all scenes of `cfg` (cheap; no rendering).
 pub fn plan_all(cfg: &SynthConfig) -> Vec<PlannedScene> {
-    (0..cfg.scenes).into_par_iter().map(|i| plan_scene(cfg, i)).collect()
+    (0..cfg.scenes)
+        .into_par_iter()
+        .map(|i| plan_scene(cfg, i))
+        .collect()
 }
 
 /// Load every PNG/JPEG image in `dir` as a texture.
@@ -324,7 +333,13 @@ pub fn load_textures(dir: &Path) -> Result<Vec<Arc<TextureImage>>, SynthError> {
         }
         let data = img
             .pixels()
-            .map(|px| [px[0] as f32 / 255.0, px[1] as f32 / 255.0, px[2] as f32 / 255.0])
+            .map(|px| {
+                [
+                    px[0] as f32 / 255.0,
+                    px[1] as f32 / 255.0,
+                    px[2] as f32 / 255.0,
+                ]
+            })
             .collect();
         out.push(Arc::new(TextureImage {
             width,

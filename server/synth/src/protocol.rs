@@ -117,7 +117,11 @@ pub fn plan_point(
 }
 
 /// Keep `k` of the candidates, chosen at random, in their original (row-major grid) order.
-pub fn choose_points(mut candidates: Vec<(f32, f32)>, k: usize, rng: &mut ChaCha8Rng) -> Vec<(f32, f32)> {
+pub fn choose_points(
+    mut candidates: Vec<(f32, f32)>,
+    k: usize,
+    rng: &mut ChaCha8Rng,
+) -> Vec<(f32, f32)> {
     if candidates.len() <= k {
         return candidates;
     }

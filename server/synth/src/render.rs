@@ -7,8 +7,8 @@
 use nalgebra::{Isometry3, Vector3};
 use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics, LabelMap, RgbImage};
 use rand::SeedableRng;
-use rand_xoshiro::Xoshiro256PlusPlus;
 use rand_distr::{Distribution, Normal};
+use rand_xoshiro::Xoshiro256PlusPlus;
 
 use crate::scene::Scene;
 
@@ -120,7 +120,14 @@ impl<'s> Renderer<'s> {
         }
     }
 
-    fn build(scene: &Scene, nodes: &mut Vec<Node>, order: &mut [u32], node: usize, lo: usize, hi: usize) {
+    fn build(
+        scene: &Scene,
+        nodes: &mut Vec<Node>,
+        order: &mut [u32],
+        node: usize,
+        lo: usize,
+        hi: usize,
+    ) {
         let mut mn = Vector3::repeat(f32::INFINITY);
         let mut mx = Vector3::repeat(f32::NEG_INFINITY);
         for &i in &order[lo..hi] {
@@ -160,7 +167,8 @@ impl<'s> Renderer<'s> {
             let mut bmin = [Vector3::repeat(f32::INFINITY); BINS];
             let mut bmax = [Vector3::repeat(f32::NEG_INFINITY); BINS];
             let mut bcount = [0usize; BINS];
-            let bin_of = |c: f32| (((c - cmin) / (cmax - cmin) * BINS as f32) as usize).min(BINS - 1);
+            let bin_of =
+                |c: f32| (((c - cmin) / (cmax - cmin) * BINS as f32) as usize).min(BINS - 1);
             for &i in &order[lo..hi] {
                 let k = bin_of(centre(i, axis));
                 let b = &scene.boxes[i as usize];
@@ -169,13 +177,21 @@ impl<'s> Renderer<'s> {
                 bcount[k] += 1;
             }
             for split in 1..BINS {
-                let (mut lmin, mut lmax, mut lc) = (Vector3::repeat(f32::INFINITY), Vector3::repeat(f32::NEG_INFINITY), 0);
+                let (mut lmin, mut lmax, mut lc) = (
+                    Vector3::repeat(f32::INFINITY),
+                    Vector3::repeat(f32::NEG_INFINITY),
+                    0,
+                );
                 for k in 0..split {
                     lmin = lmin.inf(&bmin[k]);
                     lmax = lmax.sup(&bmax[k]);
                     lc += bcount[k];
                 }
-                let (mut rmin, mut rmax, mut rc) = (Vector3::repeat(f32::INFINITY), Vector3::repeat(f32::NEG_INFINITY), 0);
+                let (mut rmin, mut rmax, mut rc) = (
+                    Vector3::repeat(f32::INFINITY),
+                    Vector3::repeat(f32::NEG_INFINITY),
+                    0,
+                );
                 for k in split..BINS {
                     rmin = rmin.inf(&bmin[k]);
                     rmax = rmax.sup(&bmax[k]);
@@ -205,7 +221,11 @@ impl<'s> Renderer<'s> {
             }
             None => (lo + hi) / 2,
         };
-        let mid = if mid == lo || mid == hi { (lo + hi) / 2 } else { mid };
+        let mid = if mid == lo || mid == hi {
+            (lo + hi) / 2
+        } else {
+            mid
+        };
         let left = nodes.len();
         for _ in 0..2 {
             nodes.push(Node {
@@ -268,7 +288,11 @@ impl<'s> Renderer<'s> {
                 let (l, r) = (n.start, n.start + 1);
                 let tl = self.entry(l, o, &inv);
                 let tr = self.entry(r, o, &inv);
-                let ((near, tn), (far, tf)) = if tl <= tr { ((l, tl), (r, tr)) } else { ((r, tr), (l, tl)) };
+                let ((near, tn), (far, tf)) = if tl <= tr {
+                    ((l, tl), (r, tr))
+                } else {
+                    ((r, tr), (l, tl))
+                };
                 if tf.is_finite() {
                     stack[sp] = (far, tf);
                     sp += 1;
@@ -304,16 +328,32 @@ impl<'s> Renderer<'s> {
 
     /// Render the view of a camera at `world_from_camera` (Habitat axes, as HPointLoc stores poses).
     /// `noise_seed` drives the RGB sensor noise (Gaussian, sigma 0.02 of full scale, as HPointLoc).
-    pub fn render(&self, world_from_camera: &Isometry3<f64>, k: &Intrinsics, noise_seed: u64) -> Frame {
+    pub fn render(
+        &self,
+        world_from_camera: &Isometry3<f64>,
+        k: &Intrinsics,
+        noise_seed: u64,
+    ) -> Frame {
         self.render_with(world_from_camera, k, noise_seed, false)
     }
 
     /// As [`Renderer::render`] but testing every box for every ray (no hierarchy).
-    pub fn render_brute_force(&self, world_from_camera: &Isometry3<f64>, k: &Intrinsics, noise_seed: u64) -> Frame {
+    pub fn render_brute_force(
+        &self,
+        world_from_camera: &Isometry3<f64>,
+        k: &Intrinsics,
+        noise_seed: u64,
+    ) -> Frame {
         self.render_with(world_from_camera, k, noise_seed, true)
     }
 
-    fn render_with(&self, world_from_camera: &Isometry3<f64>, k: &Intrinsics, noise_seed: u64, brute: bool) -> Frame {
+    fn render_with(
+        &self,
+        world_from_camera: &Isometry3<f64>,
+        k: &Intrinsics,
+        noise_seed: u64,
+        brute: bool,
+    ) -> Frame {
         let cv = convert_axes(world_from_camera, CameraAxes::Habitat, CameraAxes::OpenCv);
         let r = cv.rotation.to_rotation_matrix().matrix().cast::<f32>();
         let o = cv.translation.vector.cast::<f32>();

@@ -781,7 +781,9 @@ fn furnish(b: &mut Builder, room: &Rect, doors: &[Door], width: f32, depth: f32,
             let h = b.rng.gen_range(0.3..0.9f32);
             let x = b.rng.gen_range(0.2..len - 0.2 - w);
             let yc = b.rng.gen_range(1.35..1.75f32);
-            let clash = wall_spans[k].iter().any(|&(a, c)| x < c + 0.1 && a < x + w + 0.1);
+            let clash = wall_spans[k]
+                .iter()
+                .any(|&(a, c)| x < c + 0.1 && a < x + w + 0.1);
             let (wx0, wz0) = anchor.world(x, -0.1);
             let (wx1, wz1) = anchor.world(x + w, -0.1);
             let span = Rect {
@@ -838,7 +840,13 @@ fn build_item(b: &mut Builder, item: Item, a: &Anchor, w: f32, d: f32) {
             put(b, [0.0, 0.0, 0.0], [w, 1.0, 0.06], wood, id);
             let pw = (w - 0.3) / 2.0;
             put(b, [0.1, 0.55, 0.1], [0.1 + pw, 0.68, 0.45], pillow, id);
-            put(b, [w - 0.1 - pw, 0.55, 0.1], [w - 0.1, 0.68, 0.45], pillow, id);
+            put(
+                b,
+                [w - 0.1 - pw, 0.55, 0.1],
+                [w - 0.1, 0.68, 0.45],
+                pillow,
+                id,
+            );
         }
         Item::Sofa => {
             let id = b.instance("sofa");
@@ -852,7 +860,13 @@ fn build_item(b: &mut Builder, item: Item, a: &Anchor, w: f32, d: f32) {
             let cw = (w - 0.36) / n as f32;
             for i in 0..n {
                 let x0 = 0.18 + i as f32 * cw + 0.02;
-                put(b, [x0, 0.42, 0.22], [x0 + cw - 0.04, 0.52, d - 0.05], cush, id);
+                put(
+                    b,
+                    [x0, 0.42, 0.22],
+                    [x0 + cw - 0.04, 0.52, d - 0.05],
+                    cush,
+                    id,
+                );
             }
         }
         Item::Cabinet | Item::Drawers => {
@@ -870,7 +884,13 @@ fn build_item(b: &mut Builder, item: Item, a: &Anchor, w: f32, d: f32) {
             let rh = (h - 0.1) / rows as f32;
             for r in 0..rows {
                 let y0 = 0.06 + r as f32 * rh;
-                put(b, [0.04, y0, d], [w - 0.04, y0 + rh - 0.04, d + 0.015], front, id);
+                put(
+                    b,
+                    [0.04, y0, d],
+                    [w - 0.04, y0 + rh - 0.04, d + 0.015],
+                    front,
+                    id,
+                );
                 let cx = w / 2.0;
                 let cy = y0 + rh / 2.0;
                 put(
@@ -904,10 +924,16 @@ fn build_item(b: &mut Builder, item: Item, a: &Anchor, w: f32, d: f32) {
                     let bh = b.rng.gen_range(0.5..0.85) * (sh - 0.05);
                     if b.rng.gen_bool(0.85) {
                         let book_c = rgb(b.rng, 0.05, 0.95);
-            let book = b.solid(book_c);
+                        let book = b.solid(book_c);
                         let bid = b.instance("objects");
                         let bd = b.rng.gen_range(0.6..0.95) * d;
-                        put(b, [x, y + 0.03, 0.03], [x + bw, y + 0.03 + bh, bd], book, bid);
+                        put(
+                            b,
+                            [x, y + 0.03, 0.03],
+                            [x + bw, y + 0.03 + bh, bd],
+                            book,
+                            bid,
+                        );
                     }
                     x += bw + b.rng.gen_range(0.0..0.02);
                 }
@@ -922,7 +948,13 @@ fn build_item(b: &mut Builder, item: Item, a: &Anchor, w: f32, d: f32) {
             let screen = b.painting_material();
             let tw = w * 0.8;
             let x0 = (w - tw) / 2.0;
-            put(b, [x0, 0.5, 0.1], [x0 + tw, 0.5 + tw * 0.56, 0.16], dark, tv);
+            put(
+                b,
+                [x0, 0.5, 0.1],
+                [x0 + tw, 0.5 + tw * 0.56, 0.16],
+                dark,
+                tv,
+            );
             put(
                 b,
                 [x0 + 0.03, 0.53, 0.16],
@@ -958,20 +990,37 @@ fn build_item(b: &mut Builder, item: Item, a: &Anchor, w: f32, d: f32) {
             put(b, [0.0, 1.5, 0.0], [w, 2.2, 0.35], ub, up);
             let sink = b.instance("sink");
             let steel = b.solid([0.7, 0.72, 0.75]);
-            put(b, [w * 0.3, 0.9, 0.1], [w * 0.3 + 0.5, 0.92, 0.5], steel, sink);
+            put(
+                b,
+                [w * 0.3, 0.9, 0.1],
+                [w * 0.3 + 0.5, 0.92, 0.5],
+                steel,
+                sink,
+            );
         }
         Item::Desk => {
             let id = b.instance("table");
             let wood = b.wood_material();
             put(b, [0.0, 0.72, 0.0], [w, 0.76, d], wood, id);
-            for (x, z) in [(0.0, 0.0), (w - 0.05, 0.0), (0.0, d - 0.05), (w - 0.05, d - 0.05)] {
+            for (x, z) in [
+                (0.0, 0.0),
+                (w - 0.05, 0.0),
+                (0.0, d - 0.05),
+                (w - 0.05, d - 0.05),
+            ] {
                 put(b, [x, 0.0, z], [x + 0.05, 0.72, z + 0.05], wood, id);
             }
             let tv = b.instance("tv_monitor");
             let dark = b.solid([0.08, 0.08, 0.1]);
             let screen = b.painting_material();
             put(b, [w * 0.3, 0.76, 0.08], [w * 0.7, 1.15, 0.12], dark, tv);
-            put(b, [w * 0.3 + 0.02, 0.78, 0.12], [w * 0.7 - 0.02, 1.13, 0.125], screen, tv);
+            put(
+                b,
+                [w * 0.3 + 0.02, 0.78, 0.12],
+                [w * 0.7 - 0.02, 1.13, 0.125],
+                screen,
+                tv,
+            );
         }
     }
 }
@@ -984,7 +1033,12 @@ fn build_table_with_chairs(b: &mut Builder, a: &Anchor, w: f32, d: f32) {
         b.add(mn, mx, mat, id);
     };
     put(b, [0.0, 0.72, 0.0], [w, 0.76, d], wood, id);
-    for (x, z) in [(0.05, 0.05), (w - 0.1, 0.05), (0.05, d - 0.1), (w - 0.1, d - 0.1)] {
+    for (x, z) in [
+        (0.05, 0.05),
+        (w - 0.1, 0.05),
+        (0.05, d - 0.1),
+        (w - 0.1, d - 0.1),
+    ] {
         put(b, [x, 0.0, z], [x + 0.05, 0.72, z + 0.05], wood, id);
     }
     let seat = b.fabric_material();
@@ -1016,8 +1070,18 @@ mod tests {
 
     #[test]
     fn generation_is_deterministic_and_has_rooms_doors_and_furniture() {
-        let a = generate("s", &mut ChaCha8Rng::seed_from_u64(5), 120.0, &Default::default());
-        let b = generate("s", &mut ChaCha8Rng::seed_from_u64(5), 120.0, &Default::default());
+        let a = generate(
+            "s",
+            &mut ChaCha8Rng::seed_from_u64(5),
+            120.0,
+            &Default::default(),
+        );
+        let b = generate(
+            "s",
+            &mut ChaCha8Rng::seed_from_u64(5),
+            120.0,
+            &Default::default(),
+        );
         assert_eq!(a.boxes.len(), b.boxes.len());
         assert_eq!(a.boxes[10].min, b.boxes[10].min);
         assert!(a.rooms.len() >= 3, "{} rooms", a.rooms.len());
@@ -1025,12 +1089,18 @@ mod tests {
         for c in ["wall", "floor", "ceiling", "door", "picture"] {
             assert!(cats.contains(&category_id(c).unwrap()), "no {c}");
         }
-        assert!(a.boxes.iter().all(|b| b.min.x <= b.max.x && b.min.y <= b.max.y && b.min.z <= b.max.z));
+        assert!(a
+            .boxes
+            .iter()
+            .all(|b| b.min.x <= b.max.x && b.min.y <= b.max.y && b.min.z <= b.max.z));
     }
 
     #[test]
     fn door_pieces() {
-        assert_eq!(solid_pieces(0.0, 5.0, &[(1.0, 2.0)]), vec![(0.0, 1.0), (2.0, 5.0)]);
+        assert_eq!(
+            solid_pieces(0.0, 5.0, &[(1.0, 2.0)]),
+            vec![(0.0, 1.0), (2.0, 5.0)]
+        );
         assert_eq!(solid_pieces(0.0, 5.0, &[]), vec![(0.0, 5.0)]);
     }
 }

@@ -333,7 +333,12 @@ mod tests {
 
     #[test]
     fn patterns_vary_over_a_surface() {
-        let m = Material::new(Pattern::Bricks { w: 0.25, h: 0.08 }, [0.7, 0.3, 0.2], [0.8; 3], 3);
+        let m = Material::new(
+            Pattern::Bricks { w: 0.25, h: 0.08 },
+            [0.7, 0.3, 0.2],
+            [0.8; 3],
+            3,
+        );
         let samples: Vec<Rgb> = (0..50)
             .map(|i| m.albedo(i as f32 * 0.031, i as f32 * 0.017, 0.5, 0.5))
             .collect();

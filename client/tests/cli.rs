@@ -1,0 +1,138 @@
+//! The `pntr` binary as a user runs it: output keys other tools depend on, and clear errors.
+
+use std::process::{Command, Output};
+
+fn pntr(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .output()
+        .expect("pntr runs")
+}
+
+fn fails_cleanly(out: &Output) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        !out.status.success(),
+        "expected failure, got success: {err}"
+    );
+    assert!(
+        !err.contains("panicked"),
+        "a panic is not an error message: {err}"
+    );
+    err
+}
+
+#[test]
+fn synth_then_info_report_the_same_dataset() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_str().unwrap();
+    let out = pntr(&[
+        "synth",
+        "--out",
+        root,
+        "--scenes",
+        "2",
+        "--points-per-scene",
+        "2",
+        "--queries-per-point",
+        "3",
+        "--seed",
+        "4",
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let scenes = v["scenes"].as_array().unwrap();
+    assert_eq!(scenes.len(), 2);
+    for s in scenes {
+        assert_eq!(s["points"], 2);
+        assert_eq!(s["db_views"], 12);
+        let q = s["queries"].as_u64().unwrap() + s["discarded_queries"].as_u64().unwrap();
+        assert_eq!(q, 6, "every drawn query is kept or discarded");
+    }
+    let frames = v["frames"].as_u64().unwrap();
+    let expected: u64 = scenes
+        .iter()
+        .map(|s| s["db_views"].as_u64().unwrap() + s["queries"].as_u64().unwrap())
+        .sum();
+    assert_eq!(frames, expected);
+    assert!(v["frames_per_second"].as_f64().unwrap() > 0.0);
+
+    let out = pntr(&["info", "--dataset", root, "--json"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let info: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for (a, b) in info["scenes"].as_array().unwrap().iter().zip(scenes) {
+        assert_eq!(a["name"], b["name"]);
+        assert_eq!(a["queries"], b["queries"]);
+        assert_eq!(
+            (a["width"].as_u64(), a["height"].as_u64()),
+            (Some(256), Some(256))
+        );
+    }
+
+    // Regenerating with the same seed replaces the scene with identical content.
+    let p = dir
+        .path()
+        .join("HPointLoc_dataset/synth000/synth000_point1.hdf5");
+    let before = std::fs::metadata(&p).unwrap().len();
+    let out = pntr(&[
+        "synth",
+        "--out",
+        root,
+        "--scenes",
+        "1",
+        "--points-per-scene",
+        "2",
+        "--queries-per-point",
+        "3",
+        "--seed",
+        "4",
+    ]);
+    assert!(out.status.success());
+    assert_eq!(std::fs::metadata(&p).unwrap().len(), before);
+    let leftovers: Vec<_> = std::fs::read_dir(dir.path().join("HPointLoc_dataset"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(
+        leftovers.is_empty(),
+        "temporary folders left: {leftovers:?}"
+    );
+}
+
+#[test]
+fn bad_arguments_and_files_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_str().unwrap();
+    let err = fails_cleanly(&pntr(&["synth", "--out", root, "--points-per-scene", "0"]));
+    assert!(err.contains("--points-per-scene"), "{err}");
+    let err = fails_cleanly(&pntr(&["synth", "--out", root, "--tilt-sigma-deg", "NaN"]));
+    assert!(err.contains("--tilt-sigma-deg"), "{err}");
+    let err = fails_cleanly(&pntr(&[
+        "synth",
+        "--out",
+        root,
+        "--textures",
+        "/nonexistent-textures",
+    ]));
+    assert!(err.contains("/nonexistent-textures"), "{err}");
+
+    let err = fails_cleanly(&pntr(&["info", "--dataset", root]));
+    assert!(err.contains("HPointLoc_dataset"), "{err}");
+
+    let scene = dir.path().join("HPointLoc_dataset/broken");
+    std::fs::create_dir_all(&scene).unwrap();
+    let bad = scene.join("broken_point0.hdf5");
+    std::fs::write(&bad, b"\x89HDF\r\n\x1a\n truncated").unwrap();
+    let err = fails_cleanly(&pntr(&["info", "--dataset", root]));
+    assert!(err.contains("broken_point0.hdf5"), "{err}");
+}
