@@ -4,6 +4,7 @@
 //! lives in the server crates so that the service, the CLI and the tests share one implementation.
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
+mod register_cmd;
 mod synth_cmd;
 
 use std::path::PathBuf;
@@ -25,6 +26,8 @@ struct Cli {
 enum Command {
     /// Generate a synthetic dataset in the HPointLoc layout.
     Synth(synth_cmd::SynthArgs),
+    /// Register 3D-3D correspondences from a CSV file and print the transform as JSON.
+    Register(register_cmd::RegisterArgs),
     /// List the scenes and Points of a dataset and check that every file reads.
     Info {
         /// Dataset root (the folder holding HPointLoc_dataset, or that folder).
@@ -53,6 +56,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Synth(args) => synth_cmd::run(&args),
+        Command::Register(args) => register_cmd::run(&args),
         Command::Info { dataset, json } => synth_cmd::info(&dataset, json),
         Command::Demo { out } => synth_cmd::demo(&out),
     };

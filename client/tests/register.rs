@@ -1,0 +1,141 @@
+//! `pntr register`: the JSON contract and clear errors for malformed CSV.
+
+use std::fmt::Write as _;
+use std::process::Command;
+
+fn pntr(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .output()
+        .expect("pntr runs")
+}
+
+/// A rotation of `deg` about z and a translation; 500 pairs, the first `outliers` scrambled.
+fn csv(deg: f64, outliers: usize) -> String {
+    let (s, c) = deg.to_radians().sin_cos();
+    let mut out = String::from("sx,sy,sz,dx,dy,dz\n");
+    for i in 0..500u64 {
+        // Deterministic pseudo-random points in a 8 x 3 x 8 m room.
+        let h = |k: u64| {
+            let mut z = (i * 8 + k).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            (z ^ (z >> 31)) as f64 / u64::MAX as f64
+        };
+        let (x, y, z) = (8.0 * h(1) - 4.0, 3.0 * h(2) - 1.5, 8.0 * h(3));
+        let (mut dx, mut dy, mut dz) = (c * x - s * y + 0.5, s * x + c * y - 0.25, z + 1.0);
+        if (i as usize) < outliers {
+            dx = 8.0 * h(4) - 4.0;
+            dy = 3.0 * h(5);
+            dz = 8.0 * h(6);
+        }
+        writeln!(out, "{x},{y},{z},{dx},{dy},{dz}").unwrap();
+    }
+    out
+}
+
+fn check(v: &serde_json::Value, deg: f64) {
+    let r = &v["rotation"];
+    let angle = r[1][0]
+        .as_f64()
+        .unwrap()
+        .atan2(r[0][0].as_f64().unwrap())
+        .to_degrees();
+    assert!((angle - deg).abs() < 0.1, "angle {angle}");
+    assert!((r[2][2].as_f64().unwrap() - 1.0).abs() < 1e-6);
+    let t: Vec<f64> = v["translation"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect();
+    assert!(
+        (t[0] - 0.5).abs() < 1e-3 && (t[1] + 0.25).abs() < 1e-3 && (t[2] - 1.0).abs() < 1e-3,
+        "{t:?}"
+    );
+    assert_eq!(v["valid"], true);
+    assert!(v["seconds"].as_f64().unwrap() >= 0.0);
+}
+
+#[test]
+fn teaser_and_icp_print_the_transform() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("pairs.csv");
+    std::fs::write(&f, csv(30.0, 400)).unwrap();
+    let out = pntr(&["register", "--pairs", f.to_str().unwrap()]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    check(&v, 30.0);
+    let inliers: Vec<u64> = v["inliers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_u64().unwrap())
+        .collect();
+    assert_eq!(inliers.len(), 100);
+    assert!(
+        inliers.iter().all(|&i| i >= 400),
+        "an outlier was called an inlier"
+    );
+
+    std::fs::write(&f, csv(8.0, 20)).unwrap();
+    let out = pntr(&[
+        "register",
+        "--pairs",
+        f.to_str().unwrap(),
+        "--method",
+        "icp",
+        "--noise-bound",
+        "0.02",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    check(&v, 8.0);
+}
+
+#[test]
+fn malformed_csv_is_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("bad.csv");
+    let cases = [
+        ("x,y,z\n1,2,3\n", "header"),
+        (
+            "sx,sy,sz,dx,dy,dz\n1,2,3,4,5,six\n1,2,3,4,5,6\n1,2,3,4,5,6\n",
+            ":2: field `dz`",
+        ),
+        ("sx,sy,sz,dx,dy,dz\n1,2,3,4,5,nan\n", "not finite"),
+        ("sx,sy,sz,dx,dy,dz\n1,2,3,4,5,6\n", "at least 3"),
+        ("\u{0}\u{1}binary", "header"),
+    ];
+    for (text, want) in cases {
+        std::fs::write(&f, text).unwrap();
+        let out = pntr(&["register", "--pairs", f.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && out.stdout.is_empty());
+        assert!(
+            err.contains("bad.csv") && err.contains(want) && !err.contains("panicked"),
+            "{err}"
+        );
+    }
+    std::fs::write(&f, [0xff, 0xfe, 0x00]).unwrap();
+    let out = pntr(&["register", "--pairs", f.to_str().unwrap()]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("not UTF-8"));
+    let out = pntr(&[
+        "register",
+        "--pairs",
+        dir.path().join("absent.csv").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("absent.csv"));
+    let out = pntr(&["register", "--pairs", "x.csv", "--noise-bound=-1"]);
+    assert!(
+        !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--noise-bound")
+    );
+}

@@ -1,0 +1,245 @@
+//! Property tests of the solvers on generated problems with known answers.
+
+use nalgebra::{Rotation3, Vector3};
+use pntr_registration::icp::{icp_clouds, icp_matched, IcpParams};
+use pntr_registration::problems::{errors, generate, Problem};
+use pntr_registration::teaser::{solve, TeaserParams};
+use pntr_registration::Rigid;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+const NOISE_SIGMA_M: f64 = 0.01;
+
+fn problem(rng: &mut ChaCha8Rng, n: usize, outlier_ratio: f64) -> Problem {
+    generate(rng.gen(), n, outlier_ratio, NOISE_SIGMA_M)
+}
+
+#[test]
+fn teaser_survives_up_to_95_percent_outliers() {
+    let p = TeaserParams::default();
+    for (k, ratio) in [0.0, 0.5, 0.9, 0.95].into_iter().enumerate() {
+        for seed in 0..4 {
+            let mut rng = ChaCha8Rng::seed_from_u64(100 * k as u64 + seed);
+            let Problem {
+                src,
+                dst,
+                truth,
+                is_inlier,
+            } = problem(&mut rng, 500, ratio);
+            let r = solve(&src, &dst, &p);
+            assert!(r.valid, "ratio {ratio} seed {seed}: {:?}", r.reason);
+            let (rot, trans) = errors(&r.transform, &truth);
+            assert!(
+                rot < 1.0,
+                "ratio {ratio} seed {seed}: rotation error {rot} deg"
+            );
+            assert!(
+                trans < 3.0 * NOISE_SIGMA_M,
+                "ratio {ratio} seed {seed}: translation error {trans} m"
+            );
+            let true_inliers = is_inlier.iter().filter(|&&b| b).count();
+            let found_true = r.inliers.iter().filter(|&&i| is_inlier[i]).count();
+            assert!(
+                found_true as f64 >= 0.9 * true_inliers as f64,
+                "found {found_true} of {true_inliers} inliers"
+            );
+            assert!(
+                r.inliers.len() <= true_inliers + 10,
+                "{} inliers claimed",
+                r.inliers.len()
+            );
+        }
+    }
+}
+
+#[test]
+fn teaser_refuses_degenerate_and_hopeless_input() {
+    let p = TeaserParams::default();
+    let pts = |v: &[(f64, f64, f64)]| {
+        v.iter()
+            .map(|&(x, y, z)| Vector3::new(x, y, z))
+            .collect::<Vec<_>>()
+    };
+    // Fewer than three correspondences.
+    let r = solve(
+        &pts(&[(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)]),
+        &pts(&[(0.0, 0.0, 0.0), (1.0, 0.0, 0.0)]),
+        &p,
+    );
+    assert!(!r.valid && r.reason.unwrap().contains("at least 3"));
+    assert!(!solve(&[], &[], &p).valid);
+    // Mismatched lengths.
+    assert!(!solve(&pts(&[(0.0, 0.0, 0.0); 5]), &pts(&[(0.0, 0.0, 0.0); 4]), &p).valid);
+    // All points identical.
+    let same = vec![Vector3::new(1.0, 2.0, 3.0); 50];
+    let r = solve(&same, &same, &p);
+    assert!(
+        !r.valid && r.reason.as_deref().unwrap().contains("coincide"),
+        "{:?}",
+        r.reason
+    );
+    // All points on one line: rotation about it is undetermined.
+    let line: Vec<_> = (0..50)
+        .map(|i| Vector3::new(0.1 * i as f64, 0.0, 1.0))
+        .collect();
+    let r = solve(&line, &line, &p);
+    assert!(
+        !r.valid && r.reason.as_deref().unwrap().contains("collinear"),
+        "{:?}",
+        r.reason
+    );
+    // Every correspondence an outlier.
+    for seed in 0..5 {
+        let mut rng = ChaCha8Rng::seed_from_u64(900 + seed);
+        let Problem { src, dst, .. } = problem(&mut rng, 500, 1.0);
+        let r = solve(&src, &dst, &p);
+        assert!(
+            !r.valid,
+            "seed {seed}: all outliers accepted with {} inliers",
+            r.inliers.len()
+        );
+    }
+    // Non-finite values are ignored, not propagated.
+    let mut rng = ChaCha8Rng::seed_from_u64(77);
+    let Problem {
+        mut src,
+        dst,
+        truth,
+        ..
+    } = problem(&mut rng, 200, 0.3);
+    src[150].x = f64::NAN;
+    let r = solve(&src, &dst, &p);
+    assert!(r.valid && !r.inliers.contains(&150));
+    assert!(errors(&r.transform, &truth).0 < 1.0);
+}
+
+#[test]
+fn dense_low_outlier_problem_does_not_blow_up() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let Problem {
+        src, dst, truth, ..
+    } = problem(&mut rng, 2000, 0.0);
+    let r = solve(&src, &dst, &TeaserParams::default());
+    assert!(r.valid);
+    assert!(r.clique_size > 1900, "{}", r.clique_size);
+    assert!(errors(&r.transform, &truth).0 < 0.2);
+}
+
+/// Points on the walls, floor and ceiling of a 6 x 3 x 5 m room, as a depth camera would see them.
+fn room_cloud(rng: &mut ChaCha8Rng, n: usize) -> Vec<Vector3<f64>> {
+    (0..n)
+        .map(|_| {
+            let (u, v) = (rng.gen_range(0.0..1.0), rng.gen_range(0.0..1.0));
+            match rng.gen_range(0..5) {
+                0 => Vector3::new(-3.0 + 6.0 * u, -1.25 + 2.8 * v, 5.0),
+                1 => Vector3::new(-3.0, -1.25 + 2.8 * v, 5.0 * u),
+                2 => Vector3::new(3.0, -1.25 + 2.8 * v, 5.0 * u),
+                3 => Vector3::new(-3.0 + 6.0 * u, -1.25, 5.0 * v),
+                _ => Vector3::new(-3.0 + 6.0 * u, 1.55, 5.0 * v),
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn icp_converges_from_ten_degrees_and_thirty_centimetres() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let dst = room_cloud(&mut rng, 4000);
+    let truth = Rigid {
+        rotation: Rotation3::from_axis_angle(&Vector3::y_axis(), 10f64.to_radians()),
+        translation: Vector3::new(0.2, 0.05, -0.2),
+    };
+    // Source: a different sampling of the same room, seen from the perturbed pose.
+    let inv = truth.to_isometry().inverse();
+    let src: Vec<_> = room_cloud(&mut rng, 4000)
+        .iter()
+        .map(|p| inv.transform_vector(p) + inv.translation.vector)
+        .collect();
+    let r = icp_clouds(&src, &dst, Rigid::identity(), &IcpParams::default());
+    assert!(r.valid && r.converged, "{r:?}");
+    let (rot, trans) = errors(&r.transform, &truth);
+    assert!(
+        rot < 0.5 && trans < 0.03,
+        "rotation {rot} deg, translation {trans} m"
+    );
+
+    // Matched pairs with 20% gross outliers: trimming removes them.
+    let Problem {
+        src, dst, truth, ..
+    } = problem(&mut rng, 300, 0.0);
+    let mut dst = dst;
+    for d in dst.iter_mut().take(60) {
+        *d += Vector3::new(2.0, -1.0, 1.5);
+    }
+    let prior = Rigid {
+        rotation: truth.rotation * Rotation3::from_axis_angle(&Vector3::x_axis(), 0.1),
+        translation: truth.translation + Vector3::new(0.1, 0.1, -0.1),
+    };
+    let r = icp_matched(
+        &src,
+        &dst,
+        prior,
+        &IcpParams {
+            max_correspondence_m: 1.5,
+            ..Default::default()
+        },
+    );
+    assert!(r.valid);
+    let (rot, trans) = errors(&r.transform, &truth);
+    assert!(
+        rot < 0.3 && trans < 0.02,
+        "rotation {rot} deg, translation {trans} m"
+    );
+    assert!(r.inliers.iter().all(|&i| i >= 60), "outliers kept");
+}
+
+#[test]
+fn pnp_recovers_a_known_pose_with_outliers() {
+    use nalgebra::Point2;
+    use pntr_registration::pnp::{pnp_ransac, PnpParams};
+    let k = pntr_core::Intrinsics::hpointloc();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let truth = Rigid {
+        rotation: Rotation3::from_euler_angles(0.05, 0.7, -0.02),
+        translation: Vector3::new(0.4, -0.1, 1.5),
+    };
+    let inv = truth.to_isometry().inverse();
+    let noise = Normal::new(0.0, 0.5).unwrap();
+    let (mut pts, mut px) = (Vec::new(), Vec::new());
+    while pts.len() < 300 {
+        // A point in front of the camera, expressed in the world frame.
+        let c = Vector3::new(
+            rng.gen_range(-3.0..3.0),
+            rng.gen_range(-2.0..2.0),
+            rng.gen_range(1.0..8.0),
+        );
+        let uv = k.project(&c.into()).unwrap();
+        if uv.x < 0.0 || uv.y < 0.0 || uv.x > 255.0 || uv.y > 255.0 {
+            continue;
+        }
+        pts.push(inv.transform_vector(&c) + inv.translation.vector);
+        px.push(Point2::new(
+            uv.x + noise.sample(&mut rng),
+            uv.y + noise.sample(&mut rng),
+        ));
+    }
+    for p in px.iter_mut().take(90) {
+        *p = Point2::new(rng.gen_range(0.0..256.0), rng.gen_range(0.0..256.0));
+    }
+    let r = pnp_ransac(&k, &pts, &px, &PnpParams::default());
+    assert!(r.valid, "{:?}", r.reason);
+    let (rot, trans) = errors(&r.camera_from_points, &truth);
+    assert!(
+        rot < 0.5 && trans < 0.05,
+        "rotation {rot} deg, translation {trans} m"
+    );
+    assert!(
+        r.inliers.iter().filter(|&&i| i < 90).count() < 5,
+        "outliers accepted"
+    );
+    // Too few points, or all on one plane, are refused rather than guessed.
+    assert!(!pnp_ransac(&k, &pts[..5], &px[..5], &PnpParams::default()).valid);
+    let planar: Vec<_> = pts.iter().map(|p| Vector3::new(p.x, p.y, 3.0)).collect();
+    assert!(!pnp_ransac(&k, &planar, &px, &PnpParams::default()).valid);
+}
