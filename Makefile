@@ -34,3 +34,4 @@ test: fmt lint unit
 
 bench: setup
 	$(CARGO) bench -p pntr-synth --bench render
+	$(CARGO) bench -p pntr-registration --bench registration

@@ -13,6 +13,8 @@ fn bench(c: &mut Criterion) {
     let p = TeaserParams::default();
     let mut g = c.benchmark_group("teaser");
     g.sample_size(10);
+    g.warm_up_time(std::time::Duration::from_millis(500));
+    g.measurement_time(std::time::Duration::from_secs(2));
     for n in [100usize, 500, 1000, 2000] {
         for ratio in [0.0, 0.5, 0.9, 0.95] {
             let prob = generate(42, n, ratio, 0.01);
@@ -25,6 +27,8 @@ fn bench(c: &mut Criterion) {
     g.finish();
     let mut g = c.benchmark_group("kabsch_baseline");
     g.sample_size(10);
+    g.warm_up_time(std::time::Duration::from_millis(500));
+    g.measurement_time(std::time::Duration::from_secs(1));
     for n in [100usize, 500, 1000, 2000] {
         let prob = generate(42, n, 0.0, 0.01);
         g.bench_with_input(BenchmarkId::from_parameter(n), &prob, |b, prob| {
