@@ -64,6 +64,27 @@ pub fn weighted_kabsch(src: &[Vector3<f64>], dst: &[Vector3<f64>], w: &[f64]) ->
     })
 }
 
+/// Standard deviations of `points` along their principal axes, largest first (all zero when empty).
+pub(crate) fn principal_spreads(points: &[Vector3<f64>]) -> [f64; 3] {
+    if points.is_empty() {
+        return [0.0; 3];
+    }
+    let n = points.len() as f64;
+    let c = points.iter().sum::<Vector3<f64>>() / n;
+    let mut cov = Matrix3::zeros();
+    for p in points {
+        cov += (p - c) * (p - c).transpose();
+    }
+    cov /= n;
+    let mut ev: Vec<f64> = cov
+        .symmetric_eigenvalues()
+        .iter()
+        .map(|v| v.max(0.0).sqrt())
+        .collect();
+    ev.sort_by(|a, b| b.total_cmp(a));
+    [ev[0], ev[1], ev[2]]
+}
+
 /// Unweighted least-squares rigid transform; `None` for empty or mismatched input.
 pub fn kabsch(src: &[Vector3<f64>], dst: &[Vector3<f64>]) -> Option<Rigid> {
     weighted_kabsch(src, dst, &vec![1.0; src.len()])

@@ -6,12 +6,13 @@
 //! by Levenberg-Marquardt on the reprojection error in pixels (numeric Jacobian over a rotation vector
 //! and the translation), the g2o-style refinement of the HPointLoc paper's PnP baselines.
 
-use nalgebra::{DMatrix, Matrix3, Matrix3x4, Point2, Rotation3, SMatrix, SVector, Vector3};
+use nalgebra::{DMatrix, Matrix3x4, Point2, Rotation3, SMatrix, SVector, Vector3};
 use pntr_core::Intrinsics;
 use rand::seq::index::sample;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use crate::kabsch::principal_spreads;
 use crate::Rigid;
 
 /// PnP-RANSAC parameters.
@@ -70,18 +71,7 @@ fn reproj2(k: &Intrinsics, t: &Rigid, p: &Vector3<f64>, uv: &Point2<f64>) -> f64
 }
 
 fn spread_ok(pts: &[Vector3<f64>]) -> bool {
-    let n = pts.len() as f64;
-    let c = pts.iter().sum::<Vector3<f64>>() / n;
-    let mut cov = Matrix3::zeros();
-    for p in pts {
-        cov += (p - c) * (p - c).transpose();
-    }
-    let mut ev: Vec<f64> = cov
-        .symmetric_eigenvalues()
-        .iter()
-        .map(|v| v.max(0.0).sqrt())
-        .collect();
-    ev.sort_by(|a, b| b.total_cmp(a));
+    let ev = principal_spreads(pts);
     ev[0] > 1e-9 && ev[2] > 0.05 * ev[0]
 }
 

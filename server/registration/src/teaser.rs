@@ -18,10 +18,10 @@
 
 use std::time::Duration;
 
-use nalgebra::{Matrix3, Rotation3, Vector3};
+use nalgebra::{Rotation3, Vector3};
 
 use crate::clique::{max_clique, Graph};
-use crate::kabsch::{weighted_kabsch, weighted_rotation};
+use crate::kabsch::{principal_spreads, weighted_kabsch, weighted_rotation};
 use crate::Rigid;
 
 /// Solver parameters.
@@ -341,19 +341,7 @@ pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> Te
 
 /// Why a point set cannot fix a rotation: all points within the noise of one point, or of one line.
 pub fn degenerate(points: &[Vector3<f64>], noise: f64) -> Option<String> {
-    let n = points.len() as f64;
-    let c = points.iter().sum::<Vector3<f64>>() / n;
-    let mut cov = Matrix3::zeros();
-    for p in points {
-        cov += (p - c) * (p - c).transpose();
-    }
-    cov /= n;
-    let mut ev: Vec<f64> = cov
-        .symmetric_eigenvalues()
-        .iter()
-        .map(|v| v.max(0.0).sqrt())
-        .collect();
-    ev.sort_by(|a, b| b.total_cmp(a));
+    let ev = principal_spreads(points);
     // Spread (standard deviation) along the two main directions.
     let floor = 0.5 * noise;
     if ev[0] < floor {
