@@ -1,0 +1,96 @@
+//! Local features: keypoints and descriptors from an image, and matches between two sets.
+//!
+//! Learned models run on ONNX Runtime through `ort` with the library loaded at run time
+//! ([`runtime`]), so the build never downloads anything and the same binary uses the CPU library from
+//! set-up or a GPU build of ONNX Runtime when one is installed. Models are plain graphs with documented
+//! contracts (`models/README.md`): XFeat's CNN exports as dense maps and its sparse step (NMS, top-k,
+//! descriptor sampling) runs here in Rust, which keeps the graph exportable at any image size; the
+//! LighterGlue graph returns the log assignment and the match filter runs here.
+//!
+//! Output keeps pairs aligned: a [`Matches`] holds indices into both keypoint lists and a score.
+
+pub mod lighterglue;
+pub mod mnn;
+pub mod runtime;
+pub mod xfeat;
+
+use pntr_core::RgbImage;
+
+/// Errors of feature extraction and matching.
+#[derive(Debug, thiserror::Error)]
+pub enum FeatureError {
+    /// ONNX Runtime could not be loaded or initialised.
+    #[error("ONNX Runtime: {0}")]
+    Runtime(String),
+    /// A model file is missing or unreadable, or does not follow its contract.
+    #[error("model {path}: {message}")]
+    Model {
+        /// The model file.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+    /// An input cannot be processed (wrong size, empty, mismatched dimensions).
+    #[error("invalid input: {0}")]
+    Input(String),
+    /// Inference failed.
+    #[error("inference failed: {0}")]
+    Inference(String),
+}
+
+/// Keypoints with descriptors of one image.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Features {
+    /// Keypoints (x = column, y = row) in pixels of the input image, OpenCV convention.
+    pub keypoints: Vec<[f32; 2]>,
+    /// Detection score per keypoint.
+    pub scores: Vec<f32>,
+    /// Descriptors, `keypoints.len() * dim` values, row-major.
+    pub descriptors: Vec<f32>,
+    /// Descriptor length.
+    pub dim: usize,
+    /// (width, height) of the image the keypoints refer to.
+    pub image_size: (u32, u32),
+}
+
+impl Features {
+    /// Number of keypoints.
+    pub fn len(&self) -> usize {
+        self.keypoints.len()
+    }
+
+    /// True when there are no keypoints.
+    pub fn is_empty(&self) -> bool {
+        self.keypoints.is_empty()
+    }
+
+    /// Descriptor of keypoint `i`.
+    pub fn descriptor(&self, i: usize) -> &[f32] {
+        &self.descriptors[i * self.dim..(i + 1) * self.dim]
+    }
+}
+
+/// Matches between two feature sets: `pairs[k] = (index in the first, index in the second)`.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Matches {
+    /// Aligned index pairs.
+    pub pairs: Vec<(u32, u32)>,
+    /// Score of each pair (higher is better; matcher-specific scale in 0..1).
+    pub scores: Vec<f32>,
+}
+
+/// Something that turns an image into features.
+pub trait Extractor: Send + Sync {
+    /// Extract features from an RGB image.
+    fn extract(&self, image: &RgbImage) -> Result<Features, FeatureError>;
+    /// The name used in configuration.
+    fn name(&self) -> &'static str;
+}
+
+/// Something that matches two feature sets.
+pub trait Matcher: Send + Sync {
+    /// Match `a` against `b`.
+    fn match_features(&self, a: &Features, b: &Features) -> Result<Matches, FeatureError>;
+    /// The name used in configuration.
+    fn name(&self) -> &'static str;
+}

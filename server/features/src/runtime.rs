@@ -1,0 +1,170 @@
+//! Loading ONNX Runtime and models.
+//!
+//! The shared library is found, in order: an explicit path, `ORT_DYLIB_PATH`, then
+//! `.deps/onnxruntime/libonnxruntime.so.1.31.1` next to the executable's workspace (walking up from
+//! the executable) or the current directory. Binaries therefore work without extra environment after
+//! `scripts/setup.sh`. Sessions are created once; `ort` sessions need `&mut` to run, so each model holds
+//! its session behind a mutex (one inference at a time per model instance; a pool of instances gives
+//! parallelism).
+
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, OnceLock};
+
+use ort::session::builder::GraphOptimizationLevel;
+use ort::session::Session;
+
+use crate::FeatureError;
+
+/// File name of the ONNX Runtime library set-up installs.
+pub const ORT_LIBRARY: &str = "libonnxruntime.so.1.31.1";
+
+static INIT: OnceLock<Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
+
+fn candidates(explicit: Option<&Path>) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Some(p) = explicit {
+        out.push(p.to_path_buf());
+    }
+    if let Some(p) = std::env::var_os("ORT_DYLIB_PATH") {
+        out.push(PathBuf::from(p));
+    }
+    let rel = Path::new(".deps/onnxruntime").join(ORT_LIBRARY);
+    if let Ok(exe) = std::env::current_exe() {
+        for dir in exe.ancestors().skip(1) {
+            out.push(dir.join(&rel));
+        }
+    }
+    if let Ok(cwd) = std::env::current_dir() {
+        for dir in cwd.ancestors() {
+            out.push(dir.join(&rel));
+        }
+    }
+    out
+}
+
+/// Load ONNX Runtime once per process and return the library path and the environment. Later calls
+/// return the first call's outcome.
+pub fn init(
+    explicit: Option<&Path>,
+) -> Result<&'static (PathBuf, ort::environment::Environment), FeatureError> {
+    INIT.get_or_init(|| {
+        let tried = candidates(explicit);
+        let Some(found) = tried.iter().find(|p| p.is_file()) else {
+            return Err(format!(
+                "library not found (run scripts/setup.sh or set ORT_DYLIB_PATH); looked at {}",
+                tried
+                    .iter()
+                    .take(4)
+                    .map(|p| p.display().to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        };
+        let env = ort::init_from(found)
+            .map_err(|e| format!("{}: {e}", found.display()))?
+            .with_name("pntr")
+            .build()
+            .map_err(|e| format!("{}: {e}", found.display()))?;
+        tracing::info!(library = %found.display(), "ONNX Runtime loaded");
+        Ok((found.clone(), env))
+    })
+    .as_ref()
+    .map_err(|e| FeatureError::Runtime(e.clone()))
+}
+
+/// An output tensor: shape and row-major data.
+pub type Tensor = (Vec<usize>, Vec<f32>);
+
+/// A loaded model whose input and output names were checked against its contract.
+pub struct OnnxModel {
+    path: PathBuf,
+    session: Mutex<Session>,
+}
+
+impl std::fmt::Debug for OnnxModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OnnxModel")
+            .field("path", &self.path)
+            .finish()
+    }
+}
+
+impl OnnxModel {
+    /// Load `path` with `threads` intra-op threads and check its input and output names.
+    pub fn load(
+        path: &Path,
+        threads: usize,
+        inputs: &[&str],
+        outputs: &[&str],
+    ) -> Result<Self, FeatureError> {
+        let (_, env) = init(None)?;
+        let err = |message: String| FeatureError::Model {
+            path: path.display().to_string(),
+            message,
+        };
+        if !path.is_file() {
+            return Err(err("file not found".into()));
+        }
+        let build = || -> Result<Session, String> {
+            let mut b = Session::builder(env)
+                .map_err(|e| e.to_string())?
+                .with_optimization_level(GraphOptimizationLevel::Level3)
+                .map_err(|e| e.to_string())?
+                .with_intra_threads(threads.max(1))
+                .map_err(|e| e.to_string())?;
+            b.commit_from_file(path).map_err(|e| e.to_string())
+        };
+        let session = build().map_err(|e| err(format!("cannot load: {e}")))?;
+        let have_in: Vec<&str> = session.inputs().iter().map(|o| o.name()).collect();
+        let have_out: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
+        for (kind, want, have) in [("input", inputs, &have_in), ("output", outputs, &have_out)] {
+            for w in want {
+                if !have.contains(w) {
+                    return Err(err(format!(
+                        "has no {kind} `{w}` (its {kind}s: {})",
+                        have.join(", ")
+                    )));
+                }
+            }
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            session: Mutex::new(session),
+        })
+    }
+
+    /// The model file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Run with f32 inputs given as (name, shape, data); returns the named f32 outputs as
+    /// (shape, data) in the order asked.
+    pub fn run(
+        &self,
+        inputs: &[(&str, Vec<usize>, &[f32])],
+        outputs: &[&str],
+    ) -> Result<Vec<Tensor>, FeatureError> {
+        let inf = |e: ort::Error| FeatureError::Inference(format!("{}: {e}", self.path.display()));
+        let mut values = Vec::with_capacity(inputs.len());
+        for (name, shape, data) in inputs {
+            let t = ort::value::TensorRef::from_array_view((shape.clone(), *data)).map_err(inf)?;
+            values.push((
+                std::borrow::Cow::Borrowed(*name),
+                ort::session::SessionInputValue::from(t),
+            ));
+        }
+        let mut session = self
+            .session
+            .lock()
+            .map_err(|_| FeatureError::Inference("a previous inference panicked".into()))?;
+        let out = session.run(values).map_err(inf)?;
+        let mut result = Vec::with_capacity(outputs.len());
+        for name in outputs {
+            let (shape, data) = out[*name].try_extract_tensor::<f32>().map_err(inf)?;
+            let shape: Vec<usize> = shape.iter().map(|&d| d.max(0) as usize).collect();
+            result.push((shape, data.to_vec()));
+        }
+        Ok(result)
+    }
+}

@@ -1,0 +1,271 @@
+//! The committed ONNX models through ONNX Runtime: parity with the upstream implementation, match
+//! accuracy on synthetic renders with known geometry, and clear errors for bad models and images.
+
+use std::path::PathBuf;
+
+use nalgebra::Point3;
+use pntr_core::{convert_axes, CameraAxes, Intrinsics, RgbImage};
+use pntr_features::lighterglue::LighterGlue;
+use pntr_features::mnn::Mnn;
+use pntr_features::xfeat::{XFeat, XFeatParams};
+use pntr_features::{Extractor, FeatureError, Features, Matcher};
+
+fn models() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../models")
+}
+
+/// A minimal .npy reader (version 1, little-endian, C order) for the reference outputs.
+fn npy(name: &str) -> (Vec<usize>, String, Vec<u8>) {
+    let bytes = std::fs::read(models().join("reference").join(format!("{name}.npy"))).unwrap();
+    assert_eq!(&bytes[..6], b"\x93NUMPY");
+    let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let header = std::str::from_utf8(&bytes[10..10 + hlen]).unwrap();
+    let descr = header
+        .split("'descr': '")
+        .nth(1)
+        .unwrap()
+        .split('\'')
+        .next()
+        .unwrap()
+        .to_string();
+    let shape_s = header
+        .split("'shape': (")
+        .nth(1)
+        .unwrap()
+        .split(')')
+        .next()
+        .unwrap();
+    let shape = shape_s
+        .split(',')
+        .filter(|s| !s.trim().is_empty())
+        .map(|s| s.trim().parse().unwrap())
+        .collect();
+    (shape, descr, bytes[10 + hlen..].to_vec())
+}
+
+fn npy_f32(name: &str) -> (Vec<usize>, Vec<f32>) {
+    let (shape, descr, data) = npy(name);
+    assert_eq!(descr, "<f4", "{name}");
+    (
+        shape,
+        data.chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect(),
+    )
+}
+
+fn reference_features(side: &str) -> Features {
+    let (ks, k) = npy_f32(&format!("kpts_{side}"));
+    let (_, s) = npy_f32(&format!("scores_{side}"));
+    let (ds, d) = npy_f32(&format!("desc_{side}"));
+    Features {
+        keypoints: k.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
+        scores: s,
+        descriptors: d,
+        dim: ds[1],
+        image_size: (256, 256),
+    }
+    .tap(|f| assert_eq!(f.len(), ks[0]))
+}
+
+trait Tap: Sized {
+    fn tap(self, f: impl FnOnce(&Self)) -> Self {
+        f(&self);
+        self
+    }
+}
+impl<T> Tap for T {}
+
+fn image(name: &str) -> RgbImage {
+    let (shape, descr, data) = npy(name);
+    assert_eq!(descr, "|u1");
+    RgbImage::new(shape[1] as u32, shape[0] as u32, data).unwrap()
+}
+
+fn xfeat() -> XFeat {
+    XFeat::load(
+        &models().join("xfeat_backbone.onnx"),
+        XFeatParams::default(),
+    )
+    .unwrap()
+}
+
+#[test]
+fn xfeat_and_lighterglue_match_the_upstream_implementation() {
+    let ours = xfeat().extract(&image("image_a")).unwrap();
+    let refa = reference_features("a");
+    // Keypoints as sets: every reference keypoint should be found at the same pixel.
+    let mut found = 0;
+    let mut worst_desc = 0f32;
+    let mut worst_score = 0f32;
+    for (i, k) in refa.keypoints.iter().enumerate() {
+        if let Some(j) = ours
+            .keypoints
+            .iter()
+            .position(|q| (q[0] - k[0]).abs() < 1e-3 && (q[1] - k[1]).abs() < 1e-3)
+        {
+            found += 1;
+            let dd = refa
+                .descriptor(i)
+                .iter()
+                .zip(ours.descriptor(j))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f32::max);
+            worst_desc = worst_desc.max(dd);
+            worst_score = worst_score.max((refa.scores[i] - ours.scores[j]).abs());
+        }
+    }
+    eprintln!("parity: {found}/{} reference keypoints found; worst descriptor diff {worst_desc:e}, score diff {worst_score:e}", refa.len());
+    assert!(
+        found as f64 >= 0.99 * refa.len() as f64,
+        "{found} of {}",
+        refa.len()
+    );
+    assert!(worst_desc < 1e-3 && worst_score < 1e-4);
+
+    // LighterGlue on the reference features gives the reference matches.
+    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), 1).unwrap();
+    let m = lg.match_features(&refa, &reference_features("b")).unwrap();
+    let (_, _, raw) = npy("matches");
+    let want: Vec<(u32, u32)> = raw
+        .chunks_exact(16)
+        .map(|c| {
+            (
+                i64::from_le_bytes(c[..8].try_into().unwrap()) as u32,
+                i64::from_le_bytes(c[8..].try_into().unwrap()) as u32,
+            )
+        })
+        .collect();
+    let same = m.pairs.iter().filter(|p| want.contains(p)).count();
+    eprintln!(
+        "parity: {} matches, {} reference, {same} identical",
+        m.pairs.len(),
+        want.len()
+    );
+    assert!(
+        same as f64 >= 0.98 * want.len() as f64 && m.pairs.len() <= want.len() + want.len() / 50
+    );
+}
+
+#[test]
+fn matches_on_synthetic_renders_agree_with_geometry() {
+    let cfg = pntr_synth::SynthConfig {
+        points_per_scene: 2,
+        queries_per_point: 12,
+        seed: 3,
+        ..Default::default()
+    };
+    let planned = pntr_synth::plan_scene(&cfg, 0);
+    let renderer = pntr_synth::Renderer::new(&planned.scene);
+    let k = Intrinsics::hpointloc();
+    let x = xfeat();
+    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), 1).unwrap();
+    let mnn = Mnn::default();
+    let (mut total, mut good, mut total_mnn, mut good_mnn, mut pairs) = (0, 0, 0, 0, 0);
+    let point = &planned.points[0];
+    for q in &point.queries {
+        // The database view looking most nearly the query's way: real overlap.
+        let fq = q.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0);
+        let db = point
+            .db
+            .iter()
+            .max_by(|a, b| {
+                let fa = (a.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0)).dot(&fq);
+                let fb = (b.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0)).dot(&fq);
+                fa.total_cmp(&fb)
+            })
+            .unwrap();
+        let (ra, rb) = (renderer.render(q, &k, 1), renderer.render(db, &k, 2));
+        let (fa, fb) = (x.extract(&ra.rgb).unwrap(), x.extract(&rb.rgb).unwrap());
+        let b_from_a = convert_axes(db, CameraAxes::Habitat, CameraAxes::OpenCv).inverse()
+            * convert_axes(q, CameraAxes::Habitat, CameraAxes::OpenCv);
+        let correct = |i: u32, j: u32| -> Option<bool> {
+            let [u, v] = fa.keypoints[i as usize];
+            let z = ra.depth.get(u.round() as u32, v.round() as u32)? as f64;
+            let p: Point3<f64> = b_from_a * k.backproject(u as f64, v as f64, z);
+            let uv = k.project(&p)?;
+            let [bu, bv] = fb.keypoints[j as usize];
+            Some(((uv.x - bu as f64).powi(2) + (uv.y - bv as f64).powi(2)).sqrt() < 3.0)
+        };
+        for (i, j) in lg.match_features(&fa, &fb).unwrap().pairs {
+            if let Some(ok) = correct(i, j) {
+                total += 1;
+                good += ok as usize;
+            }
+        }
+        for (i, j) in mnn.match_features(&fa, &fb).unwrap().pairs {
+            if let Some(ok) = correct(i, j) {
+                total_mnn += 1;
+                good_mnn += ok as usize;
+            }
+        }
+        pairs += 1;
+    }
+    let share = good as f64 / total.max(1) as f64;
+    let share_mnn = good_mnn as f64 / total_mnn.max(1) as f64;
+    eprintln!(
+        "{pairs} query/database pairs: lighterglue {total} matches ({:.1}/pair), {:.1}% within 3 px; mnn {total_mnn} ({:.1}/pair), {:.1}%",
+        total as f64 / pairs as f64,
+        100.0 * share,
+        total_mnn as f64 / pairs as f64,
+        100.0 * share_mnn
+    );
+    assert!(
+        share >= 0.8,
+        "{:.1}% of LighterGlue matches are right",
+        100.0 * share
+    );
+    assert!(
+        total as f64 / pairs as f64 >= 30.0,
+        "too few matches: {total} over {pairs} pairs"
+    );
+}
+
+#[test]
+fn bad_models_and_images_are_clear_errors() {
+    let missing =
+        XFeat::load(&models().join("no_such_model.onnx"), XFeatParams::default()).unwrap_err();
+    assert!(
+        matches!(missing, FeatureError::Model { .. })
+            && missing.to_string().contains("file not found"),
+        "{missing}"
+    );
+    // A model that does not follow the contract (the extractor given to the matcher).
+    let wrong = LighterGlue::load(&models().join("xfeat_backbone.onnx"), 1)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        wrong.contains("has no input `kpts0`") && wrong.contains("image"),
+        "{wrong}"
+    );
+    // A file that is not a model at all.
+    let dir = std::env::temp_dir().join(format!("pntr-features-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let junk = dir.join("junk.onnx");
+    std::fs::write(&junk, b"not a model").unwrap();
+    let e = XFeat::load(&junk, XFeatParams::default())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("junk.onnx") && e.contains("cannot load"), "{e}");
+    let x = xfeat();
+    let tiny = RgbImage::new(16, 16, vec![0; 16 * 16 * 3]).unwrap();
+    assert!(matches!(x.extract(&tiny), Err(FeatureError::Input(_))));
+    let broken = RgbImage {
+        width: 64,
+        height: 64,
+        data: vec![0; 10],
+    };
+    assert!(x
+        .extract(&broken)
+        .unwrap_err()
+        .to_string()
+        .contains("RGB buffer"));
+    // A non-multiple-of-32 size is resized internally and keypoints come back in input pixels.
+    let img = image("image_a");
+    let crop: Vec<u8> = (0..250)
+        .flat_map(|r| img.data[r * 256 * 3..(r * 256 + 250) * 3].to_vec())
+        .collect();
+    let f = x.extract(&RgbImage::new(250, 250, crop).unwrap()).unwrap();
+    assert!(f.len() > 50 && f.keypoints.iter().all(|k| k[0] < 250.0 && k[1] < 250.0));
+    let _ = std::fs::remove_dir_all(&dir);
+}
