@@ -11,7 +11,7 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 DEPS="$ROOT/.deps"
 ORT_VERSION="1.31.1"
-PY_PACKAGES=(numpy h5py)
+PY_PACKAGES=(numpy h5py onnx)
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -42,7 +42,7 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c 'import numpy, h5py' 2>/dev/null; then
+if ! "$PY" -c "import numpy, h5py, onnx" 2>/dev/null; then
   log "python: installing ${PY_PACKAGES[*]}"
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else

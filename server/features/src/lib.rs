@@ -9,8 +9,10 @@
 //!
 //! Output keeps pairs aligned: a [`Matches`] holds indices into both keypoint lists and a score.
 
+pub mod config;
 pub mod lighterglue;
 pub mod mnn;
+pub mod onnx_extractor;
 pub mod runtime;
 pub mod xfeat;
 

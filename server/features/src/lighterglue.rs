@@ -1,30 +1,46 @@
-//! LighterGlue: LightGlue configured for XFeat, on ONNX Runtime; the match filter runs here.
+//! Matchers that output a log-assignment matrix (the LightGlue/SuperGlue family) on ONNX Runtime:
+//! LighterGlue (LightGlue configured for XFeat) by default, or any model following the same contract
+//! (`models/README.md`) with its own descriptor length. The match filter runs here.
 
 use std::path::Path;
 
-use crate::runtime::OnnxModel;
+use crate::runtime::{OnnxModel, RuntimeOptions};
 use crate::xfeat::XFEAT_DIM;
 use crate::{FeatureError, Features, Matcher, Matches};
 
-/// The LighterGlue matcher.
+/// A log-assignment matcher (LighterGlue by default).
 #[derive(Debug)]
 pub struct LighterGlue {
     model: OnnxModel,
+    dim: usize,
+    name: &'static str,
     /// Minimum match probability (LightGlue's `filter_threshold`). Default 0.1.
     pub threshold: f32,
 }
 
 impl LighterGlue {
-    /// Load `models/lighterglue.onnx`.
-    pub fn load(path: &Path, threads: usize) -> Result<Self, FeatureError> {
+    /// Load `models/lighterglue.onnx` (64-d XFeat descriptors).
+    pub fn load(path: &Path, runtime: &RuntimeOptions) -> Result<Self, FeatureError> {
+        Self::load_custom(path, runtime, XFEAT_DIM, "lighterglue")
+    }
+
+    /// Load a user-supplied matcher that follows the same contract, for `dim`-long descriptors.
+    pub fn load_custom(
+        path: &Path,
+        runtime: &RuntimeOptions,
+        dim: usize,
+        name: &'static str,
+    ) -> Result<Self, FeatureError> {
         let model = OnnxModel::load(
             path,
-            threads,
+            runtime,
             &["kpts0", "kpts1", "desc0", "desc1", "size0", "size1"],
             &["scores"],
         )?;
         Ok(Self {
             model,
+            dim,
+            name,
             threshold: 0.1,
         })
     }
@@ -70,12 +86,19 @@ pub fn filter_matches(scores: &[f32], m: usize, n: usize, threshold: f32) -> Mat
     out
 }
 
+impl LighterGlue {
+    /// The execution provider in use.
+    pub fn provider(&self) -> &'static str {
+        self.model.provider()
+    }
+}
+
 impl Matcher for LighterGlue {
     fn match_features(&self, a: &Features, b: &Features) -> Result<Matches, FeatureError> {
-        if a.dim != XFEAT_DIM || b.dim != XFEAT_DIM {
+        if a.dim != self.dim || b.dim != self.dim {
             return Err(FeatureError::Input(format!(
-                "LighterGlue takes {XFEAT_DIM}-d XFeat descriptors, got {} and {}",
-                a.dim, b.dim
+                "{} takes {}-d descriptors, got {} and {}",
+                self.name, self.dim, a.dim, b.dim
             )));
         }
         let (m, n) = (a.len(), b.len());
@@ -90,8 +113,8 @@ impl Matcher for LighterGlue {
             &[
                 ("kpts0", vec![1, m, 2], &k0),
                 ("kpts1", vec![1, n, 2], &k1),
-                ("desc0", vec![1, m, XFEAT_DIM], &a.descriptors),
-                ("desc1", vec![1, n, XFEAT_DIM], &b.descriptors),
+                ("desc0", vec![1, m, self.dim], &a.descriptors),
+                ("desc1", vec![1, n, self.dim], &b.descriptors),
                 ("size0", vec![1, 2], &s0),
                 ("size1", vec![1, 2], &s1),
             ],
@@ -109,6 +132,6 @@ impl Matcher for LighterGlue {
     }
 
     fn name(&self) -> &'static str {
-        "lighterglue"
+        self.name
     }
 }

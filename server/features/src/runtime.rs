@@ -72,6 +72,61 @@ pub fn init(
     .map_err(|e| FeatureError::Runtime(e.clone()))
 }
 
+/// Where inference runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Device {
+    /// The CPU execution provider.
+    #[default]
+    Cpu,
+    /// The CUDA execution provider on this GPU (needs the `cuda` feature and a GPU build of ONNX
+    /// Runtime); falls back to the CPU with a warning when it cannot be registered.
+    Cuda(i32),
+}
+
+/// How models are run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RuntimeOptions {
+    /// Intra-op threads per model instance. Default 1: a service gets its parallelism from requests.
+    pub threads: usize,
+    /// Execution provider.
+    pub device: Device,
+}
+
+impl Default for RuntimeOptions {
+    fn default() -> Self {
+        Self {
+            threads: 1,
+            device: Device::Cpu,
+        }
+    }
+}
+
+#[cfg(feature = "cuda")]
+fn register_device(b: &mut ort::session::builder::SessionBuilder, device: Device) -> &'static str {
+    use ort::ep::ExecutionProvider;
+    match device {
+        Device::Cpu => "cpu",
+        Device::Cuda(id) => match ort::ep::CUDA::default().with_device_id(id).register(b) {
+            Ok(()) => {
+                tracing::info!(device = id, "CUDA execution provider registered");
+                "cuda"
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, "CUDA execution provider unavailable; running on the CPU");
+                "cpu"
+            }
+        },
+    }
+}
+
+#[cfg(not(feature = "cuda"))]
+fn register_device(_b: &mut ort::session::builder::SessionBuilder, device: Device) -> &'static str {
+    if let Device::Cuda(_) = device {
+        tracing::warn!("built without the `cuda` feature; running on the CPU");
+    }
+    "cpu"
+}
+
 /// An output tensor: shape and row-major data.
 pub type Tensor = (Vec<usize>, Vec<f32>);
 
@@ -79,6 +134,7 @@ pub type Tensor = (Vec<usize>, Vec<f32>);
 pub struct OnnxModel {
     path: PathBuf,
     session: Mutex<Session>,
+    provider: &'static str,
 }
 
 impl std::fmt::Debug for OnnxModel {
@@ -90,10 +146,10 @@ impl std::fmt::Debug for OnnxModel {
 }
 
 impl OnnxModel {
-    /// Load `path` with `threads` intra-op threads and check its input and output names.
+    /// Load `path` and check its input and output names against the contract.
     pub fn load(
         path: &Path,
-        threads: usize,
+        opts: &RuntimeOptions,
         inputs: &[&str],
         outputs: &[&str],
     ) -> Result<Self, FeatureError> {
@@ -105,13 +161,15 @@ impl OnnxModel {
         if !path.is_file() {
             return Err(err("file not found".into()));
         }
-        let build = || -> Result<Session, String> {
+        let mut provider = "cpu";
+        let mut build = || -> Result<Session, String> {
             let mut b = Session::builder(env)
                 .map_err(|e| e.to_string())?
                 .with_optimization_level(GraphOptimizationLevel::Level3)
                 .map_err(|e| e.to_string())?
-                .with_intra_threads(threads.max(1))
+                .with_intra_threads(opts.threads.max(1))
                 .map_err(|e| e.to_string())?;
+            provider = register_device(&mut b, opts.device);
             b.commit_from_file(path).map_err(|e| e.to_string())
         };
         let session = build().map_err(|e| err(format!("cannot load: {e}")))?;
@@ -130,7 +188,13 @@ impl OnnxModel {
         Ok(Self {
             path: path.to_path_buf(),
             session: Mutex::new(session),
+            provider,
         })
+    }
+
+    /// The execution provider in use: "cpu" or "cuda".
+    pub fn provider(&self) -> &'static str {
+        self.provider
     }
 
     /// The model file.

@@ -9,7 +9,7 @@ use std::path::Path;
 
 use pntr_core::RgbImage;
 
-use crate::runtime::OnnxModel;
+use crate::runtime::{OnnxModel, RuntimeOptions};
 use crate::{Extractor, FeatureError, Features};
 
 /// XFeat settings.
@@ -19,8 +19,8 @@ pub struct XFeatParams {
     pub top_k: usize,
     /// Heatmap threshold for a keypoint. Default 0.05 (upstream).
     pub detection_threshold: f32,
-    /// ONNX Runtime intra-op threads. Default 1 (parallelism comes from serving many requests).
-    pub threads: usize,
+    /// How the model runs.
+    pub runtime: RuntimeOptions,
 }
 
 impl Default for XFeatParams {
@@ -28,7 +28,7 @@ impl Default for XFeatParams {
         Self {
             top_k: 1024,
             detection_threshold: 0.05,
-            threads: 1,
+            runtime: RuntimeOptions::default(),
         }
     }
 }
@@ -119,11 +119,16 @@ impl XFeat {
     pub fn load(path: &Path, params: XFeatParams) -> Result<Self, FeatureError> {
         let model = OnnxModel::load(
             path,
-            params.threads,
+            &params.runtime,
             &["image"],
             &["feats", "heatmap", "reliability"],
         )?;
         Ok(Self { model, params })
+    }
+
+    /// The execution provider in use.
+    pub fn provider(&self) -> &'static str {
+        self.model.provider()
     }
 
     /// The settings in use.

@@ -124,7 +124,7 @@ fn xfeat_and_lighterglue_match_the_upstream_implementation() {
     assert!(worst_desc < 1e-3 && worst_score < 1e-4);
 
     // LighterGlue on the reference features gives the reference matches.
-    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), 1).unwrap();
+    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), &Default::default()).unwrap();
     let m = lg.match_features(&refa, &reference_features("b")).unwrap();
     let (_, _, raw) = npy("matches");
     let want: Vec<(u32, u32)> = raw
@@ -159,7 +159,7 @@ fn matches_on_synthetic_renders_agree_with_geometry() {
     let renderer = pntr_synth::Renderer::new(&planned.scene);
     let k = Intrinsics::hpointloc();
     let x = xfeat();
-    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), 1).unwrap();
+    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), &Default::default()).unwrap();
     let mnn = Mnn::default();
     let (mut total, mut good, mut total_mnn, mut good_mnn, mut pairs) = (0, 0, 0, 0, 0);
     let point = &planned.points[0];
@@ -231,7 +231,7 @@ fn bad_models_and_images_are_clear_errors() {
         "{missing}"
     );
     // A model that does not follow the contract (the extractor given to the matcher).
-    let wrong = LighterGlue::load(&models().join("xfeat_backbone.onnx"), 1)
+    let wrong = LighterGlue::load(&models().join("xfeat_backbone.onnx"), &Default::default())
         .unwrap_err()
         .to_string();
     assert!(

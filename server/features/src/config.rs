@@ -1,0 +1,197 @@
+//! Choosing stages by name: one exhaustive match from configuration to built components.
+//!
+//! Names the CLI and the server accept: extractors `xfeat`, `onnx`; matchers `lighterglue`, `mnn`,
+//! `onnx`. Not every pair fits (LighterGlue was trained on XFeat's 64-d descriptors); an unfit pair is
+//! refused at start-up with the list of valid ones.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use crate::lighterglue::LighterGlue;
+use crate::mnn::{Mnn, MnnParams};
+use crate::onnx_extractor::OnnxExtractor;
+use crate::runtime::RuntimeOptions;
+use crate::xfeat::{XFeat, XFeatParams, XFEAT_DIM};
+use crate::{Extractor, FeatureError, Matcher};
+
+/// Extractor names.
+pub const EXTRACTORS: [&str; 2] = ["xfeat", "onnx"];
+/// Matcher names.
+pub const MATCHERS: [&str; 3] = ["lighterglue", "mnn", "onnx"];
+/// Extractor/matcher pairs that fit.
+pub const VALID_PAIRS: [(&str, &str); 5] = [
+    ("xfeat", "lighterglue"),
+    ("xfeat", "mnn"),
+    ("xfeat", "onnx"),
+    ("onnx", "mnn"),
+    ("onnx", "onnx"),
+];
+
+/// Feature-stage configuration.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FeatureConfig {
+    /// Extractor name (one of [`EXTRACTORS`]).
+    pub extractor: String,
+    /// Matcher name (one of [`MATCHERS`]).
+    pub matcher: String,
+    /// Folder holding the default models (`xfeat_backbone.onnx`, `lighterglue.onnx`).
+    pub models_dir: PathBuf,
+    /// Model file of the `onnx` extractor.
+    pub extractor_model: Option<PathBuf>,
+    /// Model file of the `onnx` matcher.
+    pub matcher_model: Option<PathBuf>,
+    /// Descriptor length the `onnx` matcher expects (default: the extractor's, 64 for xfeat).
+    pub matcher_dim: Option<usize>,
+    /// Keypoints kept per image.
+    pub top_k: usize,
+    /// How models run.
+    pub runtime: RuntimeOptions,
+}
+
+impl Default for FeatureConfig {
+    fn default() -> Self {
+        Self {
+            extractor: "xfeat".into(),
+            matcher: "lighterglue".into(),
+            models_dir: PathBuf::from("models"),
+            extractor_model: None,
+            matcher_model: None,
+            matcher_dim: None,
+            top_k: 1024,
+            runtime: RuntimeOptions::default(),
+        }
+    }
+}
+
+/// The built feature stage.
+#[derive(Clone)]
+pub struct FeatureStage {
+    /// The extractor.
+    pub extractor: Arc<dyn Extractor>,
+    /// The matcher.
+    pub matcher: Arc<dyn Matcher>,
+}
+
+impl std::fmt::Debug for FeatureStage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "FeatureStage({} + {})",
+            self.extractor.name(),
+            self.matcher.name()
+        )
+    }
+}
+
+fn pairs_list() -> String {
+    VALID_PAIRS
+        .iter()
+        .map(|(e, m)| format!("{e}+{m}"))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn need(path: &Option<PathBuf>, what: &str) -> Result<PathBuf, FeatureError> {
+    path.clone().ok_or_else(|| {
+        FeatureError::Input(format!(
+            "the `onnx` {what} needs a model file ({what}_model)"
+        ))
+    })
+}
+
+impl FeatureConfig {
+    /// Check names and pairing without loading anything.
+    pub fn validate(&self) -> Result<(), FeatureError> {
+        let (e, m) = (self.extractor.as_str(), self.matcher.as_str());
+        if !EXTRACTORS.contains(&e) {
+            return Err(FeatureError::Input(format!(
+                "unknown extractor `{e}`; valid: {}",
+                EXTRACTORS.join(", ")
+            )));
+        }
+        if !MATCHERS.contains(&m) {
+            return Err(FeatureError::Input(format!(
+                "unknown matcher `{m}`; valid: {}",
+                MATCHERS.join(", ")
+            )));
+        }
+        if !VALID_PAIRS.contains(&(e, m)) {
+            return Err(FeatureError::Input(format!(
+                "extractor `{e}` does not fit matcher `{m}`; valid pairs: {}",
+                pairs_list()
+            )));
+        }
+        if self.top_k == 0 {
+            return Err(FeatureError::Input("top_k must be at least 1".into()));
+        }
+        Ok(())
+    }
+
+    /// Validate, then load the models.
+    pub fn build(&self) -> Result<FeatureStage, FeatureError> {
+        self.validate()?;
+        let extractor: Arc<dyn Extractor> = match self.extractor.as_str() {
+            "xfeat" => Arc::new(XFeat::load(
+                &self.models_dir.join("xfeat_backbone.onnx"),
+                XFeatParams {
+                    top_k: self.top_k,
+                    runtime: self.runtime.clone(),
+                    ..XFeatParams::default()
+                },
+            )?),
+            "onnx" => Arc::new(OnnxExtractor::load(
+                &need(&self.extractor_model, "extractor")?,
+                &self.runtime,
+                self.top_k,
+            )?),
+            other => unreachable!("validated extractor name {other}"),
+        };
+        let matcher: Arc<dyn Matcher> = match self.matcher.as_str() {
+            "lighterglue" => Arc::new(LighterGlue::load(
+                &self.models_dir.join("lighterglue.onnx"),
+                &self.runtime,
+            )?),
+            "mnn" => Arc::new(Mnn {
+                params: MnnParams::default(),
+            }),
+            "onnx" => Arc::new(LighterGlue::load_custom(
+                &need(&self.matcher_model, "matcher")?,
+                &self.runtime,
+                self.matcher_dim.unwrap_or(XFEAT_DIM),
+                "onnx",
+            )?),
+            other => unreachable!("validated matcher name {other}"),
+        };
+        Ok(FeatureStage { extractor, matcher })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_and_pairs_are_checked() {
+        let mut c = FeatureConfig::default();
+        c.validate().unwrap();
+        c.extractor = "sift".into();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("unknown extractor `sift`") && e.contains("xfeat, onnx"),
+            "{e}"
+        );
+        c.extractor = "onnx".into();
+        c.matcher = "lighterglue".into();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("does not fit") && e.contains("xfeat+lighterglue"),
+            "{e}"
+        );
+        c.matcher = "glue".into();
+        assert!(c
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("unknown matcher `glue`"));
+    }
+}

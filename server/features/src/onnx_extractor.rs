@@ -1,0 +1,95 @@
+//! A user-supplied extractor on ONNX Runtime (SuperPoint, DISK, ... exported elsewhere).
+//!
+//! Contract (see `models/README.md`): input `image` [1, 3, H, W] float32 RGB in 0..1 at the image's own
+//! size; outputs `keypoints` [1, N, 2] float32 pixels (x, y), `scores` [1, N] float32 and
+//! `descriptors` [1, N, D] float32. Descriptors are used as given (normalise them in the model if the
+//! matcher expects unit length).
+
+use std::path::Path;
+
+use pntr_core::RgbImage;
+
+use crate::runtime::{OnnxModel, RuntimeOptions};
+use crate::{Extractor, FeatureError, Features};
+
+/// A generic ONNX extractor.
+#[derive(Debug)]
+pub struct OnnxExtractor {
+    model: OnnxModel,
+    top_k: usize,
+}
+
+impl OnnxExtractor {
+    /// Load a model that follows the contract; keep at most `top_k` keypoints (by score).
+    pub fn load(path: &Path, runtime: &RuntimeOptions, top_k: usize) -> Result<Self, FeatureError> {
+        let model = OnnxModel::load(
+            path,
+            runtime,
+            &["image"],
+            &["keypoints", "scores", "descriptors"],
+        )?;
+        Ok(Self { model, top_k })
+    }
+}
+
+impl Extractor for OnnxExtractor {
+    fn extract(&self, image: &RgbImage) -> Result<Features, FeatureError> {
+        let (w, h) = (image.width as usize, image.height as usize);
+        if w == 0 || h == 0 || image.data.len() != w * h * 3 {
+            return Err(FeatureError::Input(format!(
+                "RGB buffer of {} bytes for {w}x{h}",
+                image.data.len()
+            )));
+        }
+        let mut planar = vec![0f32; 3 * w * h];
+        for (i, px) in image.data.chunks_exact(3).enumerate() {
+            for c in 0..3 {
+                planar[c * w * h + i] = px[c] as f32 / 255.0;
+            }
+        }
+        let out = self.model.run(
+            &[("image", vec![1, 3, h, w], &planar)],
+            &["keypoints", "scores", "descriptors"],
+        )?;
+        let bad = |what: String| {
+            FeatureError::Inference(format!("{}: {what}", self.model.path().display()))
+        };
+        let (ks, kd) = &out[0];
+        let (ss, sd) = &out[1];
+        let (ds, dd) = &out[2];
+        if ks.len() != 3
+            || ks[2] != 2
+            || ss.len() != 2
+            || ds.len() != 3
+            || ks[1] != ss[1]
+            || ks[1] != ds[1]
+        {
+            return Err(bad(format!("output shapes keypoints {ks:?}, scores {ss:?}, descriptors {ds:?} break the contract")));
+        }
+        let (n, dim) = (ks[1], ds[2]);
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|&a, &b| sd[b].total_cmp(&sd[a]));
+        order.truncate(self.top_k);
+        let mut f = Features {
+            keypoints: Vec::with_capacity(order.len()),
+            scores: Vec::with_capacity(order.len()),
+            descriptors: Vec::with_capacity(order.len() * dim),
+            dim,
+            image_size: (image.width, image.height),
+        };
+        for i in order {
+            let (x, y) = (kd[2 * i], kd[2 * i + 1]);
+            if !(x.is_finite() && y.is_finite()) {
+                return Err(bad(format!("keypoint {i} is not finite")));
+            }
+            f.keypoints.push([x, y]);
+            f.scores.push(sd[i]);
+            f.descriptors.extend_from_slice(&dd[i * dim..(i + 1) * dim]);
+        }
+        Ok(f)
+    }
+
+    fn name(&self) -> &'static str {
+        "onnx"
+    }
+}
