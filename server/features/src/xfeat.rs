@@ -252,7 +252,17 @@ impl Extractor for XFeat {
             )));
         }
         let (rh, rw) = (h / 32 * 32, w / 32 * 32);
-        let input = resize_planar(image, rh, rw);
+        let input = if (rh, rw) == (h, w) {
+            let mut planar = vec![0f32; 3 * h * w];
+            for (i, px) in image.data.chunks_exact(3).enumerate() {
+                for c in 0..3 {
+                    planar[c * h * w + i] = px[c] as f32 * (1.0 / 255.0);
+                }
+            }
+            planar
+        } else {
+            resize_planar(image, rh, rw)
+        };
         let out = self.model.run(
             &[("image", vec![1, 3, rh, rw], &input)],
             &["feats", "heatmap", "reliability"],
