@@ -19,11 +19,14 @@ use pntr_features::{Extractor, Features, Matcher};
 
 fn arg(name: &str) -> Option<String> {
     let args: Vec<String> = std::env::args().collect();
-    args.iter().position(|a| a == name).and_then(|i| args.get(i + 1).cloned())
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1).cloned())
 }
 
 fn reference_image(models: &std::path::Path) -> RgbImage {
-    let bytes = std::fs::read(models.join("reference/image_a.npy")).expect("models/reference/image_a.npy");
+    let bytes =
+        std::fs::read(models.join("reference/image_a.npy")).expect("models/reference/image_a.npy");
     let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
     RgbImage::new(256, 256, bytes[10 + hlen..].to_vec()).expect("256x256x3")
 }
@@ -62,12 +65,15 @@ fn take(f: &Features, k: usize) -> Features {
         scores: f.scores[..k].to_vec(),
         descriptors: f.descriptors[..k * f.dim].to_vec(),
         dim: f.dim,
+        binary: Vec::new(),
         image_size: f.image_size,
     }
 }
 
 fn main() {
-    let models = arg("--models").map(PathBuf::from).unwrap_or_else(|| PathBuf::from("models"));
+    let models = arg("--models")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("models"));
     let iters: usize = arg("--iters").and_then(|s| s.parse().ok()).unwrap_or(20);
     let threads: usize = arg("--threads").and_then(|s| s.parse().ok()).unwrap_or(1);
     let device = match arg("--device").as_deref() {
@@ -77,7 +83,11 @@ fn main() {
     let runtime = RuntimeOptions { threads, device };
     let xfeat = XFeat::load(
         &models.join("xfeat_backbone.onnx"),
-        XFeatParams { top_k: 1024, runtime: runtime.clone(), ..XFeatParams::default() },
+        XFeatParams {
+            top_k: 1024,
+            runtime: runtime.clone(),
+            ..XFeatParams::default()
+        },
     )
     .expect("xfeat");
     let lg = LighterGlue::load(&models.join("lighterglue.onnx"), &runtime).expect("lighterglue");
@@ -106,11 +116,22 @@ fn main() {
         });
         rows.push((format!("mnn {}+{}", a.len(), b.len()), ms));
     }
-    println!("provider: {} (xfeat), {} (lighterglue); threads {threads}; median of {iters}", xfeat.provider(), lg.provider());
+    println!(
+        "provider: {} (xfeat), {} (lighterglue); threads {threads}; median of {iters}",
+        xfeat.provider(),
+        lg.provider()
+    );
     println!("| stage | ms |\n|---|---|");
     for (n, ms) in &rows {
         println!("| {n} | {ms:.2} |");
     }
-    let json: Vec<String> = rows.iter().map(|(n, ms)| format!("\"{n}\": {ms:.3}")).collect();
-    println!("{{\"provider\": \"{}\", {}}}", xfeat.provider(), json.join(", "));
+    let json: Vec<String> = rows
+        .iter()
+        .map(|(n, ms)| format!("\"{n}\": {ms:.3}"))
+        .collect();
+    println!(
+        "{{\"provider\": \"{}\", {}}}",
+        xfeat.provider(),
+        json.join(", ")
+    );
 }

@@ -1,8 +1,9 @@
 //! Choosing stages by name: one exhaustive match from configuration to built components.
 //!
-//! Names the CLI and the server accept: extractors `xfeat`, `onnx`; matchers `lighterglue`, `mnn`,
-//! `onnx`. Not every pair fits (LighterGlue was trained on XFeat's 64-d descriptors); an unfit pair is
-//! refused at start-up with the list of valid ones.
+//! Names the CLI and the server accept: extractors `xfeat`, `orb`, `onnx`; matchers `lighterglue`,
+//! `mnn`, `onnx`. Not every pair fits (LighterGlue was trained on XFeat's 64-d descriptors; ORB's
+//! binary descriptors need Hamming distance); an unfit pair is refused at start-up with the list of
+//! valid ones.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -10,19 +11,21 @@ use std::sync::Arc;
 use crate::lighterglue::LighterGlue;
 use crate::mnn::{Mnn, MnnParams};
 use crate::onnx_extractor::OnnxExtractor;
+use crate::orb::Orb;
 use crate::runtime::RuntimeOptions;
 use crate::xfeat::{XFeat, XFeatParams, XFEAT_DIM};
 use crate::{Extractor, FeatureError, Matcher};
 
 /// Extractor names.
-pub const EXTRACTORS: [&str; 2] = ["xfeat", "onnx"];
+pub const EXTRACTORS: [&str; 3] = ["xfeat", "orb", "onnx"];
 /// Matcher names.
 pub const MATCHERS: [&str; 3] = ["lighterglue", "mnn", "onnx"];
 /// Extractor/matcher pairs that fit.
-pub const VALID_PAIRS: [(&str, &str); 5] = [
+pub const VALID_PAIRS: [(&str, &str); 6] = [
     ("xfeat", "lighterglue"),
     ("xfeat", "mnn"),
     ("xfeat", "onnx"),
+    ("orb", "mnn"),
     ("onnx", "mnn"),
     ("onnx", "onnx"),
 ];
@@ -139,6 +142,7 @@ impl FeatureConfig {
                     ..XFeatParams::default()
                 },
             )?),
+            "orb" => Arc::new(Orb { top_k: self.top_k }),
             "onnx" => Arc::new(OnnxExtractor::load(
                 &need(&self.extractor_model, "extractor")?,
                 &self.runtime,
@@ -177,7 +181,7 @@ mod tests {
         c.extractor = "sift".into();
         let e = c.validate().unwrap_err().to_string();
         assert!(
-            e.contains("unknown extractor `sift`") && e.contains("xfeat, onnx"),
+            e.contains("unknown extractor `sift`") && e.contains("xfeat, orb, onnx"),
             "{e}"
         );
         c.extractor = "onnx".into();
@@ -185,6 +189,12 @@ mod tests {
         let e = c.validate().unwrap_err().to_string();
         assert!(
             e.contains("does not fit") && e.contains("xfeat+lighterglue"),
+            "{e}"
+        );
+        c.extractor = "orb".into();
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("`orb` does not fit matcher `lighterglue`") && e.contains("orb+mnn"),
             "{e}"
         );
         c.matcher = "glue".into();

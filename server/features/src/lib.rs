@@ -13,6 +13,7 @@ pub mod config;
 pub mod lighterglue;
 pub mod mnn;
 pub mod onnx_extractor;
+pub mod orb;
 pub mod runtime;
 pub mod xfeat;
 
@@ -47,10 +48,12 @@ pub struct Features {
     pub keypoints: Vec<[f32; 2]>,
     /// Detection score per keypoint.
     pub scores: Vec<f32>,
-    /// Descriptors, `keypoints.len() * dim` values, row-major.
+    /// Float descriptors, `keypoints.len() * dim` values, row-major (empty for binary extractors).
     pub descriptors: Vec<f32>,
-    /// Descriptor length.
+    /// Float descriptor length (0 for binary extractors).
     pub dim: usize,
+    /// 256-bit binary descriptors, one per keypoint (ORB); empty for float extractors.
+    pub binary: Vec<[u8; 32]>,
     /// (width, height) of the image the keypoints refer to.
     pub image_size: (u32, u32),
 }

@@ -1,4 +1,5 @@
-//! Mutual nearest neighbours on float descriptors, with an optional ratio test.
+//! Mutual nearest neighbours: cosine similarity on float descriptors, Hamming distance on binary ones
+//! (ORB), each with an optional ratio test.
 
 use crate::{FeatureError, Features, Matcher, Matches};
 
@@ -9,6 +10,9 @@ pub struct MnnParams {
     pub min_similarity: f32,
     /// Lowe's ratio on distances (best < ratio x second best); `None` disables it.
     pub ratio: Option<f32>,
+    /// Largest Hamming distance (of 256 bits) of a binary match. Default 64 (ORB-SLAM's strict bound
+    /// is 50, its loose one 100).
+    pub max_hamming: u32,
 }
 
 impl Default for MnnParams {
@@ -16,6 +20,7 @@ impl Default for MnnParams {
         Self {
             min_similarity: 0.82,
             ratio: None,
+            max_hamming: 64,
         }
     }
 }
@@ -27,8 +32,68 @@ pub struct Mnn {
     pub params: MnnParams,
 }
 
+fn hamming(a: &[u8; 32], b: &[u8; 32]) -> u32 {
+    a.chunks_exact(8)
+        .zip(b.chunks_exact(8))
+        .map(|(x, y)| {
+            let x = u64::from_le_bytes(x.try_into().expect("8 bytes"));
+            let y = u64::from_le_bytes(y.try_into().expect("8 bytes"));
+            (x ^ y).count_ones()
+        })
+        .sum()
+}
+
+impl Mnn {
+    fn match_binary(&self, a: &Features, b: &Features) -> Matches {
+        let (n, m) = (a.binary.len(), b.binary.len());
+        let mut out = Matches::default();
+        if n == 0 || m == 0 {
+            return out;
+        }
+        let d: Vec<u32> = (0..n * m)
+            .map(|k| hamming(&a.binary[k / m], &b.binary[k % m]))
+            .collect();
+        let best_a: Vec<usize> = (0..m)
+            .map(|j| (0..n).min_by_key(|&i| d[i * m + j]).unwrap_or(0))
+            .collect();
+        for i in 0..n {
+            let row = &d[i * m..(i + 1) * m];
+            let (mut bj, mut d1, mut d2) = (0, u32::MAX, u32::MAX);
+            for (j, &x) in row.iter().enumerate() {
+                if x < d1 {
+                    d2 = d1;
+                    d1 = x;
+                    bj = j;
+                } else if x < d2 {
+                    d2 = x;
+                }
+            }
+            if best_a[bj] != i || d1 > self.params.max_hamming {
+                continue;
+            }
+            if let Some(r) = self.params.ratio {
+                if m > 1 && d1 as f32 >= r * d2 as f32 {
+                    continue;
+                }
+            }
+            out.pairs.push((i as u32, bj as u32));
+            out.scores.push(1.0 - d1 as f32 / 256.0);
+        }
+        out
+    }
+}
+
 impl Matcher for Mnn {
     fn match_features(&self, a: &Features, b: &Features) -> Result<Matches, FeatureError> {
+        match (a.binary.is_empty(), b.binary.is_empty()) {
+            (false, false) => return Ok(self.match_binary(a, b)),
+            (true, true) => {}
+            _ => {
+                return Err(FeatureError::Input(
+                    "cannot match binary (ORB) descriptors against float ones".into(),
+                ))
+            }
+        }
         if a.dim != b.dim {
             return Err(FeatureError::Input(format!(
                 "descriptor lengths differ: {} vs {}",

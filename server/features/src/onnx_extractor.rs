@@ -75,6 +75,7 @@ impl Extractor for OnnxExtractor {
             scores: Vec::with_capacity(order.len()),
             descriptors: Vec::with_capacity(order.len() * dim),
             dim,
+            binary: Vec::new(),
             image_size: (image.width, image.height),
         };
         for i in order {

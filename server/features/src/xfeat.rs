@@ -231,6 +231,7 @@ impl XFeat {
             scores,
             descriptors,
             dim: XFEAT_DIM,
+            binary: Vec::new(),
             image_size,
         }
     }

@@ -7,6 +7,7 @@ use nalgebra::Point3;
 use pntr_core::{convert_axes, CameraAxes, Intrinsics, RgbImage};
 use pntr_features::lighterglue::LighterGlue;
 use pntr_features::mnn::Mnn;
+use pntr_features::orb::Orb;
 use pntr_features::xfeat::{XFeat, XFeatParams};
 use pntr_features::{Extractor, FeatureError, Features, Matcher};
 
@@ -63,6 +64,7 @@ fn reference_features(side: &str) -> Features {
         scores: s,
         descriptors: d,
         dim: ds[1],
+        binary: Vec::new(),
         image_size: (256, 256),
     }
     .tap(|f| assert_eq!(f.len(), ks[0]))
@@ -147,8 +149,9 @@ fn xfeat_and_lighterglue_match_the_upstream_implementation() {
     );
 }
 
-#[test]
-fn matches_on_synthetic_renders_agree_with_geometry() {
+/// Over query/database pairs of one synthetic Point with real overlap: (pairs, matches with valid depth,
+/// matches within 3 px of where depth and poses put them).
+fn geometric_accuracy(x: &dyn Extractor, m: &dyn Matcher) -> (usize, usize, usize) {
     let cfg = pntr_synth::SynthConfig {
         points_per_scene: 2,
         queries_per_point: 12,
@@ -158,66 +161,76 @@ fn matches_on_synthetic_renders_agree_with_geometry() {
     let planned = pntr_synth::plan_scene(&cfg, 0);
     let renderer = pntr_synth::Renderer::new(&planned.scene);
     let k = Intrinsics::hpointloc();
-    let x = xfeat();
-    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), &Default::default()).unwrap();
-    let mnn = Mnn::default();
-    let (mut total, mut good, mut total_mnn, mut good_mnn, mut pairs) = (0, 0, 0, 0, 0);
+    let (mut total, mut good, mut pairs) = (0, 0, 0);
     let point = &planned.points[0];
+    let forward =
+        |p: &nalgebra::Isometry3<f64>| p.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0);
     for q in &point.queries {
         // The database view looking most nearly the query's way: real overlap.
-        let fq = q.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0);
         let db = point
             .db
             .iter()
             .max_by(|a, b| {
-                let fa = (a.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0)).dot(&fq);
-                let fb = (b.rotation * nalgebra::Vector3::new(0.0, 0.0, -1.0)).dot(&fq);
-                fa.total_cmp(&fb)
+                forward(a)
+                    .dot(&forward(q))
+                    .total_cmp(&forward(b).dot(&forward(q)))
             })
             .unwrap();
         let (ra, rb) = (renderer.render(q, &k, 1), renderer.render(db, &k, 2));
         let (fa, fb) = (x.extract(&ra.rgb).unwrap(), x.extract(&rb.rgb).unwrap());
         let b_from_a = convert_axes(db, CameraAxes::Habitat, CameraAxes::OpenCv).inverse()
             * convert_axes(q, CameraAxes::Habitat, CameraAxes::OpenCv);
-        let correct = |i: u32, j: u32| -> Option<bool> {
+        for (i, j) in m.match_features(&fa, &fb).unwrap().pairs {
             let [u, v] = fa.keypoints[i as usize];
-            let z = ra.depth.get(u.round() as u32, v.round() as u32)? as f64;
-            let p: Point3<f64> = b_from_a * k.backproject(u as f64, v as f64, z);
-            let uv = k.project(&p)?;
+            let Some(z) = ra.depth.get(u.round() as u32, v.round() as u32) else {
+                continue;
+            };
+            let p: Point3<f64> = b_from_a * k.backproject(u as f64, v as f64, z as f64);
+            let Some(uv) = k.project(&p) else { continue };
             let [bu, bv] = fb.keypoints[j as usize];
-            Some(((uv.x - bu as f64).powi(2) + (uv.y - bv as f64).powi(2)).sqrt() < 3.0)
-        };
-        for (i, j) in lg.match_features(&fa, &fb).unwrap().pairs {
-            if let Some(ok) = correct(i, j) {
-                total += 1;
-                good += ok as usize;
-            }
-        }
-        for (i, j) in mnn.match_features(&fa, &fb).unwrap().pairs {
-            if let Some(ok) = correct(i, j) {
-                total_mnn += 1;
-                good_mnn += ok as usize;
-            }
+            total += 1;
+            good +=
+                (((uv.x - bu as f64).powi(2) + (uv.y - bv as f64).powi(2)).sqrt() < 3.0) as usize;
         }
         pairs += 1;
     }
-    let share = good as f64 / total.max(1) as f64;
-    let share_mnn = good_mnn as f64 / total_mnn.max(1) as f64;
     eprintln!(
-        "{pairs} query/database pairs: lighterglue {total} matches ({:.1}/pair), {:.1}% within 3 px; mnn {total_mnn} ({:.1}/pair), {:.1}%",
+        "{} + {}: {pairs} pairs, {total} matches ({:.1}/pair), {:.1}% within 3 px",
+        x.name(),
+        m.name(),
         total as f64 / pairs as f64,
-        100.0 * share,
-        total_mnn as f64 / pairs as f64,
-        100.0 * share_mnn
+        100.0 * good as f64 / total.max(1) as f64
+    );
+    (pairs, total, good)
+}
+
+#[test]
+fn default_pipeline_matches_agree_with_geometry() {
+    let lg = LighterGlue::load(&models().join("lighterglue.onnx"), &Default::default()).unwrap();
+    let (pairs, total, good) = geometric_accuracy(&xfeat(), &lg);
+    assert!(
+        good as f64 >= 0.8 * total as f64,
+        "{good} of {total} LighterGlue matches are right"
     );
     assert!(
-        share >= 0.8,
-        "{:.1}% of LighterGlue matches are right",
-        100.0 * share
-    );
-    assert!(
-        total as f64 / pairs as f64 >= 30.0,
+        total >= 30 * pairs,
         "too few matches: {total} over {pairs} pairs"
+    );
+}
+
+#[test]
+fn mnn_and_orb_matches_on_synthetic_renders() {
+    // Baselines: reported, with floors well below what they reach, to catch breakage (a wrong
+    // coordinate convention or descriptor layout drops them to near zero).
+    let (pairs, total, good) = geometric_accuracy(&xfeat(), &Mnn::default());
+    assert!(
+        good as f64 >= 0.4 * total as f64 && total >= 30 * pairs,
+        "xfeat+mnn: {good}/{total}"
+    );
+    let (pairs, total, good) = geometric_accuracy(&Orb::default(), &Mnn::default());
+    assert!(
+        good as f64 >= 0.4 * total as f64 && total >= 10 * pairs,
+        "orb+mnn: {good}/{total}"
     );
 }
 
