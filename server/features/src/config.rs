@@ -1,9 +1,9 @@
 //! Choosing stages by name: one exhaustive match from configuration to built components.
 //!
-//! Names the CLI and the server accept: extractors `xfeat`, `orb`, `onnx`; matchers `lighterglue`,
-//! `mnn`, `onnx`. Not every pair fits (LighterGlue was trained on XFeat's 64-d descriptors; ORB's
-//! binary descriptors need Hamming distance); an unfit pair is refused at start-up with the list of
-//! valid ones.
+//! Names the CLI and the server accept: extractors `xfeat`, `aliked`, `orb`, `onnx`; matchers
+//! `lighterglue`, `lightglue`, `mnn`, `onnx`. Not every pair fits (LighterGlue was trained on XFeat's
+//! 64-d descriptors, LightGlue here on ALIKED's 128-d ones; ORB's binary descriptors need Hamming
+//! distance); an unfit pair is refused at start-up with the list of valid ones.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -17,18 +17,24 @@ use crate::xfeat::{XFeat, XFeatParams, XFEAT_DIM};
 use crate::{Extractor, FeatureError, Matcher};
 
 /// Extractor names.
-pub const EXTRACTORS: [&str; 3] = ["xfeat", "orb", "onnx"];
+pub const EXTRACTORS: [&str; 4] = ["xfeat", "aliked", "orb", "onnx"];
 /// Matcher names.
-pub const MATCHERS: [&str; 3] = ["lighterglue", "mnn", "onnx"];
+pub const MATCHERS: [&str; 4] = ["lighterglue", "lightglue", "mnn", "onnx"];
 /// Extractor/matcher pairs that fit.
-pub const VALID_PAIRS: [(&str, &str); 6] = [
+pub const VALID_PAIRS: [(&str, &str); 9] = [
     ("xfeat", "lighterglue"),
     ("xfeat", "mnn"),
     ("xfeat", "onnx"),
+    ("aliked", "lightglue"),
+    ("aliked", "mnn"),
+    ("aliked", "onnx"),
     ("orb", "mnn"),
     ("onnx", "mnn"),
     ("onnx", "onnx"),
 ];
+
+/// Descriptor length of ALIKED-n16.
+pub const ALIKED_DIM: usize = 128;
 
 /// Feature-stage configuration.
 #[derive(Debug, Clone, PartialEq)]
@@ -142,6 +148,13 @@ impl FeatureConfig {
                     ..XFeatParams::default()
                 },
             )?),
+            "aliked" => Arc::new(OnnxExtractor::load_named(
+                &self.models_dir.join("aliked_n16.onnx"),
+                &self.runtime,
+                self.top_k,
+                Some(32),
+                "aliked",
+            )?),
             "orb" => Arc::new(Orb { top_k: self.top_k }),
             "onnx" => Arc::new(OnnxExtractor::load(
                 &need(&self.extractor_model, "extractor")?,
@@ -155,13 +168,34 @@ impl FeatureConfig {
                 &self.models_dir.join("lighterglue.onnx"),
                 &self.runtime,
             )?),
+            "lightglue" => {
+                let path = self.models_dir.join("lightglue_aliked.onnx");
+                if !path.is_file() {
+                    return Err(FeatureError::Model {
+                        path: path.display().to_string(),
+                        message:
+                            "not found: the 48 MB LightGlue-for-ALIKED model is not committed; \
+                                  produce it with models/export.py"
+                                .into(),
+                    });
+                }
+                Arc::new(LighterGlue::load_custom(
+                    &path,
+                    &self.runtime,
+                    ALIKED_DIM,
+                    "lightglue",
+                )?)
+            }
             "mnn" => Arc::new(Mnn {
                 params: MnnParams::default(),
             }),
             "onnx" => Arc::new(LighterGlue::load_custom(
                 &need(&self.matcher_model, "matcher")?,
                 &self.runtime,
-                self.matcher_dim.unwrap_or(XFEAT_DIM),
+                self.matcher_dim.unwrap_or(match self.extractor.as_str() {
+                    "aliked" => ALIKED_DIM,
+                    _ => XFEAT_DIM,
+                }),
                 "onnx",
             )?),
             other => unreachable!("validated matcher name {other}"),
@@ -181,7 +215,7 @@ mod tests {
         c.extractor = "sift".into();
         let e = c.validate().unwrap_err().to_string();
         assert!(
-            e.contains("unknown extractor `sift`") && e.contains("xfeat, orb, onnx"),
+            e.contains("unknown extractor `sift`") && e.contains("xfeat, aliked, orb, onnx"),
             "{e}"
         );
         c.extractor = "onnx".into();

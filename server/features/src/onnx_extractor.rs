@@ -2,8 +2,10 @@
 //!
 //! Contract (see `models/README.md`): input `image` [1, 3, H, W] float32 RGB in 0..1 at the image's own
 //! size; outputs `keypoints` [1, N, 2] float32 pixels (x, y), `scores` [1, N] float32 and
-//! `descriptors` [1, N, D] float32. Descriptors are used as given (normalise them in the model if the
-//! matcher expects unit length).
+//! `descriptors` [1, N, D] float32. Keypoints with a score of 0 or less are padding and dropped.
+//! Descriptors are used as given (normalise them in the model if the matcher expects unit length).
+//! A model that needs sizes in multiples of some stride (ALIKED: 32) gets the image resized to the
+//! largest such size and its keypoints scaled back to the input's pixels.
 
 use std::path::Path;
 
@@ -17,18 +19,37 @@ use crate::{Extractor, FeatureError, Features};
 pub struct OnnxExtractor {
     model: OnnxModel,
     top_k: usize,
+    multiple_of: Option<usize>,
+    name: &'static str,
 }
 
 impl OnnxExtractor {
     /// Load a model that follows the contract; keep at most `top_k` keypoints (by score).
     pub fn load(path: &Path, runtime: &RuntimeOptions, top_k: usize) -> Result<Self, FeatureError> {
+        Self::load_named(path, runtime, top_k, None, "onnx")
+    }
+
+    /// Load a contract-following model under a configuration name, resizing inputs to multiples of
+    /// `multiple_of` when given.
+    pub fn load_named(
+        path: &Path,
+        runtime: &RuntimeOptions,
+        top_k: usize,
+        multiple_of: Option<usize>,
+        name: &'static str,
+    ) -> Result<Self, FeatureError> {
         let model = OnnxModel::load(
             path,
             runtime,
             &["image"],
             &["keypoints", "scores", "descriptors"],
         )?;
-        Ok(Self { model, top_k })
+        Ok(Self {
+            model,
+            top_k,
+            multiple_of,
+            name,
+        })
     }
 }
 
@@ -41,14 +62,20 @@ impl Extractor for OnnxExtractor {
                 image.data.len()
             )));
         }
-        let mut planar = vec![0f32; 3 * w * h];
-        for (i, px) in image.data.chunks_exact(3).enumerate() {
-            for c in 0..3 {
-                planar[c * w * h + i] = px[c] as f32 / 255.0;
-            }
+        let (rh, rw) = match self.multiple_of {
+            Some(m) if m > 1 => (h / m * m, w / m * m),
+            _ => (h, w),
+        };
+        if rh == 0 || rw == 0 {
+            return Err(FeatureError::Input(format!(
+                "image {w}x{h} is smaller than the model's stride {}",
+                self.multiple_of.unwrap_or(1)
+            )));
         }
+        let planar = crate::xfeat::planar_rgb(image, rh, rw);
+        let (sx, sy) = (w as f32 / rw as f32, h as f32 / rh as f32);
         let out = self.model.run(
-            &[("image", vec![1, 3, h, w], &planar)],
+            &[("image", vec![1, 3, rh, rw], &planar)],
             &["keypoints", "scores", "descriptors"],
         )?;
         let bad = |what: String| {
@@ -67,7 +94,7 @@ impl Extractor for OnnxExtractor {
             return Err(bad(format!("output shapes keypoints {ks:?}, scores {ss:?}, descriptors {ds:?} break the contract")));
         }
         let (n, dim) = (ks[1], ds[2]);
-        let mut order: Vec<usize> = (0..n).collect();
+        let mut order: Vec<usize> = (0..n).filter(|&i| sd[i] > 0.0).collect();
         order.sort_by(|&a, &b| sd[b].total_cmp(&sd[a]));
         order.truncate(self.top_k);
         let mut f = Features {
@@ -83,7 +110,7 @@ impl Extractor for OnnxExtractor {
             if !(x.is_finite() && y.is_finite()) {
                 return Err(bad(format!("keypoint {i} is not finite")));
             }
-            f.keypoints.push([x, y]);
+            f.keypoints.push([x * sx, y * sy]);
             f.scores.push(sd[i]);
             f.descriptors.extend_from_slice(&dd[i * dim..(i + 1) * dim]);
         }
@@ -91,6 +118,6 @@ impl Extractor for OnnxExtractor {
     }
 
     fn name(&self) -> &'static str {
-        "onnx"
+        self.name
     }
 }

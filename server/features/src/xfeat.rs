@@ -114,6 +114,22 @@ fn resize_planar(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
     out
 }
 
+/// Planar RGB in 0..1 at `oh` x `ow`: a straight conversion when the size matches, otherwise a
+/// PyTorch-style bilinear resize.
+pub(crate) fn planar_rgb(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    if (oh, ow) != (h, w) {
+        return resize_planar(img, oh, ow);
+    }
+    let mut planar = vec![0f32; 3 * h * w];
+    for (i, px) in img.data.chunks_exact(3).enumerate() {
+        for c in 0..3 {
+            planar[c * h * w + i] = px[c] as f32 * (1.0 / 255.0);
+        }
+    }
+    planar
+}
+
 impl XFeat {
     /// Load the backbone model (`models/xfeat_backbone.onnx`).
     pub fn load(path: &Path, params: XFeatParams) -> Result<Self, FeatureError> {
@@ -253,17 +269,7 @@ impl Extractor for XFeat {
             )));
         }
         let (rh, rw) = (h / 32 * 32, w / 32 * 32);
-        let input = if (rh, rw) == (h, w) {
-            let mut planar = vec![0f32; 3 * h * w];
-            for (i, px) in image.data.chunks_exact(3).enumerate() {
-                for c in 0..3 {
-                    planar[c * h * w + i] = px[c] as f32 * (1.0 / 255.0);
-                }
-            }
-            planar
-        } else {
-            resize_planar(image, rh, rw)
-        };
+        let input = planar_rgb(image, rh, rw);
         let out = self.model.run(
             &[("image", vec![1, 3, rh, rw], &input)],
             &["feats", "heatmap", "reliability"],

@@ -282,3 +282,71 @@ fn bad_models_and_images_are_clear_errors() {
     assert!(f.len() > 50 && f.keypoints.iter().all(|k| k[0] < 250.0 && k[1] < 250.0));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+fn aliked_stage(matcher: &str) -> Result<pntr_features::config::FeatureStage, FeatureError> {
+    pntr_features::config::FeatureConfig {
+        extractor: "aliked".into(),
+        matcher: matcher.into(),
+        models_dir: models(),
+        ..Default::default()
+    }
+    .build()
+}
+
+#[test]
+fn aliked_matches_its_export_reference_and_geometry() {
+    let stage = aliked_stage("mnn").unwrap();
+    let ours = stage.extractor.extract(&image("image_a")).unwrap();
+    let (_, k) = npy_f32("aliked_kpts_a");
+    let (_, d) = npy_f32("aliked_desc_a");
+    let (_, s) = npy_f32("aliked_scores_a");
+    let reference: Vec<usize> = (0..s.len()).filter(|&i| s[i] > 0.0).collect();
+    let mut found = 0;
+    let mut worst = 0f32;
+    for &i in &reference {
+        if let Some(j) = ours
+            .keypoints
+            .iter()
+            .position(|q| (q[0] - k[2 * i]).abs() < 1e-3 && (q[1] - k[2 * i + 1]).abs() < 1e-3)
+        {
+            found += 1;
+            let dd = d[i * 128..(i + 1) * 128]
+                .iter()
+                .zip(ours.descriptor(j))
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f32::max);
+            worst = worst.max(dd);
+        }
+    }
+    eprintln!(
+        "aliked parity: {found}/{} reference keypoints, worst descriptor diff {worst:e}",
+        reference.len()
+    );
+    assert!(found as f64 >= 0.99 * reference.len() as f64 && worst < 1e-4);
+    assert_eq!(ours.dim, 128);
+
+    let (pairs, total, good) = geometric_accuracy(stage.extractor.as_ref(), stage.matcher.as_ref());
+    assert!(
+        good as f64 >= 0.4 * total as f64 && total >= 30 * pairs,
+        "aliked+mnn: {good}/{total}"
+    );
+    match aliked_stage("lightglue") {
+        Ok(lg) => {
+            let (pairs, total, good) =
+                geometric_accuracy(lg.extractor.as_ref(), lg.matcher.as_ref());
+            assert!(
+                good as f64 >= 0.8 * total as f64,
+                "{good} of {total} ALIKED+LightGlue matches are right"
+            );
+            assert!(
+                total >= 30 * pairs,
+                "too few matches: {total} over {pairs} pairs"
+            );
+        }
+        Err(e) => {
+            // The 48 MB model is produced on demand by models/export.py and not committed.
+            assert!(e.to_string().contains("models/export.py"), "{e}");
+            eprintln!("SKIPPED aliked+lightglue accuracy: {e}");
+        }
+    }
+}
