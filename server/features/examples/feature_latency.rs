@@ -116,6 +116,39 @@ fn main() {
         });
         rows.push((format!("mnn {}+{}", a.len(), b.len()), ms));
     }
+    // ALIKED and LightGlue-for-ALIKED, when their models are there.
+    let cfg = |matcher: &str| pntr_features::config::FeatureConfig {
+        extractor: "aliked".into(),
+        matcher: matcher.into(),
+        models_dir: models.clone(),
+        runtime: runtime.clone(),
+        ..Default::default()
+    };
+    match cfg("mnn").build() {
+        Err(e) => eprintln!("aliked skipped: {e}"),
+        Ok(stage) => {
+            for (name, img) in [("aliked 256x256", &small), ("aliked 640x480", &big)] {
+                let ms = median_ms(iters.min(10), || {
+                    stage.extractor.extract(img).expect("extract");
+                });
+                rows.push((name.to_string(), ms));
+            }
+            match cfg("lightglue").build() {
+                Err(e) => eprintln!("lightglue(aliked) skipped: {e}"),
+                Ok(lga) => {
+                    let fa = stage.extractor.extract(&big).expect("extract");
+                    let fb = stage.extractor.extract(&shifted).expect("extract");
+                    for k in [256, 512, 1024] {
+                        let (a, b) = (take(&fa, k), take(&fb, k));
+                        let ms = median_ms(iters.min(10), || {
+                            lga.matcher.match_features(&a, &b).expect("match");
+                        });
+                        rows.push((format!("lightglue(aliked) {}+{}", a.len(), b.len()), ms));
+                    }
+                }
+            }
+        }
+    }
     println!(
         "provider: {} (xfeat), {} (lighterglue); threads {threads}; median of {iters}",
         xfeat.provider(),
