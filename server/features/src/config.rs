@@ -92,6 +92,25 @@ impl std::fmt::Debug for FeatureStage {
     }
 }
 
+impl FeatureStage {
+    /// Run each model once on a small synthetic image, so the first request does not pay for ONNX
+    /// Runtime's lazy initialisation (allocations, kernel selection, CUDA context).
+    pub fn warm_up(&self) -> Result<(), FeatureError> {
+        let (w, h) = (128u32, 96u32);
+        let data: Vec<u8> = (0..w * h * 3)
+            .map(|i| {
+                let (x, y) = ((i / 3) % w, (i / 3) / w);
+                (((x / 8 + y / 8) % 2) * 200 + (x * 7 + y * 13) % 40) as u8
+            })
+            .collect();
+        let img =
+            pntr_core::RgbImage::new(w, h, data).map_err(|e| FeatureError::Input(e.to_string()))?;
+        let f = self.extractor.extract(&img)?;
+        self.matcher.match_features(&f, &f)?;
+        Ok(())
+    }
+}
+
 fn pairs_list() -> String {
     VALID_PAIRS
         .iter()
@@ -200,7 +219,9 @@ impl FeatureConfig {
             )?),
             other => unreachable!("validated matcher name {other}"),
         };
-        Ok(FeatureStage { extractor, matcher })
+        let stage = FeatureStage { extractor, matcher };
+        stage.warm_up()?;
+        Ok(stage)
     }
 }
 
