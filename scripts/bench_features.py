@@ -43,13 +43,16 @@ def main():
     for h, w in ((256, 256), (480, 640)):
         img = rng.random((1, 3, h, w), dtype=np.float32)
         rows.append((f"xfeat {w}x{h}", median_ms(a.iters, lambda: x.run(None, {"image": img}))))
-    for k in (256, 512, 1024):
-        kp = (rng.random((1, k, 2)) * [640, 480]).astype(np.float32)
-        d = rng.normal(size=(1, k, 64)).astype(np.float32)
-        d /= np.linalg.norm(d, axis=-1, keepdims=True)
-        size = np.array([[640, 480]], np.float32)
-        feed = {"kpts0": kp, "kpts1": kp, "desc0": d, "desc1": d, "size0": size, "size1": size}
-        rows.append((f"lighterglue {k}+{k}", median_ms(a.iters, lambda: lg.run(None, feed))))
+    def matcher_rows(name, sess, dim, iters):
+        for k in (256, 512, 1024):
+            kp = (rng.random((1, k, 2)) * [640, 480]).astype(np.float32)
+            d = rng.normal(size=(1, k, dim)).astype(np.float32)
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+            size = np.array([[640, 480]], np.float32)
+            feed = {"kpts0": kp, "kpts1": kp, "desc0": d, "desc1": d, "size0": size, "size1": size}
+            rows.append((f"{name} {k}+{k}", median_ms(iters, lambda: sess.run(None, feed))))
+
+    matcher_rows("lighterglue", lg, 64, a.iters)
     al_path = os.path.join(a.models, "aliked_n16.onnx")
     if os.path.exists(al_path):
         al = ort.InferenceSession(al_path, so, providers=["CPUExecutionProvider"])
@@ -59,13 +62,7 @@ def main():
     lga_path = os.path.join(a.models, "lightglue_aliked.onnx")
     if os.path.exists(lga_path):
         lga = ort.InferenceSession(lga_path, so, providers=["CPUExecutionProvider"])
-        for k in (256, 512, 1024):
-            kp = (rng.random((1, k, 2)) * [640, 480]).astype(np.float32)
-            d = rng.normal(size=(1, k, 128)).astype(np.float32)
-            d /= np.linalg.norm(d, axis=-1, keepdims=True)
-            size = np.array([[640, 480]], np.float32)
-            feed = {"kpts0": kp, "kpts1": kp, "desc0": d, "desc1": d, "size0": size, "size1": size}
-            rows.append((f"lightglue(aliked) {k}+{k}", median_ms(min(a.iters, 10), lambda: lga.run(None, feed))))
+        matcher_rows("lightglue(aliked)", lga, 128, min(a.iters, 10))
     print(f"python onnxruntime {ort.__version__}; threads {a.threads}; median of {a.iters}")
     print("| stage | ms |\n|---|---|")
     for n, ms in rows:

@@ -4,6 +4,7 @@
 //! lives in the server crates so that the service, the CLI and the tests share one implementation.
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
+mod oracle_demo;
 mod register_cmd;
 mod synth_cmd;
 
@@ -42,6 +43,12 @@ enum Command {
         /// Where to put the demo data.
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
+        /// Folder of the ONNX models.
+        #[arg(long, default_value = "models")]
+        models: PathBuf,
+        /// How many queries (evenly spaced) to localise.
+        #[arg(long, default_value_t = 200)]
+        queries: usize,
     },
 }
 
@@ -58,7 +65,11 @@ fn main() {
         Command::Synth(args) => synth_cmd::run(&args),
         Command::Register(args) => register_cmd::run(&args),
         Command::Info { dataset, json } => synth_cmd::info(&dataset, json),
-        Command::Demo { out } => synth_cmd::demo(&out),
+        Command::Demo {
+            out,
+            models,
+            queries,
+        } => synth_cmd::demo(&out, &models, queries),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

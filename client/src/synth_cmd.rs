@@ -186,7 +186,7 @@ pub fn info(dataset: &Path, as_json: bool) -> Result<()> {
 }
 
 /// `pntr demo`: the embedded default job.
-pub fn demo(out: &Path) -> Result<()> {
+pub fn demo(out: &Path, models: &Path, queries: usize) -> Result<()> {
     let cfg = SynthConfig::default();
     eprintln!(
         "pntr demo: synthesizing the default scene ({} Points, {} query poses per Point, seed {}) into {}",
@@ -210,5 +210,5 @@ pub fn demo(out: &Path) -> Result<()> {
         view.rgb.height,
         100.0 * view.depth.valid_count() as f64 / (view.rgb.width * view.rgb.height) as f64
     );
-    Ok(())
+    crate::oracle_demo::run(scene, models, queries)
 }

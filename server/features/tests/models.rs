@@ -84,6 +84,33 @@ fn image(name: &str) -> RgbImage {
     RgbImage::new(shape[1] as u32, shape[0] as u32, data).unwrap()
 }
 
+/// How many reference keypoints `ours` has at the same pixel (within 1e-3), and the largest descriptor
+/// difference over those.
+fn keypoint_parity(
+    ref_kpts: &[[f32; 2]],
+    ref_desc: &[f32],
+    dim: usize,
+    ours: &Features,
+) -> (usize, f32) {
+    let mut found = 0;
+    let mut worst = 0f32;
+    for (i, k) in ref_kpts.iter().enumerate() {
+        let hit = ours
+            .keypoints
+            .iter()
+            .position(|q| (q[0] - k[0]).abs() < 1e-3 && (q[1] - k[1]).abs() < 1e-3);
+        if let Some(j) = hit {
+            found += 1;
+            let d = ref_desc[i * dim..(i + 1) * dim]
+                .iter()
+                .zip(ours.descriptor(j))
+                .map(|(a, b)| (a - b).abs());
+            worst = worst.max(d.fold(0.0, f32::max));
+        }
+    }
+    (found, worst)
+}
+
 fn xfeat() -> XFeat {
     XFeat::load(
         &models().join("xfeat_backbone.onnx"),
@@ -97,26 +124,18 @@ fn xfeat_and_lighterglue_match_the_upstream_implementation() {
     let ours = xfeat().extract(&image("image_a")).unwrap();
     let refa = reference_features("a");
     // Keypoints as sets: every reference keypoint should be found at the same pixel.
-    let mut found = 0;
-    let mut worst_desc = 0f32;
-    let mut worst_score = 0f32;
-    for (i, k) in refa.keypoints.iter().enumerate() {
-        if let Some(j) = ours
-            .keypoints
-            .iter()
-            .position(|q| (q[0] - k[0]).abs() < 1e-3 && (q[1] - k[1]).abs() < 1e-3)
-        {
-            found += 1;
-            let dd = refa
-                .descriptor(i)
+    let (found, worst_desc) = keypoint_parity(&refa.keypoints, &refa.descriptors, refa.dim, &ours);
+    let worst_score = refa
+        .keypoints
+        .iter()
+        .zip(&refa.scores)
+        .filter_map(|(k, s)| {
+            ours.keypoints
                 .iter()
-                .zip(ours.descriptor(j))
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f32::max);
-            worst_desc = worst_desc.max(dd);
-            worst_score = worst_score.max((refa.scores[i] - ours.scores[j]).abs());
-        }
-    }
+                .position(|q| q == k)
+                .map(|j| (s - ours.scores[j]).abs())
+        })
+        .fold(0f32, f32::max);
     eprintln!("parity: {found}/{} reference keypoints found; worst descriptor diff {worst_desc:e}, score diff {worst_score:e}", refa.len());
     assert!(
         found as f64 >= 0.99 * refa.len() as f64,
@@ -300,24 +319,17 @@ fn aliked_matches_its_export_reference_and_geometry() {
     let (_, k) = npy_f32("aliked_kpts_a");
     let (_, d) = npy_f32("aliked_desc_a");
     let (_, s) = npy_f32("aliked_scores_a");
+    // Padding (score 0) is not a keypoint.
     let reference: Vec<usize> = (0..s.len()).filter(|&i| s[i] > 0.0).collect();
-    let mut found = 0;
-    let mut worst = 0f32;
-    for &i in &reference {
-        if let Some(j) = ours
-            .keypoints
-            .iter()
-            .position(|q| (q[0] - k[2 * i]).abs() < 1e-3 && (q[1] - k[2 * i + 1]).abs() < 1e-3)
-        {
-            found += 1;
-            let dd = d[i * 128..(i + 1) * 128]
-                .iter()
-                .zip(ours.descriptor(j))
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0, f32::max);
-            worst = worst.max(dd);
-        }
-    }
+    let ref_kpts: Vec<[f32; 2]> = reference
+        .iter()
+        .map(|&i| [k[2 * i], k[2 * i + 1]])
+        .collect();
+    let ref_desc: Vec<f32> = reference
+        .iter()
+        .flat_map(|&i| d[i * 128..(i + 1) * 128].to_vec())
+        .collect();
+    let (found, worst) = keypoint_parity(&ref_kpts, &ref_desc, 128, &ours);
     eprintln!(
         "aliked parity: {found}/{} reference keypoints, worst descriptor diff {worst:e}",
         reference.len()
