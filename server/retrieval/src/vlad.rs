@@ -1,0 +1,187 @@
+//! VLAD (Jegou et al. 2010; Arandjelovic and Zisserman 2013 for intra-normalisation): sum the residuals
+//! of local descriptors to their nearest codeword, per codeword; normalise each codeword's block
+//! (intra-normalisation, which damps bursty repeated structures such as tiles), apply signed square
+//! root (power normalisation), then L2-normalise the whole vector.
+
+use std::io::Write;
+use std::path::Path;
+
+use crate::RetrievalError;
+
+/// A VLAD codebook: `k` centroids of `dim`-long local descriptors.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Codebook {
+    /// Local descriptor length.
+    pub dim: usize,
+    /// Number of codewords.
+    pub k: usize,
+    /// `k * dim` centroid values, row-major.
+    pub centroids: Vec<f32>,
+}
+
+const MAGIC: &[u8; 8] = b"PNTRVLAD";
+const VERSION: u32 = 1;
+
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
+        (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
+    })
+}
+
+impl Codebook {
+    /// Learn `k` codewords from `descriptors` (`n * dim` values) by faiss k-means (25 iterations,
+    /// fixed `seed`, so the same input gives the same codebook).
+    pub fn train(
+        descriptors: &[f32],
+        dim: usize,
+        k: usize,
+        seed: u32,
+    ) -> Result<Self, RetrievalError> {
+        if dim == 0 || k == 0 || descriptors.len() % dim != 0 {
+            return Err(RetrievalError::Input(format!(
+                "{} values are not a whole number of {dim}-d descriptors, or k = {k}",
+                descriptors.len()
+            )));
+        }
+        let n = descriptors.len() / dim;
+        if n < k {
+            return Err(RetrievalError::Input(format!(
+                "{n} descriptors cannot train {k} codewords"
+            )));
+        }
+        let mut params = faiss::cluster::ClusteringParameters::new();
+        params.set_niter(25);
+        params.set_seed(seed);
+        params.set_max_points_per_centroid(1024);
+        let mut clustering =
+            faiss::cluster::Clustering::new_with_params(dim as u32, k as u32, &params)?;
+        let mut quantizer = faiss::index::flat::FlatIndexImpl::new_l2(dim as u32)?;
+        clustering.train(descriptors, &mut quantizer)?;
+        let centroids: Vec<f32> = clustering
+            .centroids()?
+            .into_iter()
+            .flatten()
+            .copied()
+            .collect();
+        Ok(Self { dim, k, centroids })
+    }
+
+    /// Length of the VLAD vector.
+    pub fn vlad_dim(&self) -> usize {
+        self.k * self.dim
+    }
+
+    fn nearest(&self, d: &[f32]) -> usize {
+        let mut best = (0, f32::INFINITY);
+        for c in 0..self.k {
+            let cw = &self.centroids[c * self.dim..(c + 1) * self.dim];
+            let dist: f32 = cw.iter().zip(d).map(|(a, b)| (a - b) * (a - b)).sum();
+            if dist < best.1 {
+                best = (c, dist);
+            }
+        }
+        best.0
+    }
+
+    /// The VLAD vector of one image's local descriptors (`n * dim` values). An image without
+    /// descriptors gets the zero vector (it matches nothing).
+    pub fn vlad(&self, descriptors: &[f32]) -> Result<Vec<f32>, RetrievalError> {
+        if descriptors.len() % self.dim != 0 {
+            return Err(RetrievalError::Input(format!(
+                "{} values are not a whole number of {}-d descriptors",
+                descriptors.len(),
+                self.dim
+            )));
+        }
+        let mut v = vec![0f32; self.vlad_dim()];
+        for d in descriptors.chunks_exact(self.dim) {
+            let c = self.nearest(d);
+            let cw = &self.centroids[c * self.dim..(c + 1) * self.dim];
+            for ((acc, x), m) in v[c * self.dim..(c + 1) * self.dim]
+                .iter_mut()
+                .zip(d)
+                .zip(cw)
+            {
+                *acc += x - m;
+            }
+        }
+        for block in v.chunks_exact_mut(self.dim) {
+            let n = block.iter().map(|x| x * x).sum::<f32>().sqrt();
+            if n > 0.0 {
+                block.iter_mut().for_each(|x| *x /= n);
+            }
+        }
+        for x in &mut v {
+            *x = x.signum() * x.abs().sqrt();
+        }
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        if n > 0.0 {
+            v.iter_mut().for_each(|x| *x /= n);
+        }
+        Ok(v)
+    }
+
+    /// Write to `path` (via a temporary file renamed into place): magic, version, dim, k, the
+    /// centroids as little-endian f32, and a checksum of all that.
+    pub fn save(&self, path: &Path) -> Result<(), RetrievalError> {
+        let err = |message: String| RetrievalError::File {
+            path: path.display().to_string(),
+            message,
+        };
+        let mut bytes = Vec::with_capacity(32 + self.centroids.len() * 4);
+        bytes.extend_from_slice(MAGIC);
+        bytes.extend_from_slice(&VERSION.to_le_bytes());
+        bytes.extend_from_slice(&(self.dim as u32).to_le_bytes());
+        bytes.extend_from_slice(&(self.k as u32).to_le_bytes());
+        for c in &self.centroids {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+        let sum = fnv1a(&bytes);
+        bytes.extend_from_slice(&sum.to_le_bytes());
+        let tmp = path.with_extension(format!("partial-{}", std::process::id()));
+        let mut f = std::fs::File::create(&tmp).map_err(|e| err(e.to_string()))?;
+        f.write_all(&bytes)
+            .and_then(|_| f.sync_all())
+            .map_err(|e| err(e.to_string()))?;
+        std::fs::rename(&tmp, path).map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            err(e.to_string())
+        })
+    }
+
+    /// Read a codebook written by [`Codebook::save`], checking magic, version, size and checksum.
+    pub fn load(path: &Path) -> Result<Self, RetrievalError> {
+        let err = |message: String| RetrievalError::File {
+            path: path.display().to_string(),
+            message,
+        };
+        let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
+        if bytes.len() < 28 || &bytes[..8] != MAGIC {
+            return Err(err("not a pntr VLAD codebook".into()));
+        }
+        let u32_at = |i: usize| u32::from_le_bytes(bytes[i..i + 4].try_into().expect("4 bytes"));
+        if u32_at(8) != VERSION {
+            return Err(err(format!(
+                "codebook version {} (this build reads {VERSION})",
+                u32_at(8)
+            )));
+        }
+        let (dim, k) = (u32_at(12) as usize, u32_at(16) as usize);
+        let body = 20 + dim * k * 4;
+        if dim == 0 || k == 0 || bytes.len() != body + 8 {
+            return Err(err(format!(
+                "{} bytes do not hold {k} x {dim} centroids",
+                bytes.len()
+            )));
+        }
+        let stored = u64::from_le_bytes(bytes[body..].try_into().expect("8 bytes"));
+        if stored != fnv1a(&bytes[..body]) {
+            return Err(err("checksum mismatch (corrupted file)".into()));
+        }
+        let centroids = bytes[20..body]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+            .collect();
+        Ok(Self { dim, k, centroids })
+    }
+}

@@ -1,0 +1,153 @@
+//! VLAD retrieval over XFeat descriptors on a synthetic scene: finds the right Point, the faiss index
+//! agrees with brute force, and a saved codebook reloads bit for bit.
+
+use std::path::PathBuf;
+
+use pntr_core::Intrinsics;
+use pntr_features::config::FeatureConfig;
+use pntr_retrieval::index::{brute_force, GlobalIndex, IndexKind};
+use pntr_retrieval::vlad::Codebook;
+use pntr_synth::{plan_scene, Renderer, SynthConfig};
+
+struct Data {
+    db_desc: Vec<Vec<f32>>,
+    db_point: Vec<usize>,
+    q_desc: Vec<Vec<f32>>,
+    q_point: Vec<usize>,
+}
+
+fn data() -> Data {
+    let cfg = SynthConfig {
+        points_per_scene: 6,
+        queries_per_point: 6,
+        seed: 21,
+        ..Default::default()
+    };
+    let planned = plan_scene(&cfg, 0);
+    let renderer = Renderer::new(&planned.scene);
+    let k = Intrinsics::hpointloc();
+    let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models");
+    let stage = FeatureConfig {
+        models_dir: models,
+        top_k: 512,
+        ..Default::default()
+    }
+    .build()
+    .unwrap();
+    let mut d = Data {
+        db_desc: vec![],
+        db_point: vec![],
+        q_desc: vec![],
+        q_point: vec![],
+    };
+    for (pi, p) in planned.points.iter().enumerate() {
+        for (vi, pose) in p.db.iter().enumerate() {
+            let f = stage
+                .extractor
+                .extract(&renderer.render(pose, &k, vi as u64).rgb)
+                .unwrap();
+            d.db_desc.push(f.descriptors);
+            d.db_point.push(pi);
+        }
+        for (qi, pose) in p.queries.iter().enumerate() {
+            let f = stage
+                .extractor
+                .extract(&renderer.render(pose, &k, 100 + qi as u64).rgb)
+                .unwrap();
+            d.q_desc.push(f.descriptors);
+            d.q_point.push(pi);
+        }
+    }
+    d
+}
+
+/// Recall@1 and @5 (right Point among the top hits) with the given codebook.
+fn recall(d: &Data, book: &Codebook) -> (f64, f64, GlobalIndex, Vec<f32>, Vec<Vec<f32>>) {
+    let db: Vec<f32> = d
+        .db_desc
+        .iter()
+        .flat_map(|x| book.vlad(x).unwrap())
+        .collect();
+    let mut index = GlobalIndex::build(&db, book.vlad_dim(), IndexKind::Flat).unwrap();
+    let queries: Vec<Vec<f32>> = d.q_desc.iter().map(|x| book.vlad(x).unwrap()).collect();
+    let (mut r1, mut r5) = (0, 0);
+    for (q, &pt) in queries.iter().zip(&d.q_point) {
+        let hits = index.search(q, 5).unwrap();
+        r1 += (d.db_point[hits[0].id] == pt) as usize;
+        r5 += hits.iter().any(|h| d.db_point[h.id] == pt) as usize;
+    }
+    let n = queries.len() as f64;
+    (r1 as f64 / n, r5 as f64 / n, index, db, queries)
+}
+
+#[test]
+fn vlad_finds_the_right_point_and_faiss_agrees_with_brute_force() {
+    let d = data();
+    let all: Vec<f32> = d.db_desc.iter().flatten().copied().collect();
+    let book = Codebook::train(&all, 64, 32, 7).unwrap();
+    let (r1, r5, mut index, db, queries) = recall(&d, &book);
+    eprintln!(
+        "VLAD(32 x XFeat-64) on {} queries, 6 Points: recall@1 {r1:.3}, recall@5 {r5:.3}",
+        queries.len()
+    );
+    // Chance is 1/6 for recall@1.
+    assert!(r1 >= 0.6, "recall@1 {r1}");
+    assert!(r5 >= r1);
+    // A broken codebook (all codewords equal) gives descriptors that cannot tell Points apart.
+    let broken = Codebook {
+        centroids: vec![0.0; 32 * 64],
+        ..book.clone()
+    };
+    let (b1, _, _, _, _) = recall(&d, &broken);
+    eprintln!("broken codebook: recall@1 {b1:.3}");
+    assert!(
+        b1 < r1,
+        "a degenerate codebook should do worse ({b1} vs {r1})"
+    );
+
+    for q in &queries {
+        let got = index.search(q, 5).unwrap();
+        let want = brute_force(&db, book.vlad_dim(), q, 5);
+        assert_eq!(
+            got.iter().map(|h| h.id).collect::<Vec<_>>(),
+            want.iter().map(|h| h.id).collect::<Vec<_>>()
+        );
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g.score - w.score).abs() < 1e-4);
+        }
+    }
+    let mut hnsw = GlobalIndex::build(&db, book.vlad_dim(), IndexKind::Hnsw { m: 16 }).unwrap();
+    let agree = queries
+        .iter()
+        .filter(|q| hnsw.search(q, 1).unwrap()[0].id == index.search(q, 1).unwrap()[0].id)
+        .count();
+    assert!(
+        agree as f64 >= 0.95 * queries.len() as f64,
+        "hnsw top-1 agrees on {agree}"
+    );
+
+    // Save, load: identical descriptors. A flipped byte is caught by the checksum.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("codebook.bin");
+    book.save(&path).unwrap();
+    let back = Codebook::load(&path).unwrap();
+    assert_eq!(back, book);
+    assert_eq!(
+        back.vlad(&d.q_desc[0]).unwrap(),
+        book.vlad(&d.q_desc[0]).unwrap()
+    );
+    let mut bytes = std::fs::read(&path).unwrap();
+    bytes[100] ^= 0x40;
+    std::fs::write(&path, &bytes).unwrap();
+    let e = Codebook::load(&path).unwrap_err().to_string();
+    assert!(e.contains("checksum") && e.contains("codebook.bin"), "{e}");
+    std::fs::write(&path, b"short").unwrap();
+    assert!(Codebook::load(&path)
+        .unwrap_err()
+        .to_string()
+        .contains("not a pntr VLAD codebook"));
+    assert!(
+        Codebook::train(&all[..64 * 10], 64, 32, 1).is_err(),
+        "too few descriptors for 32 codewords"
+    );
+}
