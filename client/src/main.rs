@@ -4,7 +4,7 @@
 //! lives in the server crates so that the service, the CLI and the tests share one implementation.
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
-mod oracle_demo;
+mod localize_demo;
 mod register_cmd;
 mod synth_cmd;
 

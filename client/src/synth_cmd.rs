@@ -210,5 +210,5 @@ pub fn demo(out: &Path, models: &Path, queries: usize) -> Result<()> {
         view.rgb.height,
         100.0 * view.depth.valid_count() as f64 / (view.rgb.width * view.rgb.height) as f64
     );
-    crate::oracle_demo::run(scene, models, queries)
+    crate::localize_demo::run(scene, models, queries)
 }
