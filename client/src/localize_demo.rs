@@ -145,7 +145,7 @@ pub fn run(scene: &SceneEntry, models: &Path, max_queries: usize) -> Result<()> 
         .build()
         .with_context(|| format!("loading the feature models from {}", models.display()))?;
     let mut ctx = Localizer {
-        stage: stage.clone(),
+        stage,
         k: Intrinsics::hpointloc(),
         params: TeaserParams::default(),
         t_match: 0.0,
@@ -155,11 +155,16 @@ pub fn run(scene: &SceneEntry, models: &Path, max_queries: usize) -> Result<()> 
     let t_map = Instant::now();
     let mut db: Vec<(usize, View, Features)> = Vec::new();
     let mut all = Vec::new();
-    for (pi, p) in scene.points.iter().enumerate() {
-        let r = p.open()?;
+    // Each Point file is opened (and validated) once; queries are read from these readers below.
+    let readers = scene
+        .points
+        .iter()
+        .map(|p| p.open())
+        .collect::<Result<Vec<_>, _>>()?;
+    for (pi, r) in readers.iter().enumerate() {
         for j in 0..r.count(Role::Database) {
             let v = r.view(Role::Database, j)?;
-            let f = stage.extractor.extract(&v.rgb)?;
+            let f = ctx.stage.extractor.extract(&v.rgb)?;
             db.push((pi, v, f));
         }
         for q in 0..r.count(Role::Query) {
@@ -191,9 +196,9 @@ pub fn run(scene: &SceneEntry, models: &Path, max_queries: usize) -> Result<()> 
     let (mut with_retrieval, mut with_oracle) = (Vec::new(), Vec::new());
     let mut right_point = 0;
     for &(pi, qi) in &picked {
-        let q = scene.points[pi].open()?.view(Role::Query, qi)?;
+        let q = readers[pi].view(Role::Query, qi)?;
         let t0 = Instant::now();
-        let fq = stage.extractor.extract(&q.rgb)?;
+        let fq = ctx.stage.extractor.extract(&q.rgb)?;
         let t1 = Instant::now();
         let hit = index.search(&book.vlad(&fq.descriptors)?, 1)?[0].id;
         t_ext += (t1 - t0).as_secs_f64();

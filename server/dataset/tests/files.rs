@@ -213,48 +213,35 @@ fn missing_field_is_named() {
     }
 }
 
+/// Write `f` as `<name>_point0.hdf5` and check that opening it fails with every part of `want`.
+fn refused(dir: &Path, name: &str, f: Fields, want: &[&str]) {
+    let p = fixture(dir, name);
+    f.write(&p, "");
+    let err = open_err(&p);
+    assert!(want.iter().all(|w| err.contains(w)), "{err}");
+}
+
 #[test]
 fn wrong_shape_is_named() {
     let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
     let mut f = Fields::good();
     f.rgb = Array4::zeros((2, 4, 4, 4));
-    let p = fixture(dir.path(), "rgbshape");
-    f.write(&p, "");
-    let err = open_err(&p);
-    assert!(
-        err.contains("field `rgb`") && err.contains("expected (N, H, W, 3)"),
-        "{err}"
-    );
-
+    refused(d, "rgbshape", f, &["field `rgb`", "expected (N, H, W, 3)"]);
     let mut f = Fields::good();
     f.depth_base = Array4::zeros((5, 4, 4, 1));
-    let p = fixture(dir.path(), "depthcount");
-    f.write(&p, "");
-    let err = open_err(&p);
-    assert!(
-        err.contains("field `depth_base`") && err.contains("to match `rgb_base`"),
-        "{err}"
+    refused(
+        d,
+        "depthcount",
+        f,
+        &["field `depth_base`", "to match `rgb_base`"],
     );
-
     let mut f = Fields::good();
     f.gps = Array2::zeros((2, 2));
-    let p = fixture(dir.path(), "gpsshape");
-    f.write(&p, "");
-    let err = open_err(&p);
-    assert!(
-        err.contains("field `gps`") && err.contains("expected (2, 3)"),
-        "{err}"
-    );
-
+    refused(d, "gpsshape", f, &["field `gps`", "expected (2, 3)"]);
     let mut f = Fields::good();
     f.rgb = Array4::zeros((2, 5, 4, 3));
-    let p = fixture(dir.path(), "size");
-    f.write(&p, "");
-    let err = open_err(&p);
-    assert!(
-        err.contains("field `rgb`") && err.contains("differs"),
-        "{err}"
-    );
+    refused(d, "size", f, &["field `rgb`", "differs"]);
 }
 
 #[test]
@@ -319,23 +306,15 @@ fn nan_or_zero_pose_is_named_with_its_row() {
     let dir = tempfile::tempdir().unwrap();
     let mut f = Fields::good();
     f.gps_base[[4, 1]] = f32::NAN;
-    let p = fixture(dir.path(), "nan");
-    f.write(&p, "");
-    let err = open_err(&p);
-    assert!(
-        err.contains("gps_base/quat_base") && err.contains("row 4") && err.contains("non-finite"),
-        "{err}"
+    refused(
+        dir.path(),
+        "nan",
+        f,
+        &["gps_base/quat_base", "row 4", "non-finite"],
     );
-
     let mut f = Fields::good();
     f.quat.fill(0.0);
-    let p = fixture(dir.path(), "zeroq");
-    f.write(&p, "");
-    let err = open_err(&p);
-    assert!(
-        err.contains("gps/quat") && err.contains("row 0") && err.contains("norm"),
-        "{err}"
-    );
+    refused(dir.path(), "zeroq", f, &["gps/quat", "row 0", "norm"]);
 }
 
 #[test]

@@ -59,24 +59,17 @@ fn reference_features(side: &str) -> Features {
     let (ks, k) = npy_f32(&format!("kpts_{side}"));
     let (_, s) = npy_f32(&format!("scores_{side}"));
     let (ds, d) = npy_f32(&format!("desc_{side}"));
-    Features {
+    let f = Features {
         keypoints: k.chunks_exact(2).map(|p| [p[0], p[1]]).collect(),
         scores: s,
         descriptors: d,
         dim: ds[1],
         binary: Vec::new(),
         image_size: (256, 256),
-    }
-    .tap(|f| assert_eq!(f.len(), ks[0]))
+    };
+    assert_eq!(f.len(), ks[0]);
+    f
 }
-
-trait Tap: Sized {
-    fn tap(self, f: impl FnOnce(&Self)) -> Self {
-        f(&self);
-        self
-    }
-}
-impl<T> Tap for T {}
 
 fn image(name: &str) -> RgbImage {
     let (shape, descr, data) = npy(name);

@@ -6,7 +6,7 @@
 
 use nalgebra::Vector3;
 
-use crate::kabsch::weighted_kabsch;
+use crate::kabsch::kabsch;
 use crate::kdtree::KdTree;
 use crate::Rigid;
 
@@ -76,7 +76,7 @@ where
         }
         let s: Vec<_> = pairs.iter().map(|(i, _)| src[*i]).collect();
         let d: Vec<_> = pairs.iter().map(|(_, q)| *q).collect();
-        let Some(next) = weighted_kabsch(&s, &d, &vec![1.0; s.len()]) else {
+        let Some(next) = kabsch(&s, &d) else {
             break;
         };
         let step = step_size(&next, &est);

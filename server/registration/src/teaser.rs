@@ -21,7 +21,7 @@ use std::time::Duration;
 use nalgebra::{Rotation3, Vector3};
 
 use crate::clique::{max_clique, Graph};
-use crate::kabsch::{principal_spreads, weighted_kabsch, weighted_rotation};
+use crate::kabsch::{kabsch, principal_spreads, weighted_rotation};
 use crate::Rigid;
 
 /// Solver parameters.
@@ -304,7 +304,7 @@ pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> Te
     if inliers.len() >= 3 {
         let s: Vec<_> = inliers.iter().map(|&i| src[i]).collect();
         let d: Vec<_> = inliers.iter().map(|&i| dst[i]).collect();
-        if let Some(polished) = weighted_kabsch(&s, &d, &vec![1.0; s.len()]) {
+        if let Some(polished) = kabsch(&s, &d) {
             let again = inliers_of(&polished);
             if again.len() >= inliers.len() {
                 est = polished;
