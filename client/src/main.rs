@@ -5,6 +5,7 @@
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
 mod localize_demo;
+mod map_cmd;
 mod register_cmd;
 mod synth_cmd;
 
@@ -29,6 +30,10 @@ enum Command {
     Synth(synth_cmd::SynthArgs),
     /// Register 3D-3D correspondences from a CSV file and print the transform as JSON.
     Register(register_cmd::RegisterArgs),
+    /// Build a map database from a dataset.
+    BuildDb(map_cmd::BuildArgs),
+    /// Evaluate the pipeline on a dataset's queries (HPointLoc recall table, JSON report).
+    Eval(map_cmd::EvalArgs),
     /// List the scenes and Points of a dataset and check that every file reads.
     Info {
         /// Dataset root (the folder holding HPointLoc_dataset, or that folder).
@@ -64,6 +69,8 @@ fn main() {
     let result = match cli.command {
         Command::Synth(args) => synth_cmd::run(&args),
         Command::Register(args) => register_cmd::run(&args),
+        Command::BuildDb(args) => map_cmd::build_db(&args),
+        Command::Eval(args) => map_cmd::eval(&args),
         Command::Info { dataset, json } => synth_cmd::info(&dataset, json),
         Command::Demo {
             out,

@@ -16,6 +16,7 @@
 //!   [`convert_axes`] moves a `world_from_camera` between them.
 //! - Pixels: OpenCV convention, the centre of pixel (col, row) is at (u, v) = (col, row).
 
+pub mod bytes;
 pub mod categories;
 pub mod image;
 pub mod intrinsics;

@@ -116,7 +116,7 @@ fn resize_planar(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
 
 /// Planar RGB in 0..1 at `oh` x `ow`: a straight conversion when the size matches, otherwise a
 /// PyTorch-style bilinear resize.
-pub(crate) fn planar_rgb(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
+pub fn planar_rgb(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
     let (w, h) = (img.width as usize, img.height as usize);
     if (oh, ow) != (h, w) {
         return resize_planar(img, oh, ow);

@@ -15,6 +15,51 @@ pub enum IndexKind {
         /// Links per node.
         m: u32,
     },
+    /// Inverted file with `nlist` cells probed `nprobe` at a time: approximate, trained on the map.
+    Ivf {
+        /// Number of cells (k-means centroids).
+        nlist: u32,
+        /// Cells visited per query.
+        nprobe: u32,
+    },
+    /// PCA-whitening to `dim` dimensions learned on the map, re-normalised, then exact search.
+    PcaWhiten {
+        /// Output dimension (at most the number of map vectors).
+        dim: u32,
+    },
+}
+
+impl IndexKind {
+    /// Parse a name: `flat`, `hnsw<M>` (e.g. hnsw32), `ivf<NLIST>` (e.g. ivf1024, 16 probes) or
+    /// `pcaw<D>` (e.g. pcaw256).
+    pub fn parse(name: &str) -> Result<Self, RetrievalError> {
+        let num = |prefix: &str| -> Option<u32> {
+            name.strip_prefix(prefix)?.parse().ok().filter(|&v| v > 0)
+        };
+        if name == "flat" {
+            Ok(Self::Flat)
+        } else if let Some(m) = num("hnsw") {
+            Ok(Self::Hnsw { m })
+        } else if let Some(nlist) = num("ivf") {
+            Ok(Self::Ivf { nlist, nprobe: 16 })
+        } else if let Some(dim) = num("pcaw") {
+            Ok(Self::PcaWhiten { dim })
+        } else {
+            Err(RetrievalError::Input(format!(
+                "unknown index `{name}` (flat, hnsw<M>, ivf<NLIST>, pcaw<DIM>)"
+            )))
+        }
+    }
+
+    /// The name [`IndexKind::parse`] reads.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Flat => "flat".into(),
+            Self::Hnsw { m } => format!("hnsw{m}"),
+            Self::Ivf { nlist, .. } => format!("ivf{nlist}"),
+            Self::PcaWhiten { dim } => format!("pcaw{dim}"),
+        }
+    }
 }
 
 /// A searchable set of global descriptors; ids are insertion order.
@@ -48,17 +93,70 @@ impl GlobalIndex {
                 vectors.len()
             )));
         }
+        let n = vectors.len() / dim;
         let desc = match kind {
             IndexKind::Flat => "Flat".to_string(),
             IndexKind::Hnsw { m } => format!("HNSW{m},Flat"),
+            IndexKind::Ivf { nlist, .. } => {
+                if (nlist as usize) > n {
+                    return Err(RetrievalError::Input(format!(
+                        "ivf{nlist} needs at least {nlist} map vectors, the map has {n}"
+                    )));
+                }
+                format!("IVF{nlist},Flat")
+            }
+            IndexKind::PcaWhiten { dim: d } => {
+                if d as usize > n.min(dim) {
+                    return Err(RetrievalError::Input(format!(
+                        "pcaw{d} needs at least {d} map vectors of at least {d} dimensions ({n} of {dim})"
+                    )));
+                }
+                format!("PCAW{d},L2norm,Flat")
+            }
         };
         let mut index = faiss::index_factory(dim as u32, desc, MetricType::InnerProduct)?;
+        if !index.is_trained() {
+            index.train(vectors)?;
+        }
         index.add(vectors)?;
+        if let IndexKind::Ivf { nprobe, .. } = kind {
+            faiss::index::autotune::ParameterSpace::new()?
+                .set_index_parameter(&index, "nprobe", nprobe)?;
+        }
         Ok(Self {
             index,
             dim,
             len: vectors.len() / dim,
         })
+    }
+
+    /// Serialise with faiss's own writer (through a temporary file: the crate has no in-memory writer).
+    pub fn to_bytes(&self) -> Result<Vec<u8>, RetrievalError> {
+        let dir = tempfile::tempdir().map_err(|e| RetrievalError::Faiss(e.to_string()))?;
+        let path = dir.path().join("index.faiss");
+        faiss::write_index(&self.index, path.to_string_lossy())?;
+        std::fs::read(&path).map_err(|e| RetrievalError::Faiss(e.to_string()))
+    }
+
+    /// Read what [`GlobalIndex::to_bytes`] wrote; `dim` and `len` must agree with the index.
+    pub fn from_bytes(bytes: &[u8], dim: usize, len: usize) -> Result<Self, RetrievalError> {
+        let dir = tempfile::tempdir().map_err(|e| RetrievalError::Faiss(e.to_string()))?;
+        let path = dir.path().join("index.faiss");
+        std::fs::write(&path, bytes).map_err(|e| RetrievalError::Faiss(e.to_string()))?;
+        let index = faiss::read_index(path.to_string_lossy())?;
+        if index.d() as usize != dim || index.ntotal() as usize != len {
+            return Err(RetrievalError::Input(format!(
+                "the stored index holds {} vectors of {} dimensions, the map says {len} of {dim}",
+                index.ntotal(),
+                index.d()
+            )));
+        }
+        Ok(Self { index, dim, len })
+    }
+
+    /// Vector length.
+    pub fn dim(&self) -> usize {
+        self.dim
     }
 
     /// Number of vectors.

@@ -2,13 +2,19 @@
 //!
 //! No pretrained place-recognition network can be obtained offline, so the default global descriptor is
 //! VLAD over the local descriptors the feature stage already computes (XFeat 64-d by default), with a
-//! codebook learned by faiss k-means on the map's own database images ([`vlad`]). Descriptors are
-//! L2-normalised, so inner product is cosine similarity; the [`index`] is faiss (exact flat by default,
-//! HNSW for very large maps), checked against brute force in the tests.
+//! codebook learned by faiss k-means on the map's own database images ([`vlad`]). A network exported
+//! elsewhere plugs in through a small ONNX contract ([`onnx_global`]), and the paper's classical
+//! baseline, a bag of ORB words with TF-IDF and an inverted file, is [`bow`]. Dense descriptors are
+//! L2-normalised, so inner product is cosine similarity; the [`index`] is faiss (exact flat by default;
+//! HNSW or IVF for very large maps; optional PCA-whitening learned on the map), checked against brute
+//! force in the tests. [`global`] picks one of them by name and serialises it into the map.
 //!
 //! Naming: this is "VLAD over XFeat descriptors", not NetVLAD (no learned aggregation).
 
+pub mod bow;
+pub mod global;
 pub mod index;
+pub mod onnx_global;
 pub mod vlad;
 
 /// Errors of retrieval.
@@ -20,6 +26,9 @@ pub enum RetrievalError {
     /// faiss reported an error.
     #[error("faiss: {0}")]
     Faiss(String),
+    /// A global-descriptor model is missing or breaks its contract.
+    #[error("{0}")]
+    Model(String),
     /// Reading or writing a codebook failed.
     #[error("{path}: {message}")]
     File {
@@ -28,10 +37,21 @@ pub enum RetrievalError {
         /// What went wrong.
         message: String,
     },
+    /// A serialised part of a map is truncated or malformed.
+    #[error("{0}")]
+    Bytes(#[from] pntr_core::bytes::BytesError),
 }
 
 impl From<faiss::error::Error> for RetrievalError {
     fn from(e: faiss::error::Error) -> Self {
         RetrievalError::Faiss(e.to_string())
+    }
+}
+
+/// Scale `v` to unit length (left as is when zero).
+pub fn l2_normalise(v: &mut [f32]) {
+    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if n > 0.0 {
+        v.iter_mut().for_each(|x| *x /= n);
     }
 }

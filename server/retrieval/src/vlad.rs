@@ -22,11 +22,7 @@ pub struct Codebook {
 const MAGIC: &[u8; 8] = b"PNTRVLAD";
 const VERSION: u32 = 1;
 
-fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
-        (h ^ b as u64).wrapping_mul(0x1000_0000_01b3)
-    })
-}
+use pntr_core::bytes::fnv1a;
 
 impl Codebook {
     /// Learn `k` codewords from `descriptors` (`n * dim` values) by faiss k-means (25 iterations,
@@ -121,13 +117,9 @@ impl Codebook {
         Ok(v)
     }
 
-    /// Write to `path` (via a temporary file renamed into place): magic, version, dim, k, the
-    /// centroids as little-endian f32, and a checksum of all that.
-    pub fn save(&self, path: &Path) -> Result<(), RetrievalError> {
-        let err = |message: String| RetrievalError::File {
-            path: path.display().to_string(),
-            message,
-        };
+    /// The file contents [`Codebook::save`] writes: magic, version, dim, k, the centroids as
+    /// little-endian f32, and an FNV-1a checksum of all that.
+    pub fn to_bytes(&self) -> Vec<u8> {
         let mut bytes = Vec::with_capacity(32 + self.centroids.len() * 4);
         bytes.extend_from_slice(MAGIC);
         bytes.extend_from_slice(&VERSION.to_le_bytes());
@@ -138,6 +130,52 @@ impl Codebook {
         }
         let sum = fnv1a(&bytes);
         bytes.extend_from_slice(&sum.to_le_bytes());
+        bytes
+    }
+
+    /// Parse [`Codebook::to_bytes`] output, checking magic, version, size and checksum.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, String> {
+        if bytes.len() < 28 || &bytes[..8] != MAGIC {
+            return Err("not a pntr VLAD codebook".into());
+        }
+        let u32_at = |i: usize| u32::from_le_bytes(bytes[i..i + 4].try_into().expect("4 bytes"));
+        if u32_at(8) != VERSION {
+            return Err(format!(
+                "codebook version {} (this build reads {VERSION})",
+                u32_at(8)
+            ));
+        }
+        let (dim, k) = (u32_at(12) as usize, u32_at(16) as usize);
+        let body = dim
+            .checked_mul(k)
+            .and_then(|x| x.checked_mul(4))
+            .and_then(|x| x.checked_add(20));
+        match body {
+            Some(body) if dim > 0 && k > 0 && bytes.len() == body + 8 => {
+                let stored = u64::from_le_bytes(bytes[body..].try_into().expect("8 bytes"));
+                if stored != fnv1a(&bytes[..body]) {
+                    return Err("checksum mismatch (corrupted file)".into());
+                }
+                let centroids = bytes[20..body]
+                    .chunks_exact(4)
+                    .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+                    .collect();
+                Ok(Self { dim, k, centroids })
+            }
+            _ => Err(format!(
+                "{} bytes do not hold {k} x {dim} centroids",
+                bytes.len()
+            )),
+        }
+    }
+
+    /// Write to `path` via a temporary file renamed into place.
+    pub fn save(&self, path: &Path) -> Result<(), RetrievalError> {
+        let err = |message: String| RetrievalError::File {
+            path: path.display().to_string(),
+            message,
+        };
+        let bytes = self.to_bytes();
         let tmp = path.with_extension(format!("partial-{}", std::process::id()));
         let mut f = std::fs::File::create(&tmp).map_err(|e| err(e.to_string()))?;
         f.write_all(&bytes)
@@ -149,39 +187,13 @@ impl Codebook {
         })
     }
 
-    /// Read a codebook written by [`Codebook::save`], checking magic, version, size and checksum.
+    /// Read a codebook written by [`Codebook::save`].
     pub fn load(path: &Path) -> Result<Self, RetrievalError> {
         let err = |message: String| RetrievalError::File {
             path: path.display().to_string(),
             message,
         };
         let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
-        if bytes.len() < 28 || &bytes[..8] != MAGIC {
-            return Err(err("not a pntr VLAD codebook".into()));
-        }
-        let u32_at = |i: usize| u32::from_le_bytes(bytes[i..i + 4].try_into().expect("4 bytes"));
-        if u32_at(8) != VERSION {
-            return Err(err(format!(
-                "codebook version {} (this build reads {VERSION})",
-                u32_at(8)
-            )));
-        }
-        let (dim, k) = (u32_at(12) as usize, u32_at(16) as usize);
-        let body = 20 + dim * k * 4;
-        if dim == 0 || k == 0 || bytes.len() != body + 8 {
-            return Err(err(format!(
-                "{} bytes do not hold {k} x {dim} centroids",
-                bytes.len()
-            )));
-        }
-        let stored = u64::from_le_bytes(bytes[body..].try_into().expect("8 bytes"));
-        if stored != fnv1a(&bytes[..body]) {
-            return Err(err("checksum mismatch (corrupted file)".into()));
-        }
-        let centroids = bytes[20..body]
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
-            .collect();
-        Ok(Self { dim, k, centroids })
+        Self::from_bytes(&bytes).map_err(err)
     }
 }

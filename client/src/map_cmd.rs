@@ -1,0 +1,278 @@
+//! `pntr build-db` and `pntr eval`: build a map from a dataset, evaluate the pipeline on its queries.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use pntr_dataset::{DatasetIndex, SceneEntry};
+use pntr_features::runtime::RuntimeOptions;
+use pntr_pipeline::eval::{self, Answer, EvalOptions, EvalReport};
+use pntr_pipeline::map::{self, Map};
+use pntr_pipeline::mapfile;
+use pntr_pipeline::pipeline::Pipeline;
+use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
+use pntr_retrieval::onnx_global::OnnxGlobal;
+
+/// Arguments of `pntr build-db`.
+#[derive(clap::Args, Debug)]
+pub struct BuildArgs {
+    /// Dataset root (holding HPointLoc_dataset).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Only this scene (map id = the scene name); without it, every scene in one map (map id `all`).
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// The map file to write (atomically).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Preset (fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn).
+    #[arg(long, default_value = DEFAULT_PRESET)]
+    pub preset: String,
+    /// Folder of the ONNX models.
+    #[arg(long, default_value = "models")]
+    pub models: PathBuf,
+    /// ONNX global-descriptor model (switches retrieval to `onnx`).
+    #[arg(long)]
+    pub global_model: Option<PathBuf>,
+    /// Threads for ONNX Runtime.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `pntr eval`.
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Dataset root (holding HPointLoc_dataset).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Only this scene.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// A map file from `pntr build-db`; without it the map is built from the dataset first.
+    #[arg(long)]
+    pub db: Option<PathBuf>,
+    /// Preset (default: the map's own, or `fast` when building).
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// Reproduce the published evaluation's folded, convention-mismatched angle (labelled in the output).
+    #[arg(long)]
+    pub legacy_metric: bool,
+    /// Evaluate at most this many queries, evenly spaced (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub queries: usize,
+    /// Folder of the ONNX models.
+    #[arg(long, default_value = "models")]
+    pub models: PathBuf,
+    /// Threads for ONNX Runtime.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Write the JSON report here.
+    #[arg(long)]
+    pub json: PathBuf,
+}
+
+fn bar(total: usize, what: &str) -> ProgressBar {
+    let bar = ProgressBar::new(total as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar.set_message(what.to_string());
+    bar
+}
+
+/// The scenes a command covers and the map id that goes with them.
+pub fn select_scenes<'a>(
+    index: &'a DatasetIndex,
+    scene: Option<&str>,
+) -> Result<(String, Vec<&'a SceneEntry>)> {
+    Ok(match scene {
+        Some(name) => (name.to_string(), vec![index.scene(name)?]),
+        None => ("all".to_string(), index.scenes.iter().collect()),
+    })
+}
+
+fn runtime(threads: usize) -> RuntimeOptions {
+    RuntimeOptions {
+        threads,
+        ..RuntimeOptions::default()
+    }
+}
+
+/// Build a map of `scenes` in memory.
+pub fn build_map(
+    map_id: &str,
+    scenes: &[&SceneEntry],
+    preset: &Preset,
+    models: &Path,
+    threads: usize,
+) -> Result<Map> {
+    let stage = feature_stage(preset, models, threads)?;
+    let total: usize = scenes.iter().map(|s| s.points.len()).sum();
+    let pb = bar(total * 6, "extracting database features");
+    let map = map::build(
+        map_id,
+        scenes,
+        preset,
+        &stage,
+        models,
+        &mut |done, total| {
+            pb.set_length(total as u64);
+            pb.set_position(done as u64);
+        },
+    )?;
+    pb.finish_and_clear();
+    Ok(map)
+}
+
+fn feature_stage(
+    preset: &Preset,
+    models: &Path,
+    threads: usize,
+) -> Result<pntr_features::config::FeatureStage> {
+    let cfg = pntr_features::config::FeatureConfig {
+        runtime: runtime(threads),
+        ..preset.feature_config(models.to_path_buf())
+    };
+    cfg.build().with_context(|| {
+        format!(
+            "loading the models of preset {} from {}",
+            preset.name,
+            models.display()
+        )
+    })
+}
+
+/// Load a map file, loading the ONNX global model it names when it has one.
+pub fn load_map(path: &Path, threads: usize) -> Result<Map> {
+    let header = mapfile::read_header(path)?;
+    let model = header.preset.global_model.clone();
+    Ok(mapfile::load(path, |dim| {
+        let p = model.ok_or_else(|| {
+            pntr_retrieval::RetrievalError::Model(
+                "the map uses an onnx global model but names none".into(),
+            )
+        })?;
+        OnnxGlobal::load(&p, &runtime(threads), None, Some(dim))
+    })?)
+}
+
+/// `pntr build-db`.
+pub fn build_db(args: &BuildArgs) -> Result<()> {
+    let index = DatasetIndex::open(&args.dataset)?;
+    let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+    let mut preset = Preset::named(&args.preset)?;
+    if let Some(m) = &args.global_model {
+        preset.global = "onnx".into();
+        preset.global_model = Some(m.clone());
+    }
+    let map = build_map(&map_id, &scenes, &preset, &args.models, args.threads)?;
+    let t = std::time::Instant::now();
+    mapfile::save(&map, &args.out).with_context(|| format!("writing {}", args.out.display()))?;
+    let write_s = t.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(&args.out)?.len();
+    let summary = serde_json::json!({
+        "map_id": map.header.map_id,
+        "preset": preset.name,
+        "images": map.images.len(),
+        "scenes": map.header.scenes,
+        "file": args.out.display().to_string(),
+        "file_bytes": bytes,
+        "heap_bytes": map.heap_bytes(),
+        "build_seconds": map.header.build_seconds,
+        "write_seconds": write_s,
+    });
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        println!(
+            "map {} ({} preset): {} database images from {} scene(s) in {:.1} s; {} written in {:.2} s ({:.1} MB)",
+            map.header.map_id,
+            preset.name,
+            map.images.len(),
+            map.header.scenes.len(),
+            map.header.build_seconds,
+            args.out.display(),
+            write_s,
+            bytes as f64 / 1e6
+        );
+    }
+    Ok(())
+}
+
+/// Run the in-process pipeline over the queries of `scenes`.
+pub fn evaluate_in_process(
+    pipeline: &Pipeline,
+    scenes: &[&SceneEntry],
+    opts: &EvalOptions,
+) -> Result<EvalReport> {
+    let map = pipeline.map.clone();
+    let total: usize = scenes.iter().map(|s| s.points.len()).sum();
+    let pb = bar(total, "localizing queries");
+    let report = eval::run(
+        scenes,
+        opts,
+        &mut |q| {
+            let l = pipeline.localize(q)?;
+            Ok(Answer {
+                status: Some(l.status),
+                pose: l.pose,
+                retrieved: l
+                    .retrieved
+                    .iter()
+                    .map(|h| map.images[h.id].id.clone())
+                    .collect(),
+                matched: l.image.map(|i| map.images[i].id.clone()),
+                times: l.times,
+            })
+        },
+        &mut |done, total| {
+            pb.set_length(total as u64);
+            pb.set_position(done as u64);
+        },
+    )?;
+    pb.finish_and_clear();
+    Ok(report)
+}
+
+/// Write `value` as pretty JSON to `path` atomically.
+pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
+    let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
+    std::fs::write(&tmp, serde_json::to_vec_pretty(value)?)
+        .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+/// `pntr eval`.
+pub fn eval(args: &EvalArgs) -> Result<()> {
+    let index = DatasetIndex::open(&args.dataset)?;
+    let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+    let map = match &args.db {
+        Some(p) => load_map(p, args.threads).with_context(|| format!("loading {}", p.display()))?,
+        None => {
+            let preset = Preset::named(args.preset.as_deref().unwrap_or(DEFAULT_PRESET))?;
+            build_map(&map_id, &scenes, &preset, &args.models, args.threads)?
+        }
+    };
+    let preset = match &args.preset {
+        Some(name) => Preset::named(name)?,
+        None => map.header.preset.clone(),
+    };
+    let stage = feature_stage(&preset, &args.models, args.threads)?;
+    let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?;
+    let opts = EvalOptions {
+        legacy: args.legacy_metric,
+        max_queries: args.queries,
+        preset: preset.name.clone(),
+    };
+    let report = evaluate_in_process(&pipeline, &scenes, &opts)?;
+    print!("{}", eval::table(&report));
+    write_json(&args.json, &report)?;
+    eprintln!("report written to {}", args.json.display());
+    Ok(())
+}

@@ -1,0 +1,365 @@
+//! Evaluation with the HPointLoc protocol and honest metrics.
+//!
+//! Recall is the fraction of ALL queries under a threshold: a query that was not localised, or whose
+//! request failed, stays in the denominator. Rotation error is the geodesic angle between estimate and
+//! ground truth, both in the dataset's camera axes. `legacy` reproduces the published code instead: the
+//! estimate left in OpenCV axes against a Habitat ground truth, and the angle folded with
+//! `|90 - |a - 90||` (so 180 degrees counts as 0) — labelled as such in the report, only for comparing
+//! with the paper. The retrieval-only row answers every query with the pose of its top-1 database image.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Point3};
+use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics};
+use pntr_dataset::{Role, SceneEntry};
+use serde::Serialize;
+
+use crate::pipeline::{Query, StageTimes, Status};
+use crate::PipelineError;
+
+/// (metres, degrees) thresholds of the protocol.
+pub const THRESHOLDS: [(f64, f64); 4] = [(5.0, 20.0), (1.0, 10.0), (0.5, 5.0), (0.25, 2.0)];
+
+/// The 8 recall keys, in table order.
+pub const RECALL_KEYS: [&str; 8] = [
+    "5m_20deg",
+    "1m_10deg",
+    "0.5m_5deg",
+    "0.25m_2deg",
+    "5m",
+    "1m",
+    "0.5m",
+    "0.25m",
+];
+
+/// What a localiser (in-process or remote) answered for one query.
+#[derive(Debug, Clone, Default)]
+pub struct Answer {
+    /// LOCALIZED or not (`None` when the request itself failed).
+    pub status: Option<Status>,
+    /// The estimated `world_from_camera` (dataset camera axes), when localized.
+    pub pose: Option<Isometry3<f64>>,
+    /// Ids of the retrieved database images, best first.
+    pub retrieved: Vec<String>,
+    /// Id of the database image the pose came from.
+    pub matched: Option<String>,
+    /// Stage timings.
+    pub times: StageTimes,
+}
+
+/// Translation (m) and rotation (deg) error of `est` against `gt`, both `world_from_camera` in Habitat
+/// axes. `legacy`: the published code's folded angle with the axes mismatch.
+pub fn pose_error(est: &Isometry3<f64>, gt: &Isometry3<f64>, legacy: bool) -> (f64, f64) {
+    let dt = (est.translation.vector - gt.translation.vector).norm();
+    if legacy {
+        let est_cv = convert_axes(est, CameraAxes::Habitat, CameraAxes::OpenCv);
+        let a = est_cv.rotation.angle_to(&gt.rotation).to_degrees();
+        (dt, (90.0 - (a - 90.0).abs()).abs())
+    } else {
+        (
+            dt,
+            pntr_core::rotation_angle_deg(&est.rotation, &gt.rotation),
+        )
+    }
+}
+
+/// The 8 recalls of a list of per-query errors (`None` = failed, counted in the denominator).
+pub fn recall(errors: &[Option<(f64, f64)>]) -> BTreeMap<String, f64> {
+    let n = errors.len().max(1) as f64;
+    let ok: Vec<(f64, f64)> = errors.iter().flatten().copied().collect();
+    let mut out = BTreeMap::new();
+    for (i, &(m, d)) in THRESHOLDS.iter().enumerate() {
+        let both = ok.iter().filter(|e| e.0 <= m && e.1 <= d).count();
+        let trans = ok.iter().filter(|e| e.0 <= m).count();
+        out.insert(RECALL_KEYS[i].to_string(), both as f64 / n);
+        out.insert(RECALL_KEYS[i + 4].to_string(), trans as f64 / n);
+    }
+    out
+}
+
+/// Retrieval quality against the ground truth.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct RetrievalRecall {
+    /// A top-1 image of the query's own Point.
+    pub point_at_1: f64,
+    /// Some top-5 image of the query's own Point.
+    pub point_at_5: f64,
+    /// Top-1 is the database view that overlaps the query most.
+    pub view_at_1: f64,
+    /// The best-overlapping view is among the top 5.
+    pub view_at_5: f64,
+}
+
+/// The report `pntr eval --json` writes (keys fixed by issue 6; more may be added).
+#[derive(Debug, Clone, Serialize)]
+pub struct EvalReport {
+    /// Queries evaluated.
+    pub queries: usize,
+    /// Queries answered LOCALIZED.
+    pub localized: usize,
+    /// Recall of the pipeline's poses.
+    pub recall: BTreeMap<String, f64>,
+    /// Recall of the top-1 database pose used as the answer.
+    pub retrieval_only: BTreeMap<String, f64>,
+    /// Mean milliseconds per stage.
+    pub stage_ms: BTreeMap<String, f64>,
+    /// Queries per second over the whole run (wall clock).
+    pub fps: f64,
+    /// `geodesic` or `legacy-folded (published code; not a correct metric)`.
+    pub metric: String,
+    /// Retrieval recall of the right Point and of the best-overlapping view.
+    pub retrieval: RetrievalRecall,
+    /// Queries whose request failed (they count as not localized).
+    pub failed_requests: usize,
+    /// The preset, when known.
+    pub preset: String,
+}
+
+/// Share of a grid of query pixels that reappear in `db` at a consistent depth: the ground-truth
+/// overlap used to name the best database view of a query.
+pub fn overlap(
+    k: &Intrinsics,
+    q_pose: &Isometry3<f64>,
+    q_depth: &DepthMap,
+    db_pose: &Isometry3<f64>,
+    db_depth: &DepthMap,
+) -> f64 {
+    let world_from_q = convert_axes(q_pose, CameraAxes::Habitat, CameraAxes::OpenCv);
+    let db_from_world = convert_axes(db_pose, CameraAxes::Habitat, CameraAxes::OpenCv).inverse();
+    let (mut seen, mut valid) = (0usize, 0usize);
+    let step = 16;
+    for r in (step / 2..q_depth.height).step_by(step as usize) {
+        for c in (step / 2..q_depth.width).step_by(step as usize) {
+            let Some(z) = q_depth.get(c, r) else { continue };
+            valid += 1;
+            let p: Point3<f64> =
+                db_from_world * (world_from_q * k.backproject(c as f64, r as f64, z as f64));
+            if let Some(px) = k.project(&p) {
+                let (uc, vr) = (px.x.round(), px.y.round());
+                if uc >= 0.0 && vr >= 0.0 {
+                    if let Some(d) = db_depth.get(uc as u32, vr as u32) {
+                        seen += ((d as f64 - p.z).abs() < 0.05 + 0.02 * p.z) as usize;
+                    }
+                }
+            }
+        }
+    }
+    seen as f64 / valid.max(1) as f64
+}
+
+/// Options of [`run`].
+#[derive(Debug, Clone, Default)]
+pub struct EvalOptions {
+    /// Use the published (flawed) metric.
+    pub legacy: bool,
+    /// Evaluate at most this many queries, evenly spaced (0 = all).
+    pub max_queries: usize,
+    /// Preset name for the report.
+    pub preset: String,
+}
+
+/// Localise every query of `scenes` with `localize` and score the answers.
+pub fn run(
+    scenes: &[&SceneEntry],
+    opts: &EvalOptions,
+    localize: &mut dyn FnMut(&Query) -> Result<Answer, PipelineError>,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EvalReport, PipelineError> {
+    let k = Intrinsics::hpointloc();
+    // Every database pose by id, for the retrieval-only row.
+    let mut db_pose: BTreeMap<String, (Isometry3<f64>, String, u32)> = BTreeMap::new();
+    let mut all = Vec::new();
+    let mut readers = Vec::new();
+    for s in scenes {
+        for p in &s.points {
+            let r = p.open()?;
+            for (j, pose) in r.poses(Role::Database).iter().enumerate() {
+                db_pose.insert(p.db_image_id(j), (*pose, p.scene.clone(), p.index));
+            }
+            for qi in 0..r.count(Role::Query) {
+                all.push((readers.len(), qi));
+            }
+            readers.push((p.clone(), r));
+        }
+    }
+    let picked: Vec<(usize, usize)> = if opts.max_queries == 0 || opts.max_queries >= all.len() {
+        all
+    } else {
+        let step = all.len() as f64 / opts.max_queries as f64;
+        (0..opts.max_queries)
+            .map(|i| all[(i as f64 * step) as usize])
+            .collect()
+    };
+    let (mut errors, mut retrieval_errors) = (Vec::new(), Vec::new());
+    let (mut localized, mut failed) = (0, 0);
+    let mut sums = StageTimes::default();
+    let mut rr = RetrievalRecall::default();
+    let mut db_depths: BTreeMap<usize, Vec<DepthMap>> = BTreeMap::new();
+    let t0 = Instant::now();
+    for (n, &(pi, qi)) in picked.iter().enumerate() {
+        let (entry, reader) = &readers[pi];
+        let v = reader.view(Role::Query, qi)?;
+        let gt = v.world_from_camera;
+        if let std::collections::btree_map::Entry::Vacant(e) = db_depths.entry(pi) {
+            let d = (0..reader.count(Role::Database))
+                .map(|j| reader.view(Role::Database, j).map(|v| v.depth))
+                .collect::<Result<Vec<_>, _>>()?;
+            // Keep the depths of recent Points only: queries come Point by Point.
+            e.insert(d);
+        }
+        db_depths.retain(|&key, _| key + 2 > pi);
+        let best_view = db_depths[&pi]
+            .iter()
+            .enumerate()
+            .map(|(j, d)| {
+                (
+                    j,
+                    overlap(&k, &gt, &v.depth, &reader.poses(Role::Database)[j], d),
+                )
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(j, _)| entry.db_image_id(j));
+        let q = Query {
+            rgb: v.rgb,
+            depth: v.depth,
+            intrinsics: k,
+        };
+        let a = match localize(&q) {
+            Ok(a) => a,
+            Err(e) => {
+                tracing::warn!("query {}: {e}", entry.query_id(qi));
+                failed += 1;
+                Answer::default()
+            }
+        };
+        if a.status == Some(Status::Localized) {
+            localized += 1;
+        }
+        errors.push(a.pose.map(|p| pose_error(&p, &gt, opts.legacy)));
+        let same_point = |id: &String| {
+            db_pose
+                .get(id)
+                .is_some_and(|(_, s, pt)| *s == entry.scene && *pt == entry.index)
+        };
+        retrieval_errors.push(
+            a.retrieved
+                .first()
+                .and_then(|id| db_pose.get(id))
+                .map(|(p, _, _)| pose_error(p, &gt, opts.legacy)),
+        );
+        rr.point_at_1 += a.retrieved.first().is_some_and(same_point) as usize as f64;
+        rr.point_at_5 += a.retrieved.iter().take(5).any(same_point) as usize as f64;
+        if let Some(b) = &best_view {
+            rr.view_at_1 += (a.retrieved.first() == Some(b)) as usize as f64;
+            rr.view_at_5 += a.retrieved.iter().take(5).any(|x| x == b) as usize as f64;
+        }
+        sums.extraction += a.times.extraction;
+        sums.retrieval += a.times.retrieval;
+        sums.matching += a.times.matching;
+        sums.registration += a.times.registration;
+        sums.total += a.times.total;
+        progress(n + 1, picked.len());
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    let nq = picked.len().max(1) as f64;
+    for x in [
+        &mut rr.point_at_1,
+        &mut rr.point_at_5,
+        &mut rr.view_at_1,
+        &mut rr.view_at_5,
+    ] {
+        *x /= nq;
+    }
+    let stage_ms = [
+        ("extraction", sums.extraction),
+        ("retrieval", sums.retrieval),
+        ("matching", sums.matching),
+        ("registration", sums.registration),
+        ("total", sums.total),
+    ]
+    .into_iter()
+    .map(|(k, s)| (k.to_string(), 1e3 * s / nq))
+    .collect();
+    Ok(EvalReport {
+        queries: picked.len(),
+        localized,
+        recall: recall(&errors),
+        retrieval_only: recall(&retrieval_errors),
+        stage_ms,
+        fps: picked.len() as f64 / wall.max(1e-9),
+        metric: if opts.legacy {
+            "legacy-folded (published code; not a correct metric)".into()
+        } else {
+            "geodesic".into()
+        },
+        retrieval: rr,
+        failed_requests: failed,
+        preset: opts.preset.clone(),
+    })
+}
+
+/// The recall rows as a text table (for the CLI).
+pub fn table(report: &EvalReport) -> String {
+    let mut s = format!(
+        "{} queries, {} localized, metric {}\n",
+        report.queries, report.localized, report.metric
+    );
+    s += &format!("{:<16}", "");
+    for k in RECALL_KEYS {
+        s += &format!("{k:>11}");
+    }
+    s.push('\n');
+    for (name, row) in [
+        ("pipeline", &report.recall),
+        ("retrieval only", &report.retrieval_only),
+    ] {
+        s += &format!("{name:<16}");
+        for k in RECALL_KEYS {
+            s += &format!("{:>11.3}", row[k]);
+        }
+        s.push('\n');
+    }
+    let r = &report.retrieval;
+    s += &format!(
+        "retrieval: right Point @1 {:.3} @5 {:.3}; best-overlap view @1 {:.3} @5 {:.3}\n",
+        r.point_at_1, r.point_at_5, r.view_at_1, r.view_at_5
+    );
+    s += "mean ms per query:";
+    for k in [
+        "extraction",
+        "retrieval",
+        "matching",
+        "registration",
+        "total",
+    ] {
+        s += &format!(" {k} {:.1}", report.stage_ms[k]);
+    }
+    s += &format!("; {:.2} queries/s\n", report.fps);
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    #[test]
+    fn failures_stay_in_the_denominator_and_the_angle_is_geodesic() {
+        let gt = Isometry3::identity();
+        let turned = Isometry3::from_parts(
+            Translation3::new(0.1, 0.0, 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 170f64.to_radians()),
+        );
+        let (dt, dr) = pose_error(&turned, &gt, false);
+        assert!((dt - 0.1).abs() < 1e-9 && (dr - 170.0).abs() < 1e-6);
+        // The folded legacy angle hides a yaw error near 180 degrees once the axes flip is applied.
+        let (_, legacy) = pose_error(&gt, &gt, true);
+        assert!(legacy < 1e-6, "identity in flipped axes folds to {legacy}");
+        let r = recall(&[Some((0.1, 1.0)), None, Some((2.0, 30.0)), None]);
+        assert_eq!(r["0.25m_2deg"], 0.25);
+        assert_eq!(r["5m_20deg"], 0.25);
+        assert_eq!(r["5m"], 0.5);
+        assert_eq!(r.len(), 8);
+    }
+}

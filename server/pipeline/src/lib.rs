@@ -1,0 +1,56 @@
+//! The heart of pntr: the map database and the PNTR pipeline, with honest evaluation.
+//!
+//! Why one crate for these: the map is exactly what the pipeline needs at query time (keypoints,
+//! descriptors and their 3D points per database image, and the retrieval stage), and the file format,
+//! the pipeline and the metrics change together. The service and the CLI are thin layers over it.
+//!
+//! - [`preset`]: named combinations of stages (`fast`, `accurate`, `classical`, ICP variants).
+//! - [`map`]: building a map from HPointLoc-layout data; [`mapfile`]: the versioned, checksummed,
+//!   atomically written file.
+//! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, compose.
+//! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
+//!   separate, labelled mode).
+
+pub mod eval;
+pub mod map;
+pub mod mapfile;
+pub mod pipeline;
+pub mod preset;
+
+use std::path::PathBuf;
+
+/// Errors of the map and the pipeline.
+#[derive(Debug, thiserror::Error)]
+pub enum PipelineError {
+    /// A configuration that cannot work (unknown preset, unfit stages, map/preset mismatch).
+    #[error("configuration: {0}")]
+    Config(String),
+    /// A query that cannot be localised as sent.
+    #[error("invalid query: {0}")]
+    Query(String),
+    /// A map file that cannot be used.
+    #[error("map file {path}: {message}")]
+    MapFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// An I/O failure.
+    #[error("{path}: {message}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// Reading the dataset failed.
+    #[error(transparent)]
+    Dataset(#[from] pntr_dataset::DatasetError),
+    /// Feature extraction or matching failed.
+    #[error(transparent)]
+    Features(#[from] pntr_features::FeatureError),
+    /// Retrieval failed.
+    #[error(transparent)]
+    Retrieval(#[from] pntr_retrieval::RetrievalError),
+}

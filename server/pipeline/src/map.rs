@@ -1,0 +1,374 @@
+//! The map: every database image with what localisation needs, and the retrieval stage over them.
+//!
+//! Built once by [`build`] from HPointLoc-layout Point files: per database image its pose, keypoints,
+//! local descriptors (float ones stored as f16, which halves the largest part of the map for a
+//! relative error near 1e-3; binary ORB ones as they are), the 3D point of every keypoint in the
+//! camera's OpenCV frame from the image's own depth (NaN where the depth is invalid: the keypoint stays
+//! in place, so indices never shift and pairs never misalign), and the instance id under it.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use half::f16;
+use nalgebra::{Isometry3, Vector3};
+use pntr_core::{DepthMap, Intrinsics, LabelMap};
+use pntr_dataset::{Role, SceneEntry};
+use pntr_features::config::FeatureStage;
+use pntr_features::Features;
+use pntr_retrieval::global::{Describer, Descriptor, Method, Retriever};
+use pntr_retrieval::onnx_global::OnnxGlobal;
+use serde::{Deserialize, Serialize};
+
+use crate::preset::Preset;
+use crate::PipelineError;
+
+/// One database image of the map.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapImage {
+    /// Stable id: `<scene>/point<N>/db<i>`.
+    pub id: String,
+    /// Index into [`MapHeader::scenes`].
+    pub scene: u32,
+    /// The Point (key position) it was taken at.
+    pub point: u32,
+    /// Camera-to-world pose in the map's world frame, with the dataset's camera axes (Habitat).
+    pub world_from_camera: Isometry3<f64>,
+    /// Keypoints (x, y) in pixels, OpenCV convention.
+    pub keypoints: Vec<[f32; 2]>,
+    /// Detection scores.
+    pub scores: Vec<f32>,
+    /// Float descriptors as f16, `keypoints.len() * dim` (empty for binary extractors).
+    pub descriptors: Vec<f16>,
+    /// Float descriptor length.
+    pub dim: usize,
+    /// Binary descriptors (ORB).
+    pub binary: Vec<[u8; 32]>,
+    /// 3D point of each keypoint in the camera's OpenCV frame (metres); NaN where depth is invalid.
+    pub points: Vec<[f32; 3]>,
+    /// Instance id under each keypoint (0 where the dataset has no labels).
+    pub instances: Vec<u32>,
+    /// (width, height) of the image.
+    pub image_size: (u32, u32),
+}
+
+impl MapImage {
+    /// The features in the form the matchers take (f16 widened to f32).
+    pub fn features(&self) -> Features {
+        Features {
+            keypoints: self.keypoints.clone(),
+            scores: self.scores.clone(),
+            descriptors: self.descriptors.iter().map(|x| x.to_f32()).collect(),
+            dim: self.dim,
+            binary: self.binary.clone(),
+            image_size: self.image_size,
+        }
+    }
+
+    /// The 3D point of keypoint `i`, where its depth was valid.
+    pub fn point(&self, i: usize) -> Option<Vector3<f64>> {
+        let p = self.points.get(i)?;
+        p[0].is_finite()
+            .then(|| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+    }
+
+    /// Bytes this image holds in memory (approximately).
+    pub fn heap_bytes(&self) -> usize {
+        self.id.len()
+            + self.keypoints.len() * (8 + 4 + 12 + 4)
+            + self.descriptors.len() * 2
+            + self.binary.len() * 32
+    }
+}
+
+/// Identity of a model the map depends on.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ModelIdentity {
+    /// Role: `extractor`, `matcher` or `global`.
+    pub role: String,
+    /// The configured name (xfeat, lighterglue, ...).
+    pub name: String,
+    /// File name of the model, when there is one.
+    pub file: Option<String>,
+    /// FNV-1a checksum of the model file, when there is one.
+    pub checksum: Option<String>,
+}
+
+/// What a map file says about itself (stored as JSON in the header section).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapHeader {
+    /// Map id clients name in requests (the scene name, or `all` for a multi-scene map).
+    pub map_id: String,
+    /// The preset the map was built with.
+    pub preset: Preset,
+    /// Models whose output is stored in the map.
+    pub models: Vec<ModelIdentity>,
+    /// Intrinsics of the database images.
+    pub intrinsics: Intrinsics,
+    /// Camera axes of stored poses (`habitat` for HPointLoc data).
+    pub camera_axes: String,
+    /// Scenes in the map; each has its own world frame.
+    pub scenes: Vec<String>,
+    /// The pntr version that built it.
+    pub built_by: String,
+    /// Seconds the build took.
+    pub build_seconds: f64,
+}
+
+/// A loaded or freshly built map.
+#[derive(Debug)]
+pub struct Map {
+    /// The header.
+    pub header: MapHeader,
+    /// Database images, in retrieval-id order.
+    pub images: Vec<MapImage>,
+    /// Retrieval over the images.
+    pub retriever: Retriever,
+}
+
+impl Map {
+    /// Bytes the map holds in memory, approximately (images plus retrieval vectors).
+    pub fn heap_bytes(&self) -> usize {
+        let dense = match &self.retriever.describer {
+            Describer::Vlad(b) => b.vlad_dim() * 4,
+            Describer::Onnx(m) => m.dim() * 4,
+            Describer::Bow(_) => 0,
+        };
+        self.images
+            .iter()
+            .map(|i| i.heap_bytes() + dense)
+            .sum::<usize>()
+    }
+
+    /// Name of the scene of image `i`.
+    pub fn scene_of(&self, i: usize) -> &str {
+        self.header
+            .scenes
+            .get(self.images[i].scene as usize)
+            .map(String::as_str)
+            .unwrap_or("")
+    }
+}
+
+/// FNV-1a checksum of a model file, as hex.
+pub fn file_checksum(path: &std::path::Path) -> Result<String, PipelineError> {
+    let bytes = std::fs::read(path).map_err(|e| PipelineError::Io {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    })?;
+    Ok(format!("{:016x}", pntr_core::bytes::fnv1a(&bytes)))
+}
+
+/// The model files a preset uses, by role and name.
+pub fn model_identities(
+    preset: &Preset,
+    models_dir: &std::path::Path,
+) -> Result<Vec<ModelIdentity>, PipelineError> {
+    let file_of = |name: &str| -> Option<&'static str> {
+        match name {
+            "xfeat" => Some("xfeat_backbone.onnx"),
+            "lighterglue" => Some("lighterglue.onnx"),
+            "aliked" => Some("aliked_n16.onnx"),
+            "lightglue" => Some("lightglue_aliked.onnx"),
+            _ => None,
+        }
+    };
+    let mut out = Vec::new();
+    for (role, name) in [
+        ("extractor", &preset.extractor),
+        ("matcher", &preset.matcher),
+    ] {
+        let file = file_of(name);
+        let checksum = match file {
+            Some(f) => Some(file_checksum(&models_dir.join(f))?),
+            None => None,
+        };
+        out.push(ModelIdentity {
+            role: role.into(),
+            name: name.clone(),
+            file: file.map(String::from),
+            checksum,
+        });
+    }
+    if let Some(p) = &preset.global_model {
+        out.push(ModelIdentity {
+            role: "global".into(),
+            name: "onnx".into(),
+            file: Some(p.display().to_string()),
+            checksum: Some(file_checksum(p)?),
+        });
+    }
+    Ok(out)
+}
+
+/// Back-project every keypoint with the image's depth (NaN where invalid) and read its instance id.
+pub fn keypoint_points(
+    k: &Intrinsics,
+    depth: &DepthMap,
+    labels: Option<&LabelMap>,
+    keypoints: &[[f32; 2]],
+) -> (Vec<[f32; 3]>, Vec<u32>) {
+    let mut pts = Vec::with_capacity(keypoints.len());
+    let mut ids = Vec::with_capacity(keypoints.len());
+    for kp in keypoints {
+        let (c, r) = (kp[0].round(), kp[1].round());
+        let inside = c >= 0.0 && r >= 0.0 && (c as u32) < depth.width && (r as u32) < depth.height;
+        let z = inside
+            .then(|| depth.get(c as u32, r as u32))
+            .flatten()
+            .filter(|z| z.is_finite());
+        pts.push(match z {
+            Some(z) => {
+                let p = k.backproject(kp[0] as f64, kp[1] as f64, z as f64);
+                [p.x as f32, p.y as f32, p.z as f32]
+            }
+            None => [f32::NAN; 3],
+        });
+        ids.push(match labels {
+            Some(l) if inside && c < l.width as f32 && r < l.height as f32 => {
+                l.get(c as u32, r as u32)
+            }
+            _ => 0,
+        });
+    }
+    (pts, ids)
+}
+
+/// Local descriptors sampled for codebook training: at most this many in all.
+const TRAINING_DESCRIPTORS: usize = 200_000;
+
+/// Build a map of `scenes` with `preset`: extract features of every database image, learn the
+/// retrieval codebook or vocabulary on them, index their global descriptors. `progress(done, total)`
+/// is called after every image.
+pub fn build(
+    map_id: &str,
+    scenes: &[&SceneEntry],
+    preset: &Preset,
+    stage: &FeatureStage,
+    models_dir: &std::path::Path,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<Map, PipelineError> {
+    preset.validate()?;
+    let t0 = Instant::now();
+    let k = Intrinsics::hpointloc();
+    let global_model = match &preset.global_model {
+        Some(p) if preset.global == "onnx" => Some(
+            OnnxGlobal::load(p, &Default::default(), None, None)
+                .map_err(|e| PipelineError::Config(e.to_string()))?,
+        ),
+        _ => None,
+    };
+    let mut total = 0;
+    let mut readers = Vec::new();
+    for s in scenes {
+        for p in &s.points {
+            let r = p.open()?;
+            total += r.count(Role::Database);
+            readers.push((p.clone(), r));
+        }
+    }
+    if total == 0 {
+        return Err(PipelineError::Config(
+            "the dataset has no database images".into(),
+        ));
+    }
+    let scene_names: Vec<String> = scenes.iter().map(|s| s.name.clone()).collect();
+    let mut images = Vec::with_capacity(total);
+    let mut onnx_desc = Vec::new();
+    let mut done = 0;
+    for (entry, reader) in &readers {
+        let scene = scene_names
+            .iter()
+            .position(|s| *s == entry.scene)
+            .unwrap_or(0) as u32;
+        for j in 0..reader.count(Role::Database) {
+            let v = reader.view(Role::Database, j)?;
+            let f = stage.extractor.extract(&v.rgb)?;
+            if let Some(m) = &global_model {
+                onnx_desc.push(Descriptor::Dense(
+                    m.describe(&v.rgb)
+                        .map_err(|e| PipelineError::Config(e.to_string()))?,
+                ));
+            }
+            let (points, instances) =
+                keypoint_points(&k, &v.depth, v.semantic.as_ref(), &f.keypoints);
+            images.push(MapImage {
+                id: entry.db_image_id(j),
+                scene,
+                point: entry.index,
+                world_from_camera: v.world_from_camera,
+                descriptors: f.descriptors.iter().map(|&x| f16::from_f32(x)).collect(),
+                dim: f.dim,
+                binary: f.binary,
+                keypoints: f.keypoints,
+                scores: f.scores,
+                points,
+                instances,
+                image_size: f.image_size,
+            });
+            done += 1;
+            progress(done, total);
+        }
+    }
+    let describer = match global_model {
+        Some(m) => Describer::Onnx(m),
+        None => train_describer(&preset.method(), &images)?,
+    };
+    let descriptors = if let Describer::Onnx(_) = describer {
+        onnx_desc
+    } else {
+        images
+            .iter()
+            .map(|im| describer.describe_features(&im.features()))
+            .collect::<Result<Vec<_>, _>>()?
+    };
+    let retriever = Retriever::build(describer, descriptors, preset.index_kind()?)?;
+    Ok(Map {
+        header: MapHeader {
+            map_id: map_id.to_string(),
+            preset: preset.clone(),
+            models: model_identities(preset, models_dir)?,
+            intrinsics: k,
+            camera_axes: "habitat".into(),
+            scenes: scene_names,
+            built_by: format!("pntr {}", env!("CARGO_PKG_VERSION")),
+            build_seconds: t0.elapsed().as_secs_f64(),
+        },
+        images,
+        retriever,
+    })
+}
+
+/// Learn the describer on a sample of the map's descriptors (the best-scored keypoints of every image,
+/// [`TRAINING_DESCRIPTORS`] in all), so training cost does not grow with the map.
+fn train_describer(method: &Method, images: &[MapImage]) -> Result<Describer, PipelineError> {
+    let per_image = (TRAINING_DESCRIPTORS / images.len()).max(16);
+    let sample: Vec<Features> = images
+        .iter()
+        .map(|im| {
+            let n = im.keypoints.len().min(per_image);
+            Features {
+                keypoints: im.keypoints[..n].to_vec(),
+                scores: im.scores[..n].to_vec(),
+                descriptors: im.descriptors[..n * im.dim]
+                    .iter()
+                    .map(|x| x.to_f32())
+                    .collect(),
+                dim: im.dim,
+                binary: im.binary[..im.binary.len().min(per_image)].to_vec(),
+                image_size: im.image_size,
+            }
+        })
+        .collect();
+    let mut d = Describer::train(method, &sample)?;
+    if let Describer::Bow(voc) = &mut d {
+        // IDF over every image's full descriptor set, not the sample.
+        let all: Vec<Vec<[u8; 32]>> = images.iter().map(|im| im.binary.clone()).collect();
+        voc.compute_idf(&all);
+    }
+    Ok(d)
+}
+
+/// Where a map built from a dataset is cached: `<dir>/<map_id>-<preset>.pntrmap`.
+pub fn cache_path(dir: &std::path::Path, map_id: &str, preset: &str) -> PathBuf {
+    dir.join(format!("{map_id}-{preset}.pntrmap"))
+}

@@ -1,0 +1,453 @@
+//! The map file: one versioned file with checksummed sections, written atomically, read in bulk.
+//!
+//! Layout (all integers little-endian):
+//! ```text
+//! "PNTRMAP\0"  u32 format version
+//! section*     [u8; 4] tag, u64 payload length, payload, u64 FNV-1a of the payload
+//!   HEAD  the MapHeader as JSON (preset, model identities, intrinsics, scenes)
+//!   IMGS  u64 image count, then per image: u64 record length, record
+//!   RETR  the retrieval stage (codebook or vocabulary, and the faiss index or BoW vectors)
+//!   END!  empty: a file without it was cut short
+//! ```
+//! Writing goes to `<file>.partial-<pid>`, is fsynced, then renamed over the target, so an interrupted
+//! build never leaves a half-written map where a good one was. Reading streams the image records
+//! through one reusable buffer, checking each section's checksum, so loading needs no second copy of
+//! the map in memory; every problem is reported with the file name and the section.
+
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use half::f16;
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use pntr_core::bytes::{fnv1a_update, Reader, Writer, FNV1A_START};
+use pntr_retrieval::global::Retriever;
+use pntr_retrieval::onnx_global::OnnxGlobal;
+
+use crate::map::{Map, MapHeader, MapImage};
+use crate::PipelineError;
+
+const MAGIC: &[u8; 8] = b"PNTRMAP\0";
+/// The map format version this build writes and reads.
+pub const FORMAT_VERSION: u32 = 1;
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> PipelineError + '_ {
+    move |e| PipelineError::Io {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+fn bad(path: &Path, message: String) -> PipelineError {
+    PipelineError::MapFile {
+        path: path.to_path_buf(),
+        message,
+    }
+}
+
+/// A writer that checksums what passes through.
+struct Hashing<W> {
+    inner: W,
+    state: u64,
+    written: u64,
+}
+
+impl<W: Write> Hashing<W> {
+    fn put(&mut self, b: &[u8]) -> std::io::Result<()> {
+        self.state = fnv1a_update(self.state, b);
+        self.written += b.len() as u64;
+        self.inner.write_all(b)
+    }
+}
+
+fn encode_image(im: &MapImage, w: &mut Writer) {
+    w.str(&im.id);
+    w.u32(im.scene);
+    w.u32(im.point);
+    let t = im.world_from_camera.translation.vector;
+    let q = im.world_from_camera.rotation.quaternion();
+    for v in [t.x, t.y, t.z, q.w, q.i, q.j, q.k] {
+        w.f64(v);
+    }
+    w.u32(im.image_size.0);
+    w.u32(im.image_size.1);
+    let n = im.keypoints.len();
+    w.u32(n as u32);
+    w.u32(im.dim as u32);
+    for kp in &im.keypoints {
+        w.f32(kp[0]);
+        w.f32(kp[1]);
+    }
+    for s in &im.scores {
+        w.f32(*s);
+    }
+    for d in &im.descriptors {
+        w.raw(&d.to_bits().to_le_bytes());
+    }
+    w.u32(im.binary.len() as u32);
+    for b in &im.binary {
+        w.raw(b);
+    }
+    for p in &im.points {
+        for v in p {
+            w.f32(*v);
+        }
+    }
+    for i in &im.instances {
+        w.u32(*i);
+    }
+}
+
+fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
+    let what = format!("image record {index}");
+    let mut r = Reader::new(bytes, &what);
+    let e = |x: pntr_core::bytes::BytesError| x.to_string();
+    let id = r.str().map_err(e)?;
+    let scene = r.u32().map_err(e)?;
+    let point = r.u32().map_err(e)?;
+    let mut v = [0f64; 7];
+    for x in &mut v {
+        *x = r.f64().map_err(e)?;
+    }
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err(format!("{what} ({id}): pose is not finite"));
+    }
+    let q = Quaternion::new(v[3], v[4], v[5], v[6]);
+    if (q.norm() - 1.0).abs() > 1e-3 {
+        return Err(format!("{what} ({id}): rotation is not a unit quaternion"));
+    }
+    let world_from_camera = Isometry3::from_parts(
+        Translation3::new(v[0], v[1], v[2]),
+        UnitQuaternion::from_quaternion(q),
+    );
+    let image_size = (r.u32().map_err(e)?, r.u32().map_err(e)?);
+    let n = r.u32().map_err(e)? as usize;
+    let dim = r.u32().map_err(e)? as usize;
+    // Every per-keypoint array must fit in what is left before anything is allocated.
+    let need = n
+        .checked_mul(8 + 4 + 12 + 4 + 2 * dim)
+        .filter(|&b| b <= r.remaining())
+        .ok_or_else(|| format!("{what} ({id}): {n} keypoints of dim {dim} do not fit"))?;
+    let _ = need;
+    let mut keypoints = Vec::with_capacity(n);
+    for _ in 0..n {
+        keypoints.push([r.f32().map_err(e)?, r.f32().map_err(e)?]);
+    }
+    let scores = (0..n)
+        .map(|_| r.f32())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(e)?;
+    let descriptors = r
+        .take(n * dim * 2)
+        .map_err(e)?
+        .chunks_exact(2)
+        .map(|c| f16::from_bits(u16::from_le_bytes([c[0], c[1]])))
+        .collect();
+    let nb = r.u32().map_err(e)? as usize;
+    if nb != 0 && nb != n {
+        return Err(format!(
+            "{what} ({id}): {nb} binary descriptors for {n} keypoints"
+        ));
+    }
+    let binary = r
+        .take(nb * 32)
+        .map_err(e)?
+        .chunks_exact(32)
+        .map(|c| c.try_into().expect("32 bytes"))
+        .collect();
+    let mut points = Vec::with_capacity(n);
+    for _ in 0..n {
+        points.push([
+            r.f32().map_err(e)?,
+            r.f32().map_err(e)?,
+            r.f32().map_err(e)?,
+        ]);
+    }
+    let instances = (0..n)
+        .map(|_| r.u32())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(e)?;
+    r.finish().map_err(e)?;
+    if keypoints.iter().flatten().any(|x: &f32| !x.is_finite()) {
+        return Err(format!("{what} ({id}): a keypoint is not finite"));
+    }
+    Ok(MapImage {
+        id,
+        scene,
+        point,
+        world_from_camera,
+        keypoints,
+        scores,
+        descriptors,
+        dim,
+        binary,
+        points,
+        instances,
+        image_size,
+    })
+}
+
+/// Write `map` to `path` atomically (temporary name, fsync, rename).
+pub fn save(map: &Map, path: &Path) -> Result<(), PipelineError> {
+    let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
+    let result = write_to(map, &tmp).and_then(|_| std::fs::rename(&tmp, path).map_err(io(path)));
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+fn write_to(map: &Map, path: &Path) -> Result<(), PipelineError> {
+    let file = File::create(path).map_err(io(path))?;
+    let mut out = BufWriter::with_capacity(1 << 20, file);
+    out.write_all(MAGIC).map_err(io(path))?;
+    out.write_all(&FORMAT_VERSION.to_le_bytes())
+        .map_err(io(path))?;
+    let small = |out: &mut BufWriter<File>, tag: &[u8; 4], payload: &[u8]| {
+        out.write_all(tag)?;
+        out.write_all(&(payload.len() as u64).to_le_bytes())?;
+        out.write_all(payload)?;
+        out.write_all(&pntr_core::bytes::fnv1a(payload).to_le_bytes())
+    };
+    let head =
+        serde_json::to_vec_pretty(&map.header).map_err(|e| bad(path, format!("header: {e}")))?;
+    small(&mut out, b"HEAD", &head).map_err(io(path))?;
+    // IMGS: streamed, length patched afterwards.
+    out.write_all(b"IMGS").map_err(io(path))?;
+    let len_at = out.stream_position().map_err(io(path))?;
+    out.write_all(&0u64.to_le_bytes()).map_err(io(path))?;
+    let mut h = Hashing {
+        inner: out,
+        state: FNV1A_START,
+        written: 0,
+    };
+    h.put(&(map.images.len() as u64).to_le_bytes())
+        .map_err(io(path))?;
+    let mut w = Writer::new();
+    for im in &map.images {
+        w.bytes.clear();
+        encode_image(im, &mut w);
+        h.put(&(w.bytes.len() as u64).to_le_bytes())
+            .map_err(io(path))?;
+        h.put(&w.bytes).map_err(io(path))?;
+    }
+    let (mut out, state, written) = (h.inner, h.state, h.written);
+    out.write_all(&state.to_le_bytes()).map_err(io(path))?;
+    let end = out.stream_position().map_err(io(path))?;
+    out.seek(SeekFrom::Start(len_at)).map_err(io(path))?;
+    out.write_all(&written.to_le_bytes()).map_err(io(path))?;
+    out.seek(SeekFrom::Start(end)).map_err(io(path))?;
+    let retr = map.retriever.to_bytes()?;
+    small(&mut out, b"RETR", &retr).map_err(io(path))?;
+    small(&mut out, b"END!", &[]).map_err(io(path))?;
+    let file = out.into_inner().map_err(|e| io(path)(e.into_error()))?;
+    file.sync_all().map_err(io(path))
+}
+
+/// Read only the header of a map file (fast: for `pntr info`-style listings and start-up checks).
+pub fn read_header(path: &Path) -> Result<MapHeader, PipelineError> {
+    let mut r = BufReader::new(File::open(path).map_err(io(path))?);
+    check_magic(&mut r, path)?;
+    let (tag, payload) = small_section(&mut r, path)?;
+    if &tag != b"HEAD" {
+        return Err(bad(path, "the first section is not HEAD".into()));
+    }
+    parse_header(&payload, path)
+}
+
+fn check_magic(r: &mut impl Read, path: &Path) -> Result<(), PipelineError> {
+    let mut m = [0u8; 12];
+    r.read_exact(&mut m)
+        .map_err(|_| bad(path, "too short to be a pntr map".into()))?;
+    if &m[..8] != MAGIC {
+        return Err(bad(path, "not a pntr map file (bad magic)".into()));
+    }
+    let v = u32::from_le_bytes(m[8..12].try_into().expect("4 bytes"));
+    if v != FORMAT_VERSION {
+        return Err(bad(
+            path,
+            format!("map format version {v}; this build reads version {FORMAT_VERSION} (rebuild the map with `pntr build-db`)"),
+        ));
+    }
+    Ok(())
+}
+
+fn section_head(r: &mut impl Read, path: &Path) -> Result<([u8; 4], u64), PipelineError> {
+    let mut h = [0u8; 12];
+    r.read_exact(&mut h).map_err(|_| {
+        bad(
+            path,
+            "truncated: a section header is missing (file cut short?)".into(),
+        )
+    })?;
+    let tag: [u8; 4] = h[..4].try_into().expect("4 bytes");
+    Ok((tag, u64::from_le_bytes(h[4..].try_into().expect("8 bytes"))))
+}
+
+fn tag_name(t: &[u8; 4]) -> String {
+    String::from_utf8_lossy(t).into_owned()
+}
+
+fn read_sum(
+    r: &mut impl Read,
+    path: &Path,
+    tag: &[u8; 4],
+    state: u64,
+) -> Result<(), PipelineError> {
+    let mut s = [0u8; 8];
+    r.read_exact(&mut s).map_err(|_| {
+        bad(
+            path,
+            format!("section {}: truncated before its checksum", tag_name(tag)),
+        )
+    })?;
+    if u64::from_le_bytes(s) != state {
+        return Err(bad(
+            path,
+            format!(
+                "section {}: checksum mismatch (the file is corrupted)",
+                tag_name(tag)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn small_section(r: &mut impl Read, path: &Path) -> Result<([u8; 4], Vec<u8>), PipelineError> {
+    let (tag, len) = section_head(r, path)?;
+    let mut payload = Vec::new();
+    r.take(len).read_to_end(&mut payload).map_err(io(path))?;
+    if payload.len() as u64 != len {
+        return Err(bad(
+            path,
+            format!(
+                "section {}: truncated ({} of {len} bytes)",
+                tag_name(&tag),
+                payload.len()
+            ),
+        ));
+    }
+    read_sum(r, path, &tag, pntr_core::bytes::fnv1a(&payload))?;
+    Ok((tag, payload))
+}
+
+fn parse_header(payload: &[u8], path: &Path) -> Result<MapHeader, PipelineError> {
+    serde_json::from_slice(payload).map_err(|e| bad(path, format!("section HEAD: {e}")))
+}
+
+fn expect(tag: &[u8; 4], want: &[u8; 4], path: &Path) -> Result<(), PipelineError> {
+    if tag != want {
+        return Err(bad(
+            path,
+            format!(
+                "expected section {} but found {}",
+                tag_name(want),
+                tag_name(tag)
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Load a map, checking version, every checksum and every record. `onnx` loads the global model of a
+/// map built with the `onnx` descriptor (given the descriptor length the map stores).
+pub fn load(
+    path: &Path,
+    onnx: impl FnOnce(usize) -> Result<OnnxGlobal, pntr_retrieval::RetrievalError>,
+) -> Result<Map, PipelineError> {
+    let mut r = BufReader::with_capacity(1 << 20, File::open(path).map_err(io(path))?);
+    check_magic(&mut r, path)?;
+    let (tag, head) = small_section(&mut r, path)?;
+    expect(&tag, b"HEAD", path)?;
+    let header = parse_header(&head, path)?;
+    let (tag, len) = section_head(&mut r, path)?;
+    expect(&tag, b"IMGS", path)?;
+    let file_len = std::fs::metadata(path).map_err(io(path))?.len();
+    if len > file_len {
+        return Err(bad(
+            path,
+            format!("section IMGS: claims {len} bytes, the file has {file_len}"),
+        ));
+    }
+    let mut state = FNV1A_START;
+    let mut read = 0u64;
+    let mut buf = vec![0u8; 8];
+    let mut next =
+        |r: &mut BufReader<File>, buf: &mut Vec<u8>, n: usize| -> Result<(), PipelineError> {
+            if read + n as u64 > len {
+                return Err(bad(
+                    path,
+                    "section IMGS: a record runs past the section".into(),
+                ));
+            }
+            buf.resize(n, 0);
+            r.read_exact(buf)
+                .map_err(|_| bad(path, "section IMGS: truncated (file cut short?)".into()))?;
+            state = fnv1a_update(state, buf);
+            read += n as u64;
+            Ok(())
+        };
+    next(&mut r, &mut buf, 8)?;
+    let count = u64::from_le_bytes(buf[..8].try_into().expect("8 bytes"));
+    if count > len / 8 {
+        return Err(bad(
+            path,
+            format!("section IMGS: {count} images cannot fit in {len} bytes"),
+        ));
+    }
+    let mut images = Vec::with_capacity(count as usize);
+    for i in 0..count as usize {
+        next(&mut r, &mut buf, 8)?;
+        let n = u64::from_le_bytes(buf[..8].try_into().expect("8 bytes"));
+        if n > len {
+            return Err(bad(
+                path,
+                format!("section IMGS: record {i} claims {n} bytes"),
+            ));
+        }
+        next(&mut r, &mut buf, n as usize)?;
+        images.push(decode_image(&buf, i).map_err(|m| bad(path, format!("section IMGS: {m}")))?);
+    }
+    if read != len {
+        return Err(bad(
+            path,
+            format!("section IMGS: {} bytes left unread", len - read),
+        ));
+    }
+    read_sum(&mut r, path, b"IMGS", state)?;
+    let (tag, retr) = small_section(&mut r, path)?;
+    expect(&tag, b"RETR", path)?;
+    let retriever =
+        Retriever::from_bytes(&retr, onnx).map_err(|e| bad(path, format!("section RETR: {e}")))?;
+    let (tag, _) = small_section(&mut r, path)?;
+    expect(&tag, b"END!", path)?;
+    if retriever.len() != images.len() {
+        return Err(bad(
+            path,
+            format!(
+                "retrieval holds {} images, the map {}",
+                retriever.len(),
+                images.len()
+            ),
+        ));
+    }
+    if let Some(im) = images
+        .iter()
+        .find(|im| im.scene as usize >= header.scenes.len().max(1))
+    {
+        return Err(bad(
+            path,
+            format!(
+                "image {} names scene {} of {}",
+                im.id,
+                im.scene,
+                header.scenes.len()
+            ),
+        ));
+    }
+    Ok(Map {
+        header,
+        images,
+        retriever,
+    })
+}

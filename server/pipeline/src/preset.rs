@@ -1,0 +1,200 @@
+//! Named presets: one string picks every stage (hloc-style), so a map, a server and an evaluation
+//! agree on what ran. The preset is stored in the map header; the server and `pntr eval` refuse a
+//! preset whose extractor differs from the one the map was built with.
+
+use std::path::PathBuf;
+
+use pntr_features::config::FeatureConfig;
+use pntr_retrieval::bow::BowParams;
+use pntr_retrieval::global::Method;
+use pntr_retrieval::index::IndexKind;
+use serde::{Deserialize, Serialize};
+
+use crate::PipelineError;
+
+/// Registration solver.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Solver {
+    /// TEASER-style certifiable robust 3D-3D registration (default).
+    Teaser,
+    /// ICP on the matched 3D pairs from the identity (the paper's ICP rows).
+    Icp,
+    /// PnP + RANSAC on query pixels and database 3D points (classical).
+    Pnp,
+}
+
+/// Every choice of the pipeline.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Preset {
+    /// The preset's name.
+    pub name: String,
+    /// Global descriptor: `vlad`, `bow` or `onnx`.
+    pub global: String,
+    /// VLAD codewords.
+    pub vlad_words: usize,
+    /// faiss index for dense descriptors (`flat`, `hnsw32`, `ivf1024`, `pcaw256`).
+    pub index: String,
+    /// Model of the `onnx` global descriptor.
+    pub global_model: Option<PathBuf>,
+    /// Extractor name (`xfeat`, `aliked`, `orb`, `onnx`).
+    pub extractor: String,
+    /// Matcher name (`lighterglue`, `lightglue`, `mnn`, `onnx`).
+    pub matcher: String,
+    /// Keypoints per image.
+    pub keypoints: usize,
+    /// Retrieval candidates considered per query (k of top-k).
+    pub candidates: usize,
+    /// Re-rank the candidates by a cheap geometric check (MNN matches registered with the solver) and
+    /// run the matcher only on the best `final_candidates`; without it, the matcher runs on all.
+    pub rerank: bool,
+    /// Candidates the (learned) matcher runs on after re-ranking.
+    pub final_candidates: usize,
+    /// Registration solver.
+    pub solver: Solver,
+    /// Fewest inliers for a LOCALIZED answer.
+    pub min_inliers: usize,
+}
+
+/// Names of the built-in presets.
+pub const PRESETS: [&str; 7] = [
+    "fast",
+    "fast-norerank",
+    "fast-icp",
+    "accurate",
+    "accurate-icp",
+    "classical",
+    "xfeat-mnn",
+];
+
+/// The default preset (the best trade-off measured; see BENCHMARKS.md).
+pub const DEFAULT_PRESET: &str = "fast";
+
+impl Preset {
+    /// A built-in preset by name.
+    pub fn named(name: &str) -> Result<Self, PipelineError> {
+        let base = Self {
+            name: name.to_string(),
+            global: "vlad".into(),
+            vlad_words: 64,
+            index: "flat".into(),
+            global_model: None,
+            extractor: "xfeat".into(),
+            matcher: "lighterglue".into(),
+            keypoints: 512,
+            candidates: 5,
+            rerank: true,
+            final_candidates: 1,
+            solver: Solver::Teaser,
+            min_inliers: 12,
+        };
+        Ok(match name {
+            "fast" => base,
+            "fast-norerank" => Self {
+                candidates: 1,
+                rerank: false,
+                ..base
+            },
+            "fast-icp" => Self {
+                solver: Solver::Icp,
+                ..base
+            },
+            "accurate" => Self {
+                extractor: "aliked".into(),
+                matcher: "lightglue".into(),
+                ..base
+            },
+            "accurate-icp" => Self {
+                extractor: "aliked".into(),
+                matcher: "lightglue".into(),
+                solver: Solver::Icp,
+                ..base
+            },
+            "classical" => Self {
+                global: "bow".into(),
+                extractor: "orb".into(),
+                matcher: "mnn".into(),
+                keypoints: 1024,
+                solver: Solver::Pnp,
+                ..base
+            },
+            "xfeat-mnn" => Self {
+                matcher: "mnn".into(),
+                ..base
+            },
+            other => {
+                return Err(PipelineError::Config(format!(
+                    "unknown preset `{other}`; presets: {}",
+                    PRESETS.join(", ")
+                )))
+            }
+        })
+    }
+
+    /// Check the combination before anything is loaded.
+    pub fn validate(&self) -> Result<(), PipelineError> {
+        let bad = |m: String| Err(PipelineError::Config(format!("preset {}: {m}", self.name)));
+        match (self.global.as_str(), self.extractor.as_str()) {
+            ("bow", "orb") | ("vlad", "xfeat" | "aliked" | "onnx") | ("onnx", _) => {}
+            ("bow", e) => return bad(format!("bow needs the orb extractor, not {e}")),
+            ("vlad", e) => return bad(format!("vlad needs float descriptors; {e} has none")),
+            (g, _) => return bad(format!("unknown global descriptor `{g}` (vlad, bow, onnx)")),
+        }
+        if self.global == "onnx" && self.global_model.is_none() {
+            return bad("the onnx global descriptor needs global_model".into());
+        }
+        IndexKind::parse(&self.index).map_err(|e| PipelineError::Config(e.to_string()))?;
+        if self.candidates == 0 || self.final_candidates == 0 || self.keypoints == 0 {
+            return bad("candidates, final_candidates and keypoints must be positive".into());
+        }
+        self.feature_config(PathBuf::new())
+            .validate()
+            .map_err(|e| PipelineError::Config(e.to_string()))
+    }
+
+    /// The feature-stage configuration (models from `models_dir`).
+    pub fn feature_config(&self, models_dir: PathBuf) -> FeatureConfig {
+        FeatureConfig {
+            extractor: self.extractor.clone(),
+            matcher: self.matcher.clone(),
+            models_dir,
+            top_k: self.keypoints,
+            ..FeatureConfig::default()
+        }
+    }
+
+    /// How the global describer is learned.
+    pub fn method(&self) -> Method {
+        if self.global == "bow" {
+            Method::Bow(BowParams::default())
+        } else {
+            Method::Vlad {
+                words: self.vlad_words,
+            }
+        }
+    }
+
+    /// The parsed index kind.
+    pub fn index_kind(&self) -> Result<IndexKind, PipelineError> {
+        IndexKind::parse(&self.index).map_err(|e| PipelineError::Config(e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_named_preset_validates_and_unknown_names_are_listed() {
+        for name in PRESETS {
+            Preset::named(name).unwrap().validate().unwrap();
+        }
+        let e = Preset::named("nope").unwrap_err().to_string();
+        assert!(e.contains("fast") && e.contains("classical"), "{e}");
+        let bad = Preset {
+            global: "bow".into(),
+            ..Preset::named("fast").unwrap()
+        };
+        assert!(bad.validate().unwrap_err().to_string().contains("orb"));
+    }
+}
