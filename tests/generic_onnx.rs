@@ -71,3 +71,53 @@ fn onnx_extractor_and_matcher_follow_the_contract() {
         .to_string()
         .contains("needs a model file"));
 }
+
+#[test]
+fn onnx_global_descriptor_follows_the_contract_and_a_wrong_shape_is_refused_at_load() {
+    use pntr_retrieval::onnx_global::OnnxGlobal;
+    let dir = tempfile::tempdir().unwrap();
+    run_python("make_onnx_models.py", &[dir.path().as_os_str()]);
+    let rt = Default::default();
+    let g = OnnxGlobal::load(&dir.path().join("tiny_global.onnx"), &rt, None, None).unwrap();
+    assert_eq!(g.dim(), 3);
+    // The model sees RGB in 0..1, channel-planar; its output is L2-normalised here.
+    let d = g.describe(&image(255, 0, 0)).unwrap();
+    assert!(
+        (d[0] - 1.0).abs() < 1e-6 && d[1].abs() < 1e-6 && d[2].abs() < 1e-6,
+        "{d:?}"
+    );
+    let d = g.describe(&image(0, 90, 120)).unwrap();
+    assert!(
+        (d[1] - 0.6).abs() < 1e-3 && (d[2] - 0.8).abs() < 1e-3,
+        "{d:?}"
+    );
+    // A fixed input size resizes the image first.
+    let fixed = OnnxGlobal::load(
+        &dir.path().join("tiny_global.onnx"),
+        &rt,
+        Some((32, 32)),
+        Some(3),
+    )
+    .unwrap();
+    assert_eq!(
+        fixed.describe(&image(0, 0, 7)).unwrap(),
+        vec![0.0, 0.0, 1.0]
+    );
+
+    let bad = dir.path().join("tiny_global_bad.onnx");
+    let e = OnnxGlobal::load(&bad, &rt, None, None)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("tiny_global_bad.onnx") && e.contains("[1, D]") && e.contains("[1, 3, 1, 1]"),
+        "{e}"
+    );
+    let e = OnnxGlobal::load(&dir.path().join("tiny_global.onnx"), &rt, None, Some(256))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("expects 256"), "{e}");
+    let e = OnnxGlobal::load(&dir.path().join("missing.onnx"), &rt, None, None)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("missing.onnx") && e.contains("not found"), "{e}");
+}

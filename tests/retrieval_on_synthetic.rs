@@ -10,6 +10,8 @@ use pntr_retrieval::vlad::Codebook;
 use pntr_synth::{plan_scene, Renderer, SynthConfig};
 
 struct Data {
+    db_orb: Vec<Vec<[u8; 32]>>,
+    q_orb: Vec<Vec<[u8; 32]>>,
     db_desc: Vec<Vec<f32>>,
     db_point: Vec<usize>,
     q_desc: Vec<Vec<f32>>,
@@ -34,7 +36,11 @@ fn data() -> Data {
     }
     .build()
     .unwrap();
+    let orb = pntr_features::orb::Orb::default();
+    use pntr_features::Extractor;
     let mut d = Data {
+        db_orb: vec![],
+        q_orb: vec![],
         db_desc: vec![],
         db_point: vec![],
         q_desc: vec![],
@@ -42,18 +48,16 @@ fn data() -> Data {
     };
     for (pi, p) in planned.points.iter().enumerate() {
         for (vi, pose) in p.db.iter().enumerate() {
-            let f = stage
-                .extractor
-                .extract(&renderer.render(pose, &k, vi as u64).rgb)
-                .unwrap();
+            let rgb = renderer.render(pose, &k, vi as u64).rgb;
+            d.db_orb.push(orb.extract(&rgb).unwrap().binary);
+            let f = stage.extractor.extract(&rgb).unwrap();
             d.db_desc.push(f.descriptors);
             d.db_point.push(pi);
         }
         for (qi, pose) in p.queries.iter().enumerate() {
-            let f = stage
-                .extractor
-                .extract(&renderer.render(pose, &k, 100 + qi as u64).rgb)
-                .unwrap();
+            let rgb = renderer.render(pose, &k, 100 + qi as u64).rgb;
+            d.q_orb.push(orb.extract(&rgb).unwrap().binary);
+            let f = stage.extractor.extract(&rgb).unwrap();
             d.q_desc.push(f.descriptors);
             d.q_point.push(pi);
         }
@@ -78,6 +82,43 @@ fn recall(d: &Data, book: &Codebook) -> (f64, f64, GlobalIndex, Vec<f32>, Vec<Ve
     }
     let n = queries.len() as f64;
     (r1 as f64 / n, r5 as f64 / n, index, db, queries)
+}
+
+#[test]
+fn bow_baseline_finds_the_right_point_and_a_flat_vocabulary_does_not() {
+    use pntr_retrieval::bow::{BowParams, InvertedFile, Vocabulary};
+    let d = data();
+    let recall = |voc: &Vocabulary| {
+        let vecs: Vec<_> = d.db_orb.iter().map(|x| voc.bow(x)).collect();
+        let inv = InvertedFile::build(voc.words(), &vecs).unwrap();
+        let hits = d
+            .q_orb
+            .iter()
+            .zip(&d.q_point)
+            .filter(|(q, &pt)| d.db_point[inv.search(&voc.bow(q), 1)[0].id] == pt)
+            .count();
+        hits as f64 / d.q_orb.len() as f64
+    };
+    let voc = Vocabulary::train(&d.db_orb, BowParams::default()).unwrap();
+    let r1 = recall(&voc);
+    eprintln!("BoW ({} words) recall@1 {r1:.3}", voc.words());
+    // Weak on a 36-image map (a 1000-word vocabulary learned on 37k descriptors): about 2x chance.
+    assert!(r1 >= 0.3, "recall@1 {r1} (chance 1/6)");
+    // Two words only: every image looks alike.
+    let tiny = Vocabulary::train(
+        &d.db_orb,
+        BowParams {
+            branching: 2,
+            depth: 1,
+            ..BowParams::default()
+        },
+    )
+    .unwrap();
+    let t1 = recall(&tiny);
+    assert!(
+        t1 < r1,
+        "a 2-word vocabulary should do worse ({t1} vs {r1})"
+    );
 }
 
 #[test]

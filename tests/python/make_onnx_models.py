@@ -4,6 +4,8 @@
                        descriptors [1,4,3] = the image's mean colour plus a distinct offset per keypoint
   tiny_matcher.onnx    kpts0/kpts1/desc0/desc1/size0/size1 -> scores [1,M+1,N+1]:
                        10 * (desc0 . desc1^T - 1), with a dustbin row and column of -100
+  tiny_global.onnx     image [1,3,H,W] -> descriptor [1,3]: the mean colour (global-descriptor contract)
+  tiny_global_bad.onnx image -> descriptor [1,3,1,1]: breaks that contract (must be refused at load)
 Usage: make_onnx_models.py OUT_DIR
 """
 import os
@@ -68,8 +70,25 @@ def matcher(path):
     save(g, path)
 
 
+def global_model(path, flatten):
+    nodes = [helper.make_node("GlobalAveragePool", ["image"], ["mean"])]
+    if flatten:
+        nodes.append(helper.make_node("Flatten", ["mean"], ["descriptor"], axis=1))
+        shape = [1, 3]
+    else:
+        nodes.append(helper.make_node("Identity", ["mean"], ["descriptor"]))
+        shape = [1, 3, 1, 1]
+    g = helper.make_graph(
+        nodes, "tiny_global",
+        [helper.make_tensor_value_info("image", TensorProto.FLOAT, [1, 3, "h", "w"])],
+        [helper.make_tensor_value_info("descriptor", TensorProto.FLOAT, shape)])
+    save(g, path)
+
+
 if __name__ == "__main__":
     out = sys.argv[1]
     os.makedirs(out, exist_ok=True)
     extractor(os.path.join(out, "tiny_extractor.onnx"))
     matcher(os.path.join(out, "tiny_matcher.onnx"))
+    global_model(os.path.join(out, "tiny_global.onnx"), True)
+    global_model(os.path.join(out, "tiny_global_bad.onnx"), False)
