@@ -197,7 +197,7 @@ fn map_round_trip_pipeline_and_refused_files() {
                     .iter()
                     .map(|h| map.images[h.id].id.clone())
                     .collect(),
-                matched: None,
+                matched: l.image.map(|i| map.images[i].id.clone()),
                 times: l.times,
             })
         },
@@ -236,7 +236,7 @@ fn classical_preset_localizes_with_orb_bow_and_pnp() {
                     .iter()
                     .map(|h| map.images[h.id].id.clone())
                     .collect(),
-                matched: None,
+                matched: l.image.map(|i| map.images[i].id.clone()),
                 times: l.times,
             })
         },

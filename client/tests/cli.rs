@@ -136,3 +136,178 @@ fn bad_arguments_and_files_give_clear_errors() {
     let err = fails_cleanly(&pntr(&["info", "--dataset", root]));
     assert!(err.contains("broken_point0.hdf5"), "{err}");
 }
+
+#[test]
+fn build_db_then_eval_write_the_documented_json_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_str().unwrap();
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+    let out = pntr(&[
+        "synth",
+        "--out",
+        root,
+        "--points-per-scene",
+        "3",
+        "--queries-per-point",
+        "3",
+        "--seed",
+        "8",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let map = dir.path().join("m.pntrmap");
+    let map_s = map.to_str().unwrap();
+    let out = pntr(&[
+        "build-db",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--out",
+        map_s,
+        "--models",
+        models,
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["map_id"], "synth000");
+    assert_eq!(v["images"], 18);
+    assert_eq!(v["preset"], "fast");
+    let report = dir.path().join("eval.json");
+    let out = pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--db",
+        map_s,
+        "--models",
+        models,
+        "--json",
+        report.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let n = r["queries"].as_u64().unwrap();
+    assert!(n >= 6, "{r}");
+    assert!(r["localized"].as_u64().unwrap() <= n);
+    for table in ["recall", "retrieval_only"] {
+        for k in [
+            "5m_20deg",
+            "1m_10deg",
+            "0.5m_5deg",
+            "0.25m_2deg",
+            "5m",
+            "1m",
+            "0.5m",
+            "0.25m",
+        ] {
+            let x = r[table][k]
+                .as_f64()
+                .unwrap_or_else(|| panic!("{table}.{k} missing: {r}"));
+            assert!((0.0..=1.0).contains(&x));
+        }
+    }
+    for k in [
+        "retrieval",
+        "extraction",
+        "matching",
+        "registration",
+        "total",
+    ] {
+        assert!(r["stage_ms"][k].as_f64().unwrap() >= 0.0, "stage_ms.{k}");
+    }
+    assert!(r["fps"].as_f64().unwrap() > 0.0);
+    assert_eq!(r["metric"], "geodesic");
+    assert!(
+        r["recall"]["5m"].as_f64().unwrap() >= 0.5,
+        "most queries localise: {r}"
+    );
+    let legacy = dir.path().join("legacy.json");
+    let out = pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--db",
+        map_s,
+        "--models",
+        models,
+        "--legacy-metric",
+        "--queries",
+        "3",
+        "--json",
+        legacy.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let l: serde_json::Value = serde_json::from_slice(&std::fs::read(&legacy).unwrap()).unwrap();
+    assert!(l["metric"].as_str().unwrap().starts_with("legacy"), "{l}");
+
+    // Bad input: a map that is not one, a preset that does not exist, a missing scene.
+    std::fs::write(dir.path().join("bad.pntrmap"), b"hello").unwrap();
+    let err = fails_cleanly(&pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--db",
+        dir.path().join("bad.pntrmap").to_str().unwrap(),
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    assert!(
+        err.contains("bad.pntrmap") && err.contains("pntr map"),
+        "{err}"
+    );
+    let err = fails_cleanly(&pntr(&[
+        "build-db",
+        "--dataset",
+        root,
+        "--out",
+        map_s,
+        "--preset",
+        "turbo",
+    ]));
+    assert!(err.contains("turbo") && err.contains("fast"), "{err}");
+    let err = fails_cleanly(&pntr(&[
+        "build-db",
+        "--dataset",
+        root,
+        "--scene",
+        "nope",
+        "--out",
+        map_s,
+    ]));
+    assert!(err.contains("nope"), "{err}");
+    // The good map survived the failed builds.
+    assert!(pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--db",
+        map_s,
+        "--models",
+        models,
+        "--queries",
+        "1",
+        "--json",
+        report.to_str().unwrap(),
+    ])
+    .status
+    .success());
+}

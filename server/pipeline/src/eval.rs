@@ -89,6 +89,11 @@ pub struct RetrievalRecall {
     pub view_at_1: f64,
     /// The best-overlapping view is among the top 5.
     pub view_at_5: f64,
+    /// After geometric re-ranking: the image the pose came from is of the query's Point (top-1
+    /// retrieval when the answer names none).
+    pub reranked_point_at_1: f64,
+    /// After geometric re-ranking: the image the pose came from is the best-overlapping view.
+    pub reranked_view_at_1: f64,
 }
 
 /// The report `pntr eval --json` writes (keys fixed by issue 6; more may be added).
@@ -249,9 +254,12 @@ pub fn run(
                 .map(|(p, _, _)| pose_error(p, &gt, opts.legacy)),
         );
         rr.point_at_1 += a.retrieved.first().is_some_and(same_point) as usize as f64;
+        let chosen = a.matched.as_ref().or(a.retrieved.first());
+        rr.reranked_point_at_1 += chosen.is_some_and(same_point) as usize as f64;
         rr.point_at_5 += a.retrieved.iter().take(5).any(same_point) as usize as f64;
         if let Some(b) = &best_view {
             rr.view_at_1 += (a.retrieved.first() == Some(b)) as usize as f64;
+            rr.reranked_view_at_1 += (chosen == Some(b)) as usize as f64;
             rr.view_at_5 += a.retrieved.iter().take(5).any(|x| x == b) as usize as f64;
         }
         sums.extraction += a.times.extraction;
@@ -322,8 +330,8 @@ pub fn table(report: &EvalReport) -> String {
     }
     let r = &report.retrieval;
     s += &format!(
-        "retrieval: right Point @1 {:.3} @5 {:.3}; best-overlap view @1 {:.3} @5 {:.3}\n",
-        r.point_at_1, r.point_at_5, r.view_at_1, r.view_at_5
+        "retrieval: right Point @1 {:.3} @5 {:.3}; best-overlap view @1 {:.3} @5 {:.3}; after re-ranking: Point {:.3}, view {:.3}\n",
+        r.point_at_1, r.point_at_5, r.view_at_1, r.view_at_5, r.reranked_point_at_1, r.reranked_view_at_1
     );
     s += "mean ms per query:";
     for k in [
