@@ -208,6 +208,8 @@ fn map_round_trip_pipeline_and_refused_files() {
     assert_eq!(report.failed_requests, 5);
     assert!(report.recall["5m"] <= 0.5, "{:?}", report.recall);
     assert!(report.retrieval.point_at_5 <= 0.5 + 1e-9);
+    assert!(report.retrieval.reranked_point_at_1 <= 0.5 + 1e-9);
+    assert!(report.retrieval.reranked_point_at_1 >= report.retrieval.point_at_1 - 0.2);
     assert_eq!(report.recall.len(), 8);
     assert_eq!(report.retrieval_only.len(), 8);
 }

@@ -276,6 +276,8 @@ pub fn run(
         &mut rr.point_at_5,
         &mut rr.view_at_1,
         &mut rr.view_at_5,
+        &mut rr.reranked_point_at_1,
+        &mut rr.reranked_view_at_1,
     ] {
         *x /= nq;
     }

@@ -5,6 +5,9 @@ use faiss::{Index, MetricType};
 
 use crate::RetrievalError;
 
+/// Most map vectors an approximate index (IVF cells, PCA) is trained on.
+pub const TRAINING_VECTORS: usize = 8192;
+
 /// Which faiss index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum IndexKind {
@@ -116,7 +119,15 @@ impl GlobalIndex {
         };
         let mut index = faiss::index_factory(dim as u32, desc, MetricType::InnerProduct)?;
         if !index.is_trained() {
-            index.train(vectors)?;
+            // Training (k-means cells, PCA) on an even sample keeps the cost bounded for huge maps.
+            let step = n.div_ceil(TRAINING_VECTORS).max(1);
+            let sample: Vec<f32> = vectors
+                .chunks_exact(dim)
+                .step_by(step)
+                .flatten()
+                .copied()
+                .collect();
+            index.train(&sample)?;
         }
         index.add(vectors)?;
         if let IndexKind::Ivf { nprobe, .. } = kind {
