@@ -253,7 +253,19 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
     let map = match &args.db {
-        Some(p) => load_map(p, args.threads).with_context(|| format!("loading {}", p.display()))?,
+        Some(p) => {
+            let t = std::time::Instant::now();
+            let map =
+                load_map(p, args.threads).with_context(|| format!("loading {}", p.display()))?;
+            eprintln!(
+                "map {} loaded in {:.2} s: {} images, {:.1} MB in memory",
+                p.display(),
+                t.elapsed().as_secs_f64(),
+                map.images.len(),
+                map.heap_bytes() as f64 / 1e6
+            );
+            map
+        }
         None => {
             let preset = Preset::named(args.preset.as_deref().unwrap_or(DEFAULT_PRESET))?;
             build_map(&map_id, &scenes, &preset, &args.models, args.threads)?

@@ -40,8 +40,13 @@ fn main() {
             t0.elapsed().as_secs_f64()
         })
         .collect();
-    println!("descriptor: VLAD 64 words x 64-d over 512 descriptors: {:.3} ms (median of 200)", median_ms(t));
-    let images: Vec<Vec<[u8; 32]>> = (0..50).map(|_| (0..1024).map(|_| rng.gen()).collect()).collect();
+    println!(
+        "descriptor: VLAD 64 words x 64-d over 512 descriptors: {:.3} ms (median of 200)",
+        median_ms(t)
+    );
+    let images: Vec<Vec<[u8; 32]>> = (0..50)
+        .map(|_| (0..1024).map(|_| rng.gen()).collect())
+        .collect();
     let voc = Vocabulary::train(&images, BowParams::default()).expect("vocabulary");
     let t: Vec<f64> = (0..200)
         .map(|_| {
@@ -50,7 +55,11 @@ fn main() {
             t0.elapsed().as_secs_f64()
         })
         .collect();
-    println!("descriptor: BoW ({} words) of 1024 ORB descriptors: {:.3} ms (median of 200)", voc.words(), median_ms(t));
+    println!(
+        "descriptor: BoW ({} words) of 1024 ORB descriptors: {:.3} ms (median of 200)",
+        voc.words(),
+        median_ms(t)
+    );
     println!();
     println!("| vectors | index | build s | search ms (median) | top-1 agrees with flat |");
     println!("|---|---|---|---|---|");
@@ -77,7 +86,10 @@ fn main() {
             kinds.push(IndexKind::Hnsw { m: 32 });
         }
         if n >= 10_000 {
-            kinds.push(IndexKind::Ivf { nlist: (n / 100) as u32, nprobe: 16 });
+            kinds.push(IndexKind::Ivf {
+                nlist: (n / 100) as u32,
+                nprobe: 16,
+            });
         }
         for kind in kinds {
             let t0 = Instant::now();
@@ -95,7 +107,11 @@ fn main() {
                 flat_top = tops.clone();
             }
             let agree = tops.iter().zip(&flat_top).filter(|(a, b)| a == b).count();
-            println!("| {n} | {} | {build:.2} | {:.3} | {agree}/100 |", kind.name(), median_ms(times));
+            println!(
+                "| {n} | {} | {build:.2} | {:.3} | {agree}/100 |",
+                kind.name(),
+                median_ms(times)
+            );
         }
     }
 }
