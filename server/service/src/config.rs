@@ -1,0 +1,508 @@
+//! Settings of `pntr-server`: command line, environment (`PNTR_*`), a TOML or JSON file, defaults.
+//!
+//! Precedence, highest first: a command-line flag, its `PNTR_*` environment variable, the config file
+//! (`--config` / `PNTR_CONFIG`), the built-in default. Everything is checked once, at start, before
+//! anything is bound or loaded, and each error names the setting and where its value came from, so a
+//! deployment mistake fails fast with a message instead of surfacing as a confusing runtime error.
+//! Relative paths in a config file are relative to the file's folder.
+//!
+//! The bearer token is never printed: `Settings`' `Debug` redacts it, and `--token-file` /
+//! `PNTR_TOKEN` keep it out of the process list.
+
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+
+/// A setting that cannot work.
+#[derive(Debug, thiserror::Error)]
+#[error("configuration: {0}")]
+pub struct ConfigError(pub String);
+
+fn bad<T>(m: impl Into<String>) -> Result<T, ConfigError> {
+    Err(ConfigError(m.into()))
+}
+
+/// Default gRPC address.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:50051";
+/// Default address of the Prometheus `/metrics` endpoint.
+pub const DEFAULT_METRICS_ADDR: &str = "127.0.0.1:9464";
+/// Default maximum size of one gRPC message (a 4096 x 4096 raw RGB frame with float depth is 112 MiB,
+/// a 640 x 480 one 2 MiB).
+pub const DEFAULT_MAX_MESSAGE_BYTES: usize = 16 << 20;
+/// Default largest accepted image side.
+pub const DEFAULT_MAX_IMAGE_SIDE: u32 = 4096;
+/// Default time in-flight requests get to finish after SIGTERM/SIGINT.
+pub const DEFAULT_DRAIN_TIMEOUT_S: f64 = 30.0;
+
+/// Command-line arguments (each also read from its `PNTR_*` environment variable).
+#[derive(clap::Parser, Debug, Default, Clone)]
+#[command(
+    name = "pntr-server",
+    version,
+    about = "The pntr gRPC localization service (pntr.v1.Localizer)"
+)]
+pub struct Args {
+    /// A map file from `pntr build-db`; repeat (or separate with commas) to serve several maps.
+    #[arg(long = "db", env = "PNTR_DB", value_delimiter = ',')]
+    pub db: Vec<PathBuf>,
+    /// gRPC address, HOST:PORT (port 0 = any free port; the bound one is printed) [default: 127.0.0.1:50051].
+    #[arg(long, env = "PNTR_ADDR")]
+    pub addr: Option<String>,
+    /// Address of the Prometheus /metrics endpoint, HOST:PORT [default: 127.0.0.1:9464].
+    #[arg(long, env = "PNTR_METRICS_ADDR")]
+    pub metrics_addr: Option<String>,
+    /// A TOML (or .json) file with any of these settings (snake_case keys, e.g. `max_message_bytes`).
+    #[arg(long, env = "PNTR_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Folder of the ONNX models [default: models].
+    #[arg(long, env = "PNTR_MODELS")]
+    pub models: Option<PathBuf>,
+    /// Worker threads running the pipeline, each with its own model sessions [default: CPU count, at most 8].
+    #[arg(long, env = "PNTR_WORKERS")]
+    pub workers: Option<usize>,
+    /// Requests that may wait for a worker; beyond that, RESOURCE_EXHAUSTED [default: 4 x workers].
+    #[arg(long, env = "PNTR_QUEUE")]
+    pub queue: Option<usize>,
+    /// Largest gRPC message accepted or sent, bytes [default: 16 MiB].
+    #[arg(long, env = "PNTR_MAX_MESSAGE_BYTES")]
+    pub max_message_bytes: Option<usize>,
+    /// Largest accepted image width [default: 4096].
+    #[arg(long, env = "PNTR_MAX_IMAGE_WIDTH")]
+    pub max_image_width: Option<u32>,
+    /// Largest accepted image height [default: 4096].
+    #[arg(long, env = "PNTR_MAX_IMAGE_HEIGHT")]
+    pub max_image_height: Option<u32>,
+    /// ONNX Runtime intra-op threads per worker [default: 1].
+    #[arg(long, env = "PNTR_ORT_THREADS")]
+    pub ort_threads: Option<usize>,
+    /// Seconds in-flight requests get to finish after SIGTERM/SIGINT [default: 30].
+    #[arg(long, env = "PNTR_DRAIN_TIMEOUT_S")]
+    pub drain_timeout_s: Option<f64>,
+    /// Require `authorization: Bearer <TOKEN>` on every RPC but health (prefer PNTR_TOKEN or --token-file:
+    /// a flag is visible in the process list).
+    #[arg(long, env = "PNTR_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Read the bearer token from this file (surrounding whitespace is ignored).
+    #[arg(long, env = "PNTR_TOKEN_FILE")]
+    pub token_file: Option<PathBuf>,
+    /// TLS certificate chain (PEM); needs --tls-key.
+    #[arg(long, env = "PNTR_TLS_CERT")]
+    pub tls_cert: Option<PathBuf>,
+    /// TLS private key (PEM); needs --tls-cert.
+    #[arg(long, env = "PNTR_TLS_KEY")]
+    pub tls_key: Option<PathBuf>,
+}
+
+/// The config file: the same settings as [`Args`], all optional, unknown keys refused.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileSettings {
+    db: Option<Vec<PathBuf>>,
+    addr: Option<String>,
+    metrics_addr: Option<String>,
+    models: Option<PathBuf>,
+    workers: Option<usize>,
+    queue: Option<usize>,
+    max_message_bytes: Option<usize>,
+    max_image_width: Option<u32>,
+    max_image_height: Option<u32>,
+    ort_threads: Option<usize>,
+    drain_timeout_s: Option<f64>,
+    token: Option<String>,
+    token_file: Option<PathBuf>,
+    tls_cert: Option<PathBuf>,
+    tls_key: Option<PathBuf>,
+}
+
+impl FileSettings {
+    fn read(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .or_else(|e| bad(format!("config file {}: {e}", path.display())))?;
+        let json = path.extension().is_some_and(|e| e == "json");
+        let mut s: Self = if json {
+            serde_json::from_str(&text)
+                .or_else(|e| bad(format!("config file {}: {e}", path.display())))?
+        } else {
+            toml::from_str(&text)
+                .or_else(|e| bad(format!("config file {}: {e}", path.display())))?
+        };
+        // Relative paths are relative to the file, not to wherever the server was started.
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let fix = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = dir.join(&*p);
+            }
+        };
+        s.db.iter_mut().flatten().for_each(fix);
+        [
+            &mut s.models,
+            &mut s.token_file,
+            &mut s.tls_cert,
+            &mut s.tls_key,
+        ]
+        .into_iter()
+        .flatten()
+        .for_each(fix);
+        Ok(s)
+    }
+}
+
+/// Validated settings of one server.
+#[derive(Clone)]
+pub struct Settings {
+    /// Map files to serve (at least one).
+    pub db: Vec<PathBuf>,
+    /// gRPC address.
+    pub addr: SocketAddr,
+    /// Prometheus endpoint address.
+    pub metrics_addr: SocketAddr,
+    /// Folder of the ONNX models.
+    pub models: PathBuf,
+    /// Worker threads.
+    pub workers: usize,
+    /// Requests that may wait for a worker.
+    pub queue: usize,
+    /// Largest gRPC message, bytes.
+    pub max_message_bytes: usize,
+    /// Largest image width.
+    pub max_image_width: u32,
+    /// Largest image height.
+    pub max_image_height: u32,
+    /// ONNX Runtime threads per worker.
+    pub ort_threads: usize,
+    /// Time given to in-flight requests at shutdown.
+    pub drain_timeout: Duration,
+    /// Bearer token required on every RPC but health.
+    pub token: Option<String>,
+    /// TLS certificate chain and key (PEM files).
+    pub tls: Option<(PathBuf, PathBuf)>,
+}
+
+impl std::fmt::Debug for Settings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Settings")
+            .field("db", &self.db)
+            .field("addr", &self.addr)
+            .field("metrics_addr", &self.metrics_addr)
+            .field("models", &self.models)
+            .field("workers", &self.workers)
+            .field("queue", &self.queue)
+            .field("max_message_bytes", &self.max_message_bytes)
+            .field("max_image_width", &self.max_image_width)
+            .field("max_image_height", &self.max_image_height)
+            .field("ort_threads", &self.ort_threads)
+            .field("drain_timeout", &self.drain_timeout)
+            .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field("tls", &self.tls)
+            .finish()
+    }
+}
+
+fn default_workers() -> usize {
+    std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(1)
+        .min(8)
+}
+
+impl Settings {
+    /// Settings with the defaults for serving `db`, on loopback with ephemeral ports (tests, tools).
+    pub fn local(db: Vec<PathBuf>, models: PathBuf) -> Self {
+        let any = SocketAddr::from(([127, 0, 0, 1], 0));
+        let workers = default_workers();
+        Self {
+            db,
+            addr: any,
+            metrics_addr: any,
+            models,
+            workers,
+            queue: 4 * workers,
+            max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
+            max_image_width: DEFAULT_MAX_IMAGE_SIDE,
+            max_image_height: DEFAULT_MAX_IMAGE_SIDE,
+            ort_threads: 1,
+            drain_timeout: Duration::from_secs_f64(DEFAULT_DRAIN_TIMEOUT_S),
+            token: None,
+            tls: None,
+        }
+    }
+
+    /// Merge the command line / environment with the config file and the defaults, then validate.
+    pub fn from_args(args: Args) -> Result<Self, ConfigError> {
+        let file = match &args.config {
+            Some(p) => FileSettings::read(p)?,
+            None => FileSettings::default(),
+        };
+        let db = if args.db.is_empty() {
+            file.db.unwrap_or_default()
+        } else {
+            args.db
+        };
+        let addr = args
+            .addr
+            .or(file.addr)
+            .unwrap_or_else(|| DEFAULT_ADDR.into());
+        let metrics_addr = args
+            .metrics_addr
+            .or(file.metrics_addr)
+            .unwrap_or_else(|| DEFAULT_METRICS_ADDR.into());
+        let workers = args
+            .workers
+            .or(file.workers)
+            .unwrap_or_else(default_workers);
+        let token = match (
+            args.token.or(file.token),
+            args.token_file.or(file.token_file),
+        ) {
+            (Some(_), Some(_)) => return bad("give the token or a token file, not both"),
+            (Some(t), None) => Some(t),
+            (None, Some(p)) => Some(
+                std::fs::read_to_string(&p)
+                    .or_else(|e| bad(format!("token file {}: {e}", p.display())))?
+                    .trim()
+                    .to_string(),
+            ),
+            (None, None) => None,
+        };
+        let tls = match (
+            args.tls_cert.or(file.tls_cert),
+            args.tls_key.or(file.tls_key),
+        ) {
+            (Some(c), Some(k)) => Some((c, k)),
+            (None, None) => None,
+            _ => return bad("TLS needs both --tls-cert and --tls-key"),
+        };
+        let s = Self {
+            db,
+            addr: parse_addr("addr", &addr)?,
+            metrics_addr: parse_addr("metrics-addr", &metrics_addr)?,
+            models: args
+                .models
+                .or(file.models)
+                .unwrap_or_else(|| PathBuf::from("models")),
+            workers,
+            queue: args.queue.or(file.queue).unwrap_or(4 * workers),
+            max_message_bytes: args
+                .max_message_bytes
+                .or(file.max_message_bytes)
+                .unwrap_or(DEFAULT_MAX_MESSAGE_BYTES),
+            max_image_width: args
+                .max_image_width
+                .or(file.max_image_width)
+                .unwrap_or(DEFAULT_MAX_IMAGE_SIDE),
+            max_image_height: args
+                .max_image_height
+                .or(file.max_image_height)
+                .unwrap_or(DEFAULT_MAX_IMAGE_SIDE),
+            ort_threads: args.ort_threads.or(file.ort_threads).unwrap_or(1),
+            drain_timeout: {
+                let s = args
+                    .drain_timeout_s
+                    .or(file.drain_timeout_s)
+                    .unwrap_or(DEFAULT_DRAIN_TIMEOUT_S);
+                if !(s.is_finite() && (0.0..=86_400.0).contains(&s)) {
+                    return bad(format!(
+                        "drain-timeout-s must be between 0 and 86400 seconds, not {s}"
+                    ));
+                }
+                Duration::from_secs_f64(s)
+            },
+            token,
+            tls,
+        };
+        s.validate()?;
+        Ok(s)
+    }
+
+    /// Check every value (also called by [`crate::server::start`] on settings built in code).
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.db.is_empty() {
+            return bad("no --db given: pass a map file from `pntr build-db` (--db, PNTR_DB or `db` in the config file)");
+        }
+        for (i, p) in self.db.iter().enumerate() {
+            if !p.is_file() {
+                return bad(format!("--db {}: no such file", p.display()));
+            }
+            if self.db[..i].contains(p) {
+                return bad(format!("--db {} is given twice", p.display()));
+            }
+        }
+        if !self.models.is_dir() {
+            return bad(format!(
+                "--models {}: no such folder (the ONNX models; see models/README.md)",
+                self.models.display()
+            ));
+        }
+        if !(1..=256).contains(&self.workers) {
+            return bad(format!("--workers must be 1 to 256, not {}", self.workers));
+        }
+        if self.queue > 100_000 {
+            return bad(format!(
+                "--queue must be at most 100000, not {}",
+                self.queue
+            ));
+        }
+        if !(1024..=(1 << 30)).contains(&self.max_message_bytes) {
+            return bad(format!(
+                "--max-message-bytes must be between 1024 and 1073741824, not {}",
+                self.max_message_bytes
+            ));
+        }
+        for (name, v) in [
+            ("max-image-width", self.max_image_width),
+            ("max-image-height", self.max_image_height),
+        ] {
+            if !(16..=65_536).contains(&v) {
+                return bad(format!("--{name} must be between 16 and 65536, not {v}"));
+            }
+        }
+        if !(1..=64).contains(&self.ort_threads) {
+            return bad(format!(
+                "--ort-threads must be 1 to 64, not {}",
+                self.ort_threads
+            ));
+        }
+        if let Some(t) = &self.token {
+            // Checked without echoing the value.
+            if t.is_empty() {
+                return bad("the bearer token is empty");
+            }
+            if !t.bytes().all(|b| b.is_ascii_graphic()) {
+                return bad("the bearer token must be printable ASCII without spaces");
+            }
+        }
+        if let Some((c, k)) = &self.tls {
+            for (name, p) in [("tls-cert", c), ("tls-key", k)] {
+                if !p.is_file() {
+                    return bad(format!("--{name} {}: no such file", p.display()));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn parse_addr(name: &str, s: &str) -> Result<SocketAddr, ConfigError> {
+    if let Ok(a) = s.parse() {
+        return Ok(a);
+    }
+    // Host names (e.g. localhost:50051) resolve once, at start.
+    match s.to_socket_addrs() {
+        Ok(mut it) => match it.next() {
+            Some(a) => Ok(a),
+            None => bad(format!("--{name} {s}: resolves to no address")),
+        },
+        Err(e) => bad(format!("--{name} {s}: expected HOST:PORT ({e})")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with_files() -> (tempfile::TempDir, PathBuf) {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("a.pntrmap");
+        std::fs::write(&db, b"x").unwrap();
+        std::fs::create_dir(dir.path().join("models")).unwrap();
+        (dir, db)
+    }
+
+    #[test]
+    fn precedence_and_validation() {
+        let (dir, db) = with_files();
+        let cfg = dir.path().join("server.toml");
+        std::fs::write(
+            &cfg,
+            "db = [\"a.pntrmap\"]\nmodels = \"models\"\nworkers = 3\nqueue = 2\naddr = \"127.0.0.1:0\"\n",
+        )
+        .unwrap();
+        let args = Args {
+            config: Some(cfg.clone()),
+            queue: Some(7),
+            ..Args::default()
+        };
+        let s = Settings::from_args(args).unwrap();
+        assert_eq!(s.db, vec![db.clone()]);
+        assert_eq!(s.workers, 3);
+        assert_eq!(s.queue, 7, "the flag wins over the file");
+        assert_eq!(s.addr.port(), 0);
+        assert_eq!(s.max_message_bytes, DEFAULT_MAX_MESSAGE_BYTES);
+
+        std::fs::write(&cfg, "wrkers = 3\n").unwrap();
+        let e = Settings::from_args(Args {
+            config: Some(cfg.clone()),
+            ..Args::default()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("wrkers") && e.contains("server.toml"), "{e}");
+
+        let e = Settings::from_args(Args::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no --db given"), "{e}");
+
+        let base = Args {
+            db: vec![db.clone()],
+            models: Some(dir.path().join("models")),
+            ..Args::default()
+        };
+        let e = Settings::from_args(Args {
+            workers: Some(0),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("--workers"), "{e}");
+        let e = Settings::from_args(Args {
+            addr: Some("nonsense".into()),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("--addr nonsense"), "{e}");
+        let e = Settings::from_args(Args {
+            tls_cert: Some(db.clone()),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("tls-key"), "{e}");
+        let s = Settings::from_args(Args {
+            token: Some("s3cret-token".into()),
+            ..base.clone()
+        })
+        .unwrap();
+        let shown = format!("{s:?}");
+        assert!(!shown.contains("s3cret"), "{shown}");
+        let e = Settings::from_args(Args {
+            models: Some(dir.path().join("nope")),
+            ..base
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("nope"), "{e}");
+    }
+
+    #[test]
+    fn json_config() {
+        let (dir, db) = with_files();
+        let cfg = dir.path().join("server.json");
+        std::fs::write(
+            &cfg,
+            r#"{"db": ["a.pntrmap"], "models": "models", "max_message_bytes": 2048, "drain_timeout_s": 1.5}"#,
+        )
+        .unwrap();
+        let s = Settings::from_args(Args {
+            config: Some(cfg),
+            ..Args::default()
+        })
+        .unwrap();
+        assert_eq!(s.db, vec![db]);
+        assert_eq!(s.max_message_bytes, 2048);
+        assert_eq!(s.drain_timeout, Duration::from_millis(1500));
+    }
+}

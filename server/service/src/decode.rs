@@ -1,0 +1,475 @@
+//! Wire frames to pipeline queries: decode, check, and refuse with a message a client can act on.
+//!
+//! Every check that does not need the map runs here, on the async side, before a request takes a
+//! place in the queue: a malformed frame costs microseconds and never occupies a worker. Sizes are
+//! checked against the configured limits *before* anything is allocated or decoded (PNG and JPEG
+//! headers are read first), so a hostile header cannot make the server allocate gigabytes.
+//!
+//! Missing depth is data, not an error: 0, negative, NaN and infinite pixels (ROS sends NaN,
+//! RealSense 0) become 0, the pipeline's "no depth here"; only a frame with no valid pixel at all is
+//! refused.
+
+use std::io::Cursor;
+
+use pntr_core::{DepthMap, Intrinsics, RgbImage};
+use pntr_pipeline::pipeline::Query;
+use tonic::Status;
+
+use crate::proto;
+
+/// Size limits applied to every frame.
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    /// Largest width.
+    pub max_width: u32,
+    /// Largest height.
+    pub max_height: u32,
+}
+
+fn invalid<T>(m: impl Into<String>) -> Result<T, Status> {
+    Err(Status::invalid_argument(m.into()))
+}
+
+impl Limits {
+    fn check(&self, what: &str, w: u32, h: u32) -> Result<(), Status> {
+        if w == 0 || h == 0 {
+            return invalid(format!("{what} is {w}x{h}: width and height must be set"));
+        }
+        if w > self.max_width || h > self.max_height {
+            return invalid(format!(
+                "{what} is {w}x{h}, larger than this server's limit of {}x{}",
+                self.max_width, self.max_height
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Turn a request into a pipeline query, or say precisely what is wrong with it.
+pub fn query(req: &proto::LocalizeRequest, limits: &Limits) -> Result<Query, Status> {
+    let Some(rgb) = &req.rgb else {
+        return invalid("rgb is missing");
+    };
+    let Some(depth) = &req.depth else {
+        return invalid("depth is missing");
+    };
+    let rgb = decode_rgb(rgb, limits)?;
+    let depth = decode_depth(depth, limits)?;
+    if (rgb.width, rgb.height) != (depth.width, depth.height) {
+        return invalid(format!(
+            "rgb is {}x{} but depth is {}x{}: they must be the same size, pixel-aligned",
+            rgb.width, rgb.height, depth.width, depth.height
+        ));
+    }
+    let intrinsics = intrinsics(req.intrinsics.as_ref(), rgb.width, rgb.height)?;
+    if !depth.data.iter().any(|&d| d > 0.0) {
+        return invalid("depth has no valid pixel (every value is 0, negative, NaN or infinite)");
+    }
+    Ok(Query {
+        rgb,
+        depth,
+        intrinsics,
+    })
+}
+
+fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsics, Status> {
+    let Some(k) = k else {
+        if (w, h) == (256, 256) {
+            return Ok(Intrinsics::hpointloc());
+        }
+        return invalid(format!(
+            "intrinsics required: they default to the HPointLoc camera only for 256x256 frames, this one is {w}x{h}"
+        ));
+    };
+    if !(k.fx.is_finite() && k.fy.is_finite() && k.fx > 0.0 && k.fy > 0.0) {
+        return invalid(format!(
+            "intrinsics fx = {} and fy = {}: focal lengths must be positive and finite",
+            k.fx, k.fy
+        ));
+    }
+    if !(k.cx.is_finite() && k.cy.is_finite()) {
+        return invalid(format!(
+            "intrinsics cx = {} and cy = {}: the principal point must be finite",
+            k.cx, k.cy
+        ));
+    }
+    Ok(Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        width: w,
+        height: h,
+    })
+}
+
+/// Expected byte count of a raw `w` x `h` image with `bpp` bytes per pixel, checked against `len`.
+fn raw_len(what: &str, w: u32, h: u32, bpp: u64, len: usize, unit: &str) -> Result<(), Status> {
+    let want = w as u64 * h as u64 * bpp;
+    if want != len as u64 {
+        return invalid(format!(
+            "{what} is {w}x{h} {unit} ({want} bytes) but its data has {len} bytes"
+        ));
+    }
+    Ok(())
+}
+
+/// Declared size must agree with the decoded one, where the client declared it.
+fn declared(what: &str, (dw, dh): (u32, u32), (w, h): (u32, u32)) -> Result<(), Status> {
+    if (dw, dh) != (0, 0) && (dw, dh) != (w, h) {
+        return invalid(format!(
+            "{what} declares {dw}x{dh} but the encoded image is {w}x{h}"
+        ));
+    }
+    Ok(())
+}
+
+fn decode_rgb(im: &proto::Image, limits: &Limits) -> Result<RgbImage, Status> {
+    use proto::ImageEncoding as E;
+    let (w, h, data) = match E::try_from(im.encoding) {
+        Ok(E::RawRgb8) => {
+            limits.check("rgb", im.width, im.height)?;
+            raw_len("rgb", im.width, im.height, 3, im.data.len(), "RAW_RGB8")?;
+            (im.width, im.height, im.data.clone())
+        }
+        Ok(E::Png) => {
+            let (w, h, data) = decode_png_rgb(&im.data, limits)?;
+            declared("rgb", (im.width, im.height), (w, h))?;
+            (w, h, data)
+        }
+        Ok(E::Jpeg) => {
+            let (w, h, data) = decode_jpeg(&im.data, limits)?;
+            declared("rgb", (im.width, im.height), (w, h))?;
+            (w, h, data)
+        }
+        Ok(E::Unspecified) => {
+            return invalid("rgb.encoding is IMAGE_ENCODING_UNSPECIFIED: set RAW_RGB8, PNG or JPEG")
+        }
+        Err(_) => {
+            return invalid(format!(
+                "rgb.encoding {} is not a known ImageEncoding",
+                im.encoding
+            ))
+        }
+    };
+    RgbImage::new(w, h, data).or_else(|e| invalid(format!("rgb: {e}")))
+}
+
+fn sanitize(d: f32) -> f32 {
+    if d.is_finite() && d > 0.0 {
+        d
+    } else {
+        0.0
+    }
+}
+
+fn decode_depth(d: &proto::Depth, limits: &Limits) -> Result<DepthMap, Status> {
+    use proto::DepthEncoding as E;
+    let (w, h, data) = match E::try_from(d.encoding) {
+        Ok(E::Float32Meters) => {
+            limits.check("depth", d.width, d.height)?;
+            raw_len("depth", d.width, d.height, 4, d.data.len(), "FLOAT32_METERS")?;
+            let v = d
+                .data
+                .chunks_exact(4)
+                .map(|b| sanitize(f32::from_le_bytes([b[0], b[1], b[2], b[3]])))
+                .collect();
+            (d.width, d.height, v)
+        }
+        Ok(E::Uint16Millimeters) => {
+            limits.check("depth", d.width, d.height)?;
+            raw_len("depth", d.width, d.height, 2, d.data.len(), "UINT16_MILLIMETERS")?;
+            let v = d
+                .data
+                .chunks_exact(2)
+                .map(|b| u16::from_le_bytes([b[0], b[1]]) as f32 / 1000.0)
+                .collect();
+            (d.width, d.height, v)
+        }
+        Ok(E::Png16Millimeters) => {
+            let (w, h, v) = decode_png16(&d.data, limits)?;
+            declared("depth", (d.width, d.height), (w, h))?;
+            (w, h, v)
+        }
+        Ok(E::Unspecified) => {
+            return invalid(
+                "depth.encoding is DEPTH_ENCODING_UNSPECIFIED: set FLOAT32_METERS, UINT16_MILLIMETERS or PNG16_MILLIMETERS",
+            )
+        }
+        Err(_) => return invalid(format!("depth.encoding {} is not a known DepthEncoding", d.encoding)),
+    };
+    // `from_metres` would refuse nothing here (values are already sanitised); sizes are checked above.
+    DepthMap::from_metres(w, h, data).or_else(|e| invalid(format!("depth: {e}")))
+}
+
+/// Read a PNG's header and check its size before decoding the pixels.
+fn png_reader<'a>(
+    what: &str,
+    data: &'a [u8],
+    limits: &Limits,
+) -> Result<png::Reader<Cursor<&'a [u8]>>, Status> {
+    // The decoder's allocation cap follows the size limit (RGBA, 16 bits per sample, plus slack).
+    let bytes = limits.max_width as usize * limits.max_height as usize * 8 + (1 << 20);
+    let mut dec = png::Decoder::new_with_limits(Cursor::new(data), png::Limits { bytes });
+    // Expand palettes and low bit depths to 8 bits; 16-bit samples stay 16-bit.
+    dec.set_transformations(png::Transformations::EXPAND);
+    let reader = dec
+        .read_info()
+        .or_else(|e| invalid(format!("{what}: not a readable PNG ({e})")))?;
+    let (w, h) = (reader.info().width, reader.info().height);
+    limits.check(what, w, h)?;
+    Ok(reader)
+}
+
+fn png_pixels(what: &str, reader: &mut png::Reader<Cursor<&[u8]>>) -> Result<Vec<u8>, Status> {
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| Status::invalid_argument(format!("{what}: PNG too large")))?;
+    let mut buf = vec![0u8; size];
+    let info = reader
+        .next_frame(&mut buf)
+        .or_else(|e| invalid(format!("{what}: PNG data cannot be decoded ({e})")))?;
+    buf.truncate(info.buffer_size());
+    Ok(buf)
+}
+
+fn decode_png_rgb(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
+    let mut reader = png_reader("rgb", data, limits)?;
+    let (w, h) = (reader.info().width, reader.info().height);
+    let buf = png_pixels("rgb", &mut reader)?;
+    let (color, depth) = reader.output_color_type();
+    let channels = color.samples();
+    let bytes = if depth == png::BitDepth::Sixteen {
+        2
+    } else {
+        1
+    };
+    let n = w as usize * h as usize;
+    if buf.len() != n * channels * bytes {
+        return invalid(format!(
+            "rgb: PNG decoded to {} bytes, expected {}",
+            buf.len(),
+            n * channels * bytes
+        ));
+    }
+    let mut out = Vec::with_capacity(n * 3);
+    // 16-bit samples are big-endian in PNG: the high byte is the 8-bit value.
+    let sample = |px: &[u8], c: usize| px[c * bytes];
+    for px in buf.chunks_exact(channels * bytes) {
+        match color {
+            png::ColorType::Grayscale | png::ColorType::GrayscaleAlpha => {
+                let g = sample(px, 0);
+                out.extend_from_slice(&[g, g, g]);
+            }
+            png::ColorType::Rgb | png::ColorType::Rgba => {
+                out.extend_from_slice(&[sample(px, 0), sample(px, 1), sample(px, 2)]);
+            }
+            png::ColorType::Indexed => {
+                return invalid("rgb: PNG palette was not expanded");
+            }
+        }
+    }
+    Ok((w, h, out))
+}
+
+fn decode_png16(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<f32>), Status> {
+    let mut reader = png_reader("depth", data, limits)?;
+    let (w, h) = (reader.info().width, reader.info().height);
+    let (color, depth) = (reader.info().color_type, reader.info().bit_depth);
+    if color != png::ColorType::Grayscale || depth != png::BitDepth::Sixteen {
+        return invalid(format!(
+            "depth: PNG16_MILLIMETERS needs a 16-bit greyscale PNG, this one is {color:?} {depth:?}"
+        ));
+    }
+    let buf = png_pixels("depth", &mut reader)?;
+    if buf.len() != w as usize * h as usize * 2 {
+        return invalid("depth: PNG decoded to an unexpected size");
+    }
+    let v = buf
+        .chunks_exact(2)
+        .map(|b| u16::from_be_bytes([b[0], b[1]]) as f32 / 1000.0)
+        .collect();
+    Ok((w, h, v))
+}
+
+fn decode_jpeg(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
+    use zune_jpeg::zune_core::bytestream::ZCursor;
+    use zune_jpeg::zune_core::colorspace::ColorSpace;
+    use zune_jpeg::zune_core::options::DecoderOptions;
+    let opts = DecoderOptions::default()
+        .jpeg_set_out_colorspace(ColorSpace::RGB)
+        .set_max_width(limits.max_width as usize)
+        .set_max_height(limits.max_height as usize);
+    let mut dec = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(data), opts);
+    dec.decode_headers()
+        .or_else(|e| invalid(format!("rgb: not a readable JPEG ({e:?})")))?;
+    let (w, h) = dec
+        .dimensions()
+        .ok_or_else(|| Status::invalid_argument("rgb: JPEG without dimensions"))?;
+    limits.check("rgb", w as u32, h as u32)?;
+    let px = dec
+        .decode()
+        .or_else(|e| invalid(format!("rgb: JPEG data cannot be decoded ({e:?})")))?;
+    let n = w * h;
+    let rgb = match dec.output_colorspace() {
+        Some(ColorSpace::RGB) if px.len() == n * 3 => px,
+        Some(ColorSpace::Luma) if px.len() == n => px.iter().flat_map(|&g| [g, g, g]).collect(),
+        other => {
+            return invalid(format!(
+                "rgb: JPEG decoded to {other:?} with {} bytes, expected RGB",
+                px.len()
+            ))
+        }
+    };
+    Ok((w as u32, h as u32, rgb))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::wire;
+
+    const LIMITS: Limits = Limits {
+        max_width: 4096,
+        max_height: 4096,
+    };
+
+    fn frame(w: u32, h: u32) -> (RgbImage, DepthMap) {
+        let rgb =
+            RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 7 % 251) as u8).collect()).unwrap();
+        let depth = DepthMap::from_metres(
+            w,
+            h,
+            (0..w * h).map(|i| 0.5 + (i % 100) as f32 * 0.01).collect(),
+        )
+        .unwrap();
+        (rgb, depth)
+    }
+
+    fn code_msg(r: Result<Query, Status>) -> (tonic::Code, String) {
+        let e = r.unwrap_err();
+        (e.code(), e.message().to_string())
+    }
+
+    #[test]
+    fn raw_and_png_round_trip() {
+        let (rgb, depth) = frame(256, 256);
+        let raw = wire::raw_request(&rgb, &depth, None);
+        let q = query(&raw, &LIMITS).unwrap();
+        assert_eq!(q.rgb, rgb);
+        assert_eq!(q.intrinsics, Intrinsics::hpointloc());
+        let png = wire::png_request(&rgb, &depth, None).unwrap();
+        let p = query(&png, &LIMITS).unwrap();
+        assert_eq!(p.rgb, rgb);
+        for (a, b) in p.depth.data.iter().zip(&depth.data) {
+            assert!((a - b).abs() <= 0.0005 + 1e-6, "{a} {b}");
+        }
+        let mut u16req = raw.clone();
+        u16req.depth = Some(proto::Depth {
+            width: 256,
+            height: 256,
+            encoding: proto::DepthEncoding::Uint16Millimeters as i32,
+            data: depth
+                .data
+                .iter()
+                .flat_map(|d| ((d * 1000.0).round() as u16).to_le_bytes())
+                .collect(),
+        });
+        let u = query(&u16req, &LIMITS).unwrap();
+        assert!((u.depth.data[5] - depth.data[5]).abs() < 0.001);
+    }
+
+    #[test]
+    fn bad_frames_are_refused_with_reasons() {
+        let (rgb, depth) = frame(256, 256);
+        let good = wire::raw_request(&rgb, &depth, None);
+
+        let mut r = good.clone();
+        r.rgb = None;
+        assert_eq!(code_msg(query(&r, &LIMITS)).1, "rgb is missing");
+        let mut r = good.clone();
+        r.depth = None;
+        assert_eq!(code_msg(query(&r, &LIMITS)).1, "depth is missing");
+
+        let mut r = good.clone();
+        r.rgb.as_mut().unwrap().width = 255;
+        let (c, m) = code_msg(query(&r, &LIMITS));
+        assert_eq!(c, tonic::Code::InvalidArgument);
+        assert!(m.contains("255x256") && m.contains("196608"), "{m}");
+
+        let (small_rgb, _) = frame(128, 256);
+        let mut r = good.clone();
+        r.rgb = wire::raw_request(&small_rgb, &depth, None).rgb;
+        let m = code_msg(query(&r, &LIMITS)).1;
+        assert!(m.contains("same size"), "{m}");
+
+        let mut r = good.clone();
+        r.rgb.as_mut().unwrap().encoding = proto::ImageEncoding::Png as i32;
+        let m = code_msg(query(&r, &LIMITS)).1;
+        assert!(m.contains("not a readable PNG"), "{m}");
+        let mut r = good.clone();
+        r.rgb.as_mut().unwrap().encoding = proto::ImageEncoding::Jpeg as i32;
+        let m = code_msg(query(&r, &LIMITS)).1;
+        assert!(m.contains("not a readable JPEG"), "{m}");
+        let mut r = good.clone();
+        r.rgb.as_mut().unwrap().encoding = 0;
+        let m = code_msg(query(&r, &LIMITS)).1;
+        assert!(m.contains("UNSPECIFIED"), "{m}");
+        let mut r = good.clone();
+        r.depth.as_mut().unwrap().encoding = 17;
+        let m = code_msg(query(&r, &LIMITS)).1;
+        assert!(m.contains("17"), "{m}");
+
+        for (fx, fy) in [
+            (0.0, 128.0),
+            (-1.0, 128.0),
+            (128.0, f64::NAN),
+            (f64::INFINITY, 1.0),
+        ] {
+            let mut r = good.clone();
+            r.intrinsics = Some(proto::Intrinsics {
+                fx,
+                fy,
+                cx: 127.5,
+                cy: 127.5,
+            });
+            let m = code_msg(query(&r, &LIMITS)).1;
+            assert!(m.contains("focal"), "{m}");
+        }
+
+        let (r2, d2) = frame(64, 48);
+        let m = code_msg(query(&wire::raw_request(&r2, &d2, None), &LIMITS)).1;
+        assert!(m.contains("intrinsics required"), "{m}");
+
+        let tiny = Limits {
+            max_width: 100,
+            max_height: 100,
+        };
+        let m = code_msg(query(&good, &tiny)).1;
+        assert!(m.contains("limit"), "{m}");
+        let png = wire::png_request(&rgb, &depth, None).unwrap();
+        let m = code_msg(query(&png, &tiny)).1;
+        assert!(m.contains("limit"), "{m}");
+
+        // Missing depth in every form is skipped...
+        let mut bad = depth.clone();
+        bad.data[0] = f32::NAN;
+        bad.data[1] = f32::INFINITY;
+        bad.data[2] = -1.0;
+        bad.data[3] = 0.0;
+        let mut r = wire::raw_request(&rgb, &depth, None);
+        r.depth.as_mut().unwrap().data = bad.data.iter().flat_map(|d| d.to_le_bytes()).collect();
+        let q = query(&r, &LIMITS).unwrap();
+        assert_eq!(&q.depth.data[..4], &[0.0; 4]);
+        assert_eq!(q.depth.data[4], depth.data[4]);
+        // ...but a frame with none at all is refused.
+        r.depth.as_mut().unwrap().data = [f32::NAN, 0.0, -2.0]
+            .iter()
+            .cycle()
+            .take(256 * 256)
+            .flat_map(|d| d.to_le_bytes())
+            .collect();
+        let m = code_msg(query(&r, &LIMITS)).1;
+        assert!(m.contains("no valid pixel"), "{m}");
+    }
+}

@@ -1,0 +1,92 @@
+//! `pntr-server`: serve localization over gRPC. See the `pntr_service` crate docs and
+//! `pntr-server --help`.
+
+use std::io::Write;
+use std::process::ExitCode;
+
+use clap::Parser;
+use pntr_service::config::{Args, Settings};
+
+/// Resolves on the first SIGTERM or SIGINT.
+async fn signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => {
+                tokio::select! {
+                    _ = ctrl_c => {}
+                    _ = term.recv() => {}
+                }
+            }
+            Err(_) => {
+                let _ = ctrl_c.await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = ctrl_c.await;
+    }
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    pntr_service::telemetry::init_tracing();
+    let settings = match Settings::from_args(args) {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("pntr-server: {e}");
+            return ExitCode::from(2);
+        }
+    };
+    tracing::info!(settings = ?settings, "starting");
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("pntr-io")
+        .build()
+    {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("pntr-server: starting the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(async {
+        let mut running = match pntr_service::start(settings).await {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("pntr-server: {e}");
+                return ExitCode::FAILURE;
+            }
+        };
+        // The one line on stdout: scripts and tests read the bound ports from it.
+        println!(
+            "pntr-server listening on {} metrics on {}",
+            running.addr, running.metrics_addr
+        );
+        let _ = std::io::stdout().flush();
+        let result = tokio::select! {
+            r = running.wait() => r,
+            _ = signal() => {
+                tracing::info!("signal received; shutting down (a second signal exits at once)");
+                running.shutdown();
+                tokio::select! {
+                    r = running.wait() => r,
+                    _ = signal() => {
+                        eprintln!("pntr-server: second signal; exiting without draining");
+                        return ExitCode::FAILURE;
+                    }
+                }
+            }
+        };
+        match result {
+            Ok(()) => ExitCode::SUCCESS,
+            Err(e) => {
+                eprintln!("pntr-server: {e}");
+                ExitCode::FAILURE
+            }
+        }
+    })
+}

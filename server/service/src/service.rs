@@ -1,0 +1,533 @@
+//! The `pntr.v1.Localizer` implementation: resolve the map, decode and check the frame, queue it for
+//! a worker, wait for the answer within the client's deadline, and account for it in metrics.
+//!
+//! The async side never runs the pipeline: it only decodes, validates and waits, so a handful of
+//! runtime threads serve any number of connections while the worker pool bounds the CPU work.
+
+use std::pin::Pin;
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use tokio::sync::oneshot;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::Stream;
+use tonic::metadata::{MetadataMap, MetadataValue};
+use tonic::service::Interceptor;
+use tonic::{Code, Request, Response, Status, Streaming};
+use tracing::Instrument;
+
+use crate::decode::{self, Limits};
+use crate::engine::{Engine, Job, Outcome, SubmitError};
+use crate::proto;
+use crate::telemetry::{IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION};
+use crate::wire;
+
+/// Shared state of the service: the engine once loaded, and the frame limits.
+#[derive(Debug)]
+pub struct State {
+    engine: OnceLock<Arc<Engine>>,
+    limits: Limits,
+}
+
+impl State {
+    /// A state without an engine yet (every Localize answers UNAVAILABLE until [`State::set_engine`]).
+    pub fn new(limits: Limits) -> Self {
+        Self {
+            engine: OnceLock::new(),
+            limits,
+        }
+    }
+
+    /// Install the loaded engine (once).
+    pub fn set_engine(&self, engine: Arc<Engine>) {
+        let _ = self.engine.set(engine);
+    }
+
+    /// The engine, if loaded.
+    pub fn engine(&self) -> Option<&Arc<Engine>> {
+        self.engine.get()
+    }
+
+    fn loaded(&self) -> Result<&Arc<Engine>, Status> {
+        self.engine
+            .get()
+            .ok_or_else(|| Status::unavailable("the server is still loading its maps and models"))
+    }
+}
+
+/// When the request reached the service (stamped by [`Gate`]), to measure the client's deadline from.
+#[derive(Debug, Clone, Copy)]
+struct Arrival(Instant);
+
+/// Checks the bearer token (when one is configured) and stamps the arrival time. Runs before the
+/// message is decoded, so an unauthenticated client cannot make the server decode anything.
+#[derive(Clone, Default)]
+pub struct Gate {
+    token: Option<Arc<[u8]>>,
+}
+
+impl Gate {
+    /// A gate requiring `authorization: Bearer <token>` when `token` is set.
+    pub fn new(token: Option<&str>) -> Self {
+        Self {
+            token: token.map(|t| Arc::from(format!("Bearer {t}").into_bytes())),
+        }
+    }
+}
+
+/// Compare without an early exit, so response time does not reveal how much of a token matched.
+fn same(a: &[u8], b: &[u8]) -> bool {
+    let mut diff = (a.len() != b.len()) as u8;
+    for (i, x) in a.iter().enumerate() {
+        diff |= x ^ b.get(i).copied().unwrap_or(!x);
+    }
+    diff == 0
+}
+
+impl Interceptor for Gate {
+    fn call(&mut self, mut req: Request<()>) -> Result<Request<()>, Status> {
+        if let Some(want) = &self.token {
+            let got = req
+                .metadata()
+                .get("authorization")
+                .map(|v| v.as_bytes())
+                .unwrap_or_default();
+            if !same(got, want) {
+                count("ERROR", Code::Unauthenticated);
+                return Err(Status::unauthenticated(
+                    "missing or invalid bearer token (send `authorization: Bearer <token>` metadata)",
+                ));
+            }
+        }
+        req.extensions_mut().insert(Arrival(Instant::now()));
+        Ok(req)
+    }
+}
+
+/// Parse gRPC's `grpc-timeout` header (e.g. `500m`, `2S`, at most 8 digits).
+pub fn grpc_timeout(meta: &MetadataMap) -> Option<Duration> {
+    let s = meta.get("grpc-timeout")?.to_str().ok()?;
+    if s.len() < 2 || s.len() > 9 {
+        return None;
+    }
+    let (num, unit) = s.split_at(s.len() - 1);
+    let n: u64 = num.parse().ok()?;
+    Some(match unit {
+        "H" => Duration::from_secs(n.checked_mul(3600)?),
+        "M" => Duration::from_secs(n.checked_mul(60)?),
+        "S" => Duration::from_secs(n),
+        "m" => Duration::from_millis(n),
+        "u" => Duration::from_micros(n),
+        "n" => Duration::from_nanos(n),
+        _ => return None,
+    })
+}
+
+/// The client's deadline. tonic's transport also enforces `grpc-timeout` (answering CANCELLED when it
+/// fires); ours is set a few milliseconds earlier so that the client gets DEADLINE_EXCEEDED, the code
+/// gRPC specifies.
+fn deadline<T>(req: &Request<T>) -> Option<Instant> {
+    let t = grpc_timeout(req.metadata())?;
+    let arrival = req
+        .extensions()
+        .get::<Arrival>()
+        .map_or_else(Instant::now, |a| a.0);
+    let margin = (t / 10).min(Duration::from_millis(5));
+    Some(arrival + t - margin)
+}
+
+/// The request id: the message's field, else `x-request-id` metadata, else a new one.
+fn request_id(field: &str, meta: &MetadataMap) -> Result<String, Status> {
+    let given = if field.is_empty() {
+        meta.get("x-request-id")
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("")
+    } else {
+        field
+    };
+    if given.is_empty() {
+        return Ok(format!("{:016x}", rand::random::<u64>()));
+    }
+    if given.len() > 128 || !given.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err(Status::invalid_argument(
+            "request_id must be at most 128 printable ASCII characters without spaces",
+        ));
+    }
+    Ok(given.to_string())
+}
+
+fn count(status: &'static str, code: Code) {
+    metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => code_name(code)).increment(1);
+}
+
+/// gRPC's upper-case code names (as in the spec), for labels.
+pub fn code_name(code: Code) -> &'static str {
+    match code {
+        Code::Ok => "OK",
+        Code::Cancelled => "CANCELLED",
+        Code::Unknown => "UNKNOWN",
+        Code::InvalidArgument => "INVALID_ARGUMENT",
+        Code::DeadlineExceeded => "DEADLINE_EXCEEDED",
+        Code::NotFound => "NOT_FOUND",
+        Code::AlreadyExists => "ALREADY_EXISTS",
+        Code::PermissionDenied => "PERMISSION_DENIED",
+        Code::ResourceExhausted => "RESOURCE_EXHAUSTED",
+        Code::FailedPrecondition => "FAILED_PRECONDITION",
+        Code::Aborted => "ABORTED",
+        Code::OutOfRange => "OUT_OF_RANGE",
+        Code::Unimplemented => "UNIMPLEMENTED",
+        Code::Internal => "INTERNAL",
+        Code::Unavailable => "UNAVAILABLE",
+        Code::DataLoss => "DATA_LOSS",
+        Code::Unauthenticated => "UNAUTHENTICATED",
+    }
+}
+
+/// Keeps `pntr_in_flight_requests` right on every exit path, cancellation included.
+struct InFlight;
+
+impl InFlight {
+    fn new() -> Self {
+        metrics::gauge!(IN_FLIGHT).increment(1.0);
+        Self
+    }
+}
+
+impl Drop for InFlight {
+    fn drop(&mut self) {
+        metrics::gauge!(IN_FLIGHT).decrement(1.0);
+    }
+}
+
+/// The Localizer service.
+#[derive(Debug, Clone)]
+pub struct LocalizerService {
+    state: Arc<State>,
+}
+
+impl LocalizerService {
+    /// A service over `state`.
+    pub fn new(state: Arc<State>) -> Self {
+        Self { state }
+    }
+
+    /// Localize one frame end to end, recording metrics; never panics.
+    async fn one(
+        &self,
+        msg: proto::LocalizeRequest,
+        request_id: String,
+        deadline: Option<Instant>,
+    ) -> Result<proto::LocalizeResponse, Status> {
+        let _in_flight = InFlight::new();
+        let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
+        let result = self.run(msg, deadline, span.clone()).instrument(span).await;
+        match &result {
+            Ok(r) if r.status == proto::Status::Localized as i32 => count("LOCALIZED", Code::Ok),
+            Ok(_) => count("NOT_LOCALIZED", Code::Ok),
+            Err(e) => {
+                count("ERROR", e.code());
+                if e.code() == Code::Internal {
+                    tracing::error!(code = ?e.code(), message = e.message(), "request failed");
+                } else {
+                    tracing::info!(code = ?e.code(), message = e.message(), "request refused");
+                }
+            }
+        }
+        result
+    }
+
+    async fn run(
+        &self,
+        msg: proto::LocalizeRequest,
+        deadline: Option<Instant>,
+        span: tracing::Span,
+    ) -> Result<proto::LocalizeResponse, Status> {
+        let engine = self.state.loaded()?.clone();
+        let map = engine.resolve(&msg.map_id)?;
+        let map_id = engine.maps[map].id.clone();
+        span.record("map_id", map_id.as_str());
+        let query = decode::query(&msg, &self.state.limits)?;
+        let (tx, rx) = oneshot::channel();
+        let job = Job {
+            map,
+            query,
+            deadline,
+            enqueued: Instant::now(),
+            span,
+            reply: tx,
+        };
+        match engine.submit(job) {
+            Ok(()) => {}
+            Err(SubmitError::Full) => {
+                return Err(Status::resource_exhausted(format!(
+                    "server busy: {} requests already wait for {} workers; retry with back-off",
+                    engine.queue, engine.workers
+                )))
+            }
+            Err(SubmitError::Closed) => {
+                return Err(Status::unavailable("the server is shutting down"))
+            }
+        }
+        let outcome = match deadline {
+            Some(d) => match tokio::time::timeout_at(d.into(), rx).await {
+                Ok(r) => r,
+                Err(_) => {
+                    return Err(Status::deadline_exceeded(
+                        "the deadline passed before the frame was localized",
+                    ))
+                }
+            },
+            None => rx.await,
+        };
+        let outcome = outcome.map_err(|_| Status::internal("the worker dropped the request"))?;
+        let (loc, queued) = match outcome {
+            Outcome::Done { result, queued } => (
+                result.map_err(|e| match e {
+                    pntr_pipeline::PipelineError::Query(m) => Status::invalid_argument(m),
+                    other => Status::internal(format!("localization failed: {other}")),
+                })?,
+                queued,
+            ),
+            Outcome::Expired { queued } => {
+                metrics::histogram!(STAGE_DURATION, "stage" => "queue")
+                    .record(queued.as_secs_f64());
+                return Err(Status::deadline_exceeded(format!(
+                    "the deadline passed after {:.0} ms in the queue; the frame was not processed",
+                    queued.as_secs_f64() * 1e3
+                )));
+            }
+            Outcome::Panicked { .. } => {
+                return Err(Status::internal("internal error while localizing (logged)"))
+            }
+        };
+        let t = &loc.times;
+        let stages = [
+            ("queue", queued.as_secs_f64()),
+            ("extraction", t.extraction),
+            ("retrieval", t.retrieval),
+            ("matching", t.matching),
+            ("registration", t.registration),
+            ("total", t.total),
+        ];
+        for (stage, s) in stages {
+            metrics::histogram!(STAGE_DURATION, "stage" => stage).record(s);
+        }
+        let m = &engine.maps[map].map;
+        let localized = loc.status == pntr_pipeline::pipeline::Status::Localized;
+        let matched = loc.image.filter(|_| localized).map(|i| &m.images[i]);
+        tracing::info!(
+            status = if localized {
+                "LOCALIZED"
+            } else {
+                "NOT_LOCALIZED"
+            },
+            inliers = loc.inliers,
+            total_ms = t.total * 1e3,
+            queue_ms = queued.as_secs_f64() * 1e3,
+            "localized"
+        );
+        Ok(proto::LocalizeResponse {
+            status: if localized {
+                proto::Status::Localized
+            } else {
+                proto::Status::NotLocalized
+            } as i32,
+            pose: loc.pose.as_ref().map(wire::to_proto_pose),
+            confidence: loc.confidence,
+            inliers: loc.inliers as u32,
+            matched_image_id: matched.map(|im| im.id.clone()).unwrap_or_default(),
+            timings: stages
+                .iter()
+                .map(|&(stage, seconds)| proto::StageTiming {
+                    stage: stage.into(),
+                    seconds,
+                })
+                .collect(),
+            map_id,
+            reason: loc.reason.clone().unwrap_or_default(),
+            retrieved_image_ids: loc
+                .retrieved
+                .iter()
+                .filter_map(|h| m.images.get(h.id).map(|im| im.id.clone()))
+                .collect(),
+            matched_point: matched.map_or(0, |im| im.point),
+            request_id: String::new(),
+        })
+    }
+}
+
+fn with_request_id<T>(mut r: Response<T>, id: &str) -> Response<T> {
+    if let Ok(v) = MetadataValue::try_from(id) {
+        r.metadata_mut().insert("x-request-id", v);
+    }
+    r
+}
+
+type ResponseStream = Pin<Box<dyn Stream<Item = Result<proto::LocalizeResponse, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl proto::localizer_server::Localizer for LocalizerService {
+    async fn localize(
+        &self,
+        request: Request<proto::LocalizeRequest>,
+    ) -> Result<Response<proto::LocalizeResponse>, Status> {
+        let deadline = deadline(&request);
+        let meta = request.metadata().clone();
+        let msg = request.into_inner();
+        let id = match request_id(&msg.request_id, &meta) {
+            Ok(id) => id,
+            Err(e) => {
+                count("ERROR", e.code());
+                return Err(e);
+            }
+        };
+        let mut out = self.one(msg, id.clone(), deadline).await.map_err(|mut e| {
+            if let Ok(v) = MetadataValue::try_from(id.as_str()) {
+                e.metadata_mut().insert("x-request-id", v);
+            }
+            e
+        })?;
+        out.request_id = id.clone();
+        Ok(with_request_id(Response::new(out), &id))
+    }
+
+    type LocalizeStreamStream = ResponseStream;
+
+    async fn localize_stream(
+        &self,
+        request: Request<Streaming<proto::LocalizeRequest>>,
+    ) -> Result<Response<Self::LocalizeStreamStream>, Status> {
+        let deadline = deadline(&request);
+        let meta = request.metadata().clone();
+        let stream_id = request_id("", &meta)?;
+        let span = tracing::info_span!("localize_stream", stream_id = %stream_id);
+        let reply_id = stream_id.clone();
+        let mut input = request.into_inner();
+        let (tx, rx) = tokio::sync::mpsc::channel(2);
+        let this = self.clone();
+        tokio::spawn(
+            async move {
+                let mut n = 0u64;
+                loop {
+                    let msg = match input.message().await {
+                        Ok(Some(m)) => m,
+                        Ok(None) => break,
+                        Err(e) => {
+                            tracing::debug!(error = %e, "stream ended by the client");
+                            break;
+                        }
+                    };
+                    n += 1;
+                    let id = if msg.request_id.is_empty() {
+                        Ok(format!("{stream_id}-{n}"))
+                    } else {
+                        request_id(&msg.request_id, &MetadataMap::new())
+                    };
+                    let result = match id {
+                        Ok(id) => this.one(msg, id.clone(), deadline).await.map(|mut r| {
+                            r.request_id = id;
+                            r
+                        }),
+                        Err(e) => {
+                            count("ERROR", e.code());
+                            Err(e)
+                        }
+                    };
+                    let failed = result.is_err();
+                    if tx.send(result).await.is_err() || failed {
+                        break; // the client went away, or an error ends the stream
+                    }
+                }
+            }
+            .instrument(span),
+        );
+        Ok(with_request_id(
+            Response::new(Box::pin(ReceiverStream::new(rx)) as ResponseStream),
+            &reply_id,
+        ))
+    }
+
+    async fn get_map_info(
+        &self,
+        request: Request<proto::GetMapInfoRequest>,
+    ) -> Result<Response<proto::MapInfo>, Status> {
+        let engine = self.state.loaded()?;
+        let i = engine.resolve(&request.get_ref().map_id)?;
+        let lm = &engine.maps[i];
+        let h = &lm.map.header;
+        Ok(Response::new(proto::MapInfo {
+            map_id: lm.id.clone(),
+            images: lm.map.images.len() as u32,
+            points: lm.points as u32,
+            scenes: h.scenes.clone(),
+            preset: h.preset.name.clone(),
+            extractor: h.preset.extractor.clone(),
+            matcher: h.preset.matcher.clone(),
+            global_descriptor: h.preset.global.clone(),
+            camera_axes: h.camera_axes.clone(),
+            intrinsics: Some(proto::Intrinsics {
+                fx: h.intrinsics.fx,
+                fy: h.intrinsics.fy,
+                cx: h.intrinsics.cx,
+                cy: h.intrinsics.cy,
+            }),
+            image_width: h.intrinsics.width,
+            image_height: h.intrinsics.height,
+            build_seconds: h.build_seconds,
+            loaded_map_ids: engine.maps.iter().map(|m| m.id.clone()).collect(),
+        }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn timeouts_parse() {
+        let mut m = MetadataMap::new();
+        assert_eq!(grpc_timeout(&m), None);
+        for (s, d) in [
+            ("500m", Duration::from_millis(500)),
+            ("2S", Duration::from_secs(2)),
+            ("1H", Duration::from_secs(3600)),
+            ("7u", Duration::from_micros(7)),
+        ] {
+            m.insert("grpc-timeout", s.parse().unwrap());
+            assert_eq!(grpc_timeout(&m), Some(d), "{s}");
+        }
+        for s in ["", "5", "m", "123456789S", "5x", "-5S"] {
+            m.insert("grpc-timeout", s.parse().unwrap());
+            assert_eq!(grpc_timeout(&m), None, "{s}");
+        }
+    }
+
+    #[test]
+    fn token_comparison() {
+        assert!(same(b"Bearer abc", b"Bearer abc"));
+        assert!(!same(b"Bearer abd", b"Bearer abc"));
+        assert!(!same(b"Bearer ab", b"Bearer abc"));
+        assert!(!same(b"Bearer abcd", b"Bearer abc"));
+        assert!(!same(b"", b"Bearer abc"));
+        let mut g = Gate::new(Some("abc"));
+        let e = g.call(Request::new(())).unwrap_err();
+        assert_eq!(e.code(), Code::Unauthenticated);
+        assert!(!e.message().contains("abc"));
+        let mut r = Request::new(());
+        r.metadata_mut()
+            .insert("authorization", "Bearer abc".parse().unwrap());
+        assert!(g.call(r).is_ok());
+        assert!(Gate::new(None).call(Request::new(())).is_ok());
+    }
+
+    #[test]
+    fn request_ids() {
+        let mut m = MetadataMap::new();
+        assert_eq!(request_id("given", &m).unwrap(), "given");
+        assert_eq!(request_id("", &m).unwrap().len(), 16);
+        m.insert("x-request-id", "from-meta".parse().unwrap());
+        assert_eq!(request_id("", &m).unwrap(), "from-meta");
+        assert!(request_id("has space", &m).is_err());
+        assert!(request_id(&"x".repeat(200), &m).is_err());
+    }
+}

@@ -1,0 +1,134 @@
+//! Metrics (Prometheus text on its own port) and logs (tracing with an env filter).
+//!
+//! The recorder is process-wide (the `metrics` facade has one global recorder), installed by the first
+//! server of the process; later servers in the same process (tests) share it. `/metrics` is served by
+//! a few lines of hyper on a listener the server binds itself, so `--metrics-addr 127.0.0.1:0` works
+//! and the bound port can be reported. Labels carry only stage names, status names, gRPC code names
+//! and map ids: nothing from a request's content.
+
+use std::net::SocketAddr;
+use std::sync::OnceLock;
+use std::time::Duration;
+
+use http_body_util::Full;
+use hyper::body::Bytes;
+use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
+use tokio::net::TcpListener;
+
+/// Histogram of seconds per stage (`stage` = queue, extraction, retrieval, matching, registration, total).
+pub const STAGE_DURATION: &str = "pntr_stage_duration_seconds";
+/// Counter of finished requests (`status` = LOCALIZED, NOT_LOCALIZED or ERROR; `code` = gRPC code).
+pub const REQUESTS_TOTAL: &str = "pntr_requests_total";
+/// Gauge of requests being handled (queued or running).
+pub const IN_FLIGHT: &str = "pntr_in_flight_requests";
+/// Gauge of requests waiting for a worker.
+pub const QUEUE_DEPTH: &str = "pntr_queue_depth";
+/// Gauge of database images per loaded map (`map_id`).
+pub const MAP_IMAGES: &str = "pntr_map_images";
+
+/// Bucket bounds of the stage histogram, seconds.
+const BUCKETS: [f64; 16] = [
+    0.001, 0.002, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+];
+
+static HANDLE: OnceLock<Result<PrometheusHandle, String>> = OnceLock::new();
+
+/// The process's Prometheus handle, installing the recorder on first use.
+pub fn prometheus() -> Result<PrometheusHandle, String> {
+    HANDLE
+        .get_or_init(|| {
+            let builder = PrometheusBuilder::new()
+                .set_buckets_for_metric(Matcher::Full(STAGE_DURATION.into()), &BUCKETS)
+                .map_err(|e| e.to_string())?;
+            let handle = builder.install_recorder().map_err(|e| {
+                format!("installing the metrics recorder (is another one installed?): {e}")
+            })?;
+            metrics::describe_histogram!(
+                STAGE_DURATION,
+                metrics::Unit::Seconds,
+                "Seconds spent per pipeline stage (queue = waiting for a worker)"
+            );
+            metrics::describe_counter!(
+                REQUESTS_TOTAL,
+                "Finished requests by outcome and gRPC code"
+            );
+            metrics::describe_gauge!(IN_FLIGHT, "Requests being handled (queued or running)");
+            metrics::describe_gauge!(QUEUE_DEPTH, "Requests waiting for a worker");
+            metrics::describe_gauge!(MAP_IMAGES, "Database images of each loaded map");
+            // Register the series so a scrape shows them before the first request.
+            metrics::gauge!(IN_FLIGHT).set(0.0);
+            metrics::gauge!(QUEUE_DEPTH).set(0.0);
+            metrics::counter!(REQUESTS_TOTAL, "status" => "LOCALIZED", "code" => "OK").absolute(0);
+            Ok(handle)
+        })
+        .clone()
+}
+
+/// Serve `GET /metrics` (any path, in fact) on `listener` until `stop` resolves; also runs the
+/// recorder's periodic upkeep.
+pub async fn serve_metrics(
+    listener: TcpListener,
+    handle: PrometheusHandle,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) {
+    let upkeep = handle.clone();
+    let upkeep_task = tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(Duration::from_secs(5)).await;
+            upkeep.run_upkeep();
+        }
+    });
+    loop {
+        let accepted = tokio::select! {
+            a = listener.accept() => a,
+            _ = crate::server::stopped(&mut stop) => break,
+        };
+        let Ok((stream, _)) = accepted else {
+            continue;
+        };
+        let handle = handle.clone();
+        tokio::spawn(async move {
+            let svc =
+                hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
+                    let handle = handle.clone();
+                    async move {
+                        let resp = if req.uri().path() == "/metrics" {
+                            hyper::Response::builder()
+                                .header("content-type", "text/plain; version=0.0.4")
+                                .body(Full::new(Bytes::from(handle.render())))
+                        } else {
+                            hyper::Response::builder()
+                                .status(404)
+                                .body(Full::new(Bytes::from_static(b"see /metrics\n")))
+                        };
+                        resp
+                    }
+                });
+            let io = hyper_util::rt::TokioIo::new(stream);
+            if let Err(e) = hyper::server::conn::http1::Builder::new()
+                .serve_connection(io, svc)
+                .await
+            {
+                tracing::debug!(error = %e, "metrics connection");
+            }
+        });
+    }
+    upkeep_task.abort();
+}
+
+/// Bind the metrics listener (separately, so that a busy port is a start-up error).
+pub async fn bind_metrics(addr: SocketAddr) -> std::io::Result<TcpListener> {
+    TcpListener::bind(addr).await
+}
+
+/// Logs to stderr (stdout carries the one "listening" line), filtered by `PNTR_LOG`, else `RUST_LOG`,
+/// else `info`. Safe to call more than once.
+pub fn init_tracing() {
+    let filter = std::env::var("PNTR_LOG")
+        .or_else(|_| std::env::var("RUST_LOG"))
+        .unwrap_or_else(|_| "info".into());
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+        .with_writer(std::io::stderr)
+        .try_init();
+}

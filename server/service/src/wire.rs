@@ -1,0 +1,140 @@
+//! Client-side helpers: build `LocalizeRequest`s from pntr's image types and read poses back.
+//!
+//! They live beside the server so that every client (the tests, `pntr eval --remote`, tools) encodes
+//! frames exactly as the server decodes them, from one definition.
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use pntr_core::{DepthMap, Intrinsics, RgbImage};
+
+use crate::proto;
+
+fn intrinsics(k: Option<&Intrinsics>) -> Option<proto::Intrinsics> {
+    k.map(|k| proto::Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+    })
+}
+
+/// A request with RAW_RGB8 colour and FLOAT32_METERS depth (missing depth sent as 0).
+pub fn raw_request(
+    rgb: &RgbImage,
+    depth: &DepthMap,
+    k: Option<&Intrinsics>,
+) -> proto::LocalizeRequest {
+    proto::LocalizeRequest {
+        rgb: Some(proto::Image {
+            width: rgb.width,
+            height: rgb.height,
+            encoding: proto::ImageEncoding::RawRgb8 as i32,
+            data: rgb.data.clone(),
+        }),
+        depth: Some(proto::Depth {
+            width: depth.width,
+            height: depth.height,
+            encoding: proto::DepthEncoding::Float32Meters as i32,
+            data: depth.data.iter().flat_map(|d| d.to_le_bytes()).collect(),
+        }),
+        intrinsics: intrinsics(k),
+        ..Default::default()
+    }
+}
+
+/// A request with PNG colour and PNG16_MILLIMETERS depth (depth rounded to whole millimetres and
+/// clamped to 65.535 m).
+pub fn png_request(
+    rgb: &RgbImage,
+    depth: &DepthMap,
+    k: Option<&Intrinsics>,
+) -> Result<proto::LocalizeRequest, png::EncodingError> {
+    let mm: Vec<u8> = depth
+        .data
+        .iter()
+        .flat_map(|&d| {
+            let v = if d.is_finite() && d > 0.0 {
+                (d * 1000.0).round().min(65535.0) as u16
+            } else {
+                0
+            };
+            v.to_be_bytes()
+        })
+        .collect();
+    Ok(proto::LocalizeRequest {
+        rgb: Some(proto::Image {
+            width: rgb.width,
+            height: rgb.height,
+            encoding: proto::ImageEncoding::Png as i32,
+            data: encode_png(
+                rgb.width,
+                rgb.height,
+                png::ColorType::Rgb,
+                png::BitDepth::Eight,
+                &rgb.data,
+            )?,
+        }),
+        depth: Some(proto::Depth {
+            width: depth.width,
+            height: depth.height,
+            encoding: proto::DepthEncoding::Png16Millimeters as i32,
+            data: encode_png(
+                depth.width,
+                depth.height,
+                png::ColorType::Grayscale,
+                png::BitDepth::Sixteen,
+                &mm,
+            )?,
+        }),
+        intrinsics: intrinsics(k),
+        ..Default::default()
+    })
+}
+
+/// Encode a PNG (16-bit samples big-endian, as PNG stores them).
+pub fn encode_png(
+    width: u32,
+    height: u32,
+    color: png::ColorType,
+    depth: png::BitDepth,
+    data: &[u8],
+) -> Result<Vec<u8>, png::EncodingError> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, width, height);
+        enc.set_color(color);
+        enc.set_depth(depth);
+        let mut w = enc.write_header()?;
+        w.write_image_data(data)?;
+        w.finish()?;
+    }
+    Ok(out)
+}
+
+/// The pose of a response as `world_from_camera`, or `None` when it has none.
+pub fn pose(p: Option<&proto::Pose>) -> Option<Isometry3<f64>> {
+    let p = p?;
+    let (t, r) = (p.translation.as_ref()?, p.rotation.as_ref()?);
+    Some(Isometry3::from_parts(
+        Translation3::new(t.x, t.y, t.z),
+        UnitQuaternion::from_quaternion(Quaternion::new(r.w, r.x, r.y, r.z)),
+    ))
+}
+
+/// The wire form of a pose.
+pub fn to_proto_pose(p: &Isometry3<f64>) -> proto::Pose {
+    let t = p.translation.vector;
+    let q = p.rotation.quaternion();
+    proto::Pose {
+        translation: Some(proto::Vector3 {
+            x: t.x,
+            y: t.y,
+            z: t.z,
+        }),
+        rotation: Some(proto::Quaternion {
+            w: q.w,
+            x: q.i,
+            y: q.j,
+            z: q.k,
+        }),
+    }
+}

@@ -1,0 +1,717 @@
+//! `pntr-server` end to end: a real server (the `pntr-service` library, started in-process on
+//! 127.0.0.1:0 exactly as the binary starts it) over a map built here from a synthetic scene, called
+//! through real gRPC clients.
+//!
+//! Covered: health flips to SERVING after loading; Localize (raw and PNG/PNG16 frames) and
+//! LocalizeStream answer with poses within 0.25 m; GetMapInfo; reflection lists the service; every
+//! kind of bad input gets its code and message and the server keeps answering; missing depth is
+//! skipped; a full queue gives RESOURCE_EXHAUSTED and a deadline passed while queued
+//! DEADLINE_EXCEEDED; a token-protected server refuses calls without the token; a /metrics scrape shows
+//! the metrics; shutdown drains an in-flight request.
+
+use std::io::{Read, Write};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use pntr_core::{DepthMap, Intrinsics, RgbImage};
+use pntr_dataset::{DatasetIndex, Role, View};
+use pntr_pipeline::{map, mapfile, preset::Preset};
+use pntr_service::config::Settings;
+use pntr_service::proto::localizer_client::LocalizerClient;
+use pntr_service::proto::{self, DepthEncoding, ImageEncoding};
+use pntr_service::tokio;
+use pntr_service::tonic::transport::{Channel, Endpoint};
+use pntr_service::tonic::{Code, Request};
+use pntr_service::tonic_health::pb::health_check_response::ServingStatus;
+use pntr_service::tonic_health::pb::health_client::HealthClient;
+use pntr_service::tonic_health::pb::HealthCheckRequest;
+use pntr_service::{wire, Running};
+use pntr_synth::SynthConfig;
+
+/// The dataset and map, made once for all tests of this file.
+struct Fixture {
+    _dir: tempfile::TempDir,
+    /// Map `all`.
+    map: PathBuf,
+    /// The same map saved under the id `copy` (a second map for the server to hold).
+    copy: PathBuf,
+    /// Query views of the dataset.
+    queries: Vec<View>,
+}
+
+fn models() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models")
+}
+
+fn fixture() -> &'static Fixture {
+    static F: OnceLock<Fixture> = OnceLock::new();
+    F.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let cfg = SynthConfig {
+            points_per_scene: 4,
+            queries_per_point: 4,
+            seed: 5,
+            ..Default::default()
+        };
+        let planned = pntr_synth::plan_all(&cfg);
+        pntr_synth::synthesize(&cfg, dir.path(), planned, &|| {}).unwrap();
+        let index = DatasetIndex::open(dir.path()).unwrap();
+        let preset = Preset::named("fast").unwrap();
+        let stage = preset.feature_config(models()).build().unwrap();
+        let scenes: Vec<_> = index.scenes.iter().collect();
+        let mut built =
+            map::build("all", &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+        let path = dir.path().join("all.pntrmap");
+        mapfile::save(&built, &path).unwrap();
+        built.header.map_id = "copy".into();
+        let copy = dir.path().join("copy.pntrmap");
+        mapfile::save(&built, &copy).unwrap();
+        let mut queries = Vec::new();
+        for p in &index.scenes[0].points {
+            let r = p.open().unwrap();
+            for i in 0..r.count(Role::Query) {
+                queries.push(r.view(Role::Query, i).unwrap());
+            }
+        }
+        assert!(queries.len() >= 8, "{} queries", queries.len());
+        Fixture {
+            _dir: dir,
+            map: path,
+            copy,
+            queries,
+        }
+    })
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+async fn channel(addr: SocketAddr) -> Channel {
+    Endpoint::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap()
+}
+
+async fn client(addr: SocketAddr) -> LocalizerClient<Channel> {
+    LocalizerClient::new(channel(addr).await).max_decoding_message_size(64 << 20)
+}
+
+async fn health(addr: SocketAddr, service: &str) -> ServingStatus {
+    let r = HealthClient::new(channel(addr).await)
+        .check(HealthCheckRequest {
+            service: service.into(),
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    ServingStatus::try_from(r.status).unwrap()
+}
+
+/// Poll health until SERVING; returns the statuses seen before.
+async fn wait_serving(addr: SocketAddr) -> Vec<ServingStatus> {
+    let t = Instant::now();
+    let mut seen = Vec::new();
+    loop {
+        let s = health(addr, pntr_service::SERVICE_NAME).await;
+        if s == ServingStatus::Serving {
+            assert_eq!(health(addr, "").await, ServingStatus::Serving);
+            return seen;
+        }
+        seen.push(s);
+        assert!(t.elapsed() < Duration::from_secs(120), "never SERVING");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn translation_error(r: &proto::LocalizeResponse, v: &View) -> Option<f64> {
+    let pose = wire::pose(r.pose.as_ref())?;
+    Some((pose.translation.vector - v.world_from_camera.translation.vector).norm())
+}
+
+fn request(v: &View, map_id: &str) -> proto::LocalizeRequest {
+    proto::LocalizeRequest {
+        map_id: map_id.into(),
+        ..wire::raw_request(&v.rgb, &v.depth, None)
+    }
+}
+
+fn in_all(r: proto::LocalizeRequest) -> proto::LocalizeRequest {
+    proto::LocalizeRequest {
+        map_id: "all".into(),
+        ..r
+    }
+}
+
+/// Call Localize and return the status code (Ok or the error's) with the message.
+async fn code_of(c: &mut LocalizerClient<Channel>, r: proto::LocalizeRequest) -> (Code, String) {
+    match c.localize(r).await {
+        Ok(r) => (Code::Ok, r.into_inner().reason),
+        Err(e) => (e.code(), e.message().to_string()),
+    }
+}
+
+fn scrape(addr: SocketAddr) -> String {
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.write_all(b"GET /metrics HTTP/1.0\r\nHost: test\r\n\r\n")
+        .unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    assert!(
+        out.starts_with("HTTP/1.0 200") || out.starts_with("HTTP/1.1 200"),
+        "{out}"
+    );
+    out
+}
+
+fn settings(dbs: &[&Path]) -> Settings {
+    Settings::local(dbs.iter().map(|p| p.to_path_buf()).collect(), models())
+}
+
+/// Wait until the worker pool is in the given state (jobs running, jobs queued).
+async fn pool_state(running: &Running, busy: usize, queued: usize) {
+    let engine = running.state.engine().expect("loaded");
+    let t = Instant::now();
+    while !(engine.busy() == busy && engine.queued() == queued) {
+        assert!(
+            t.elapsed() < Duration::from_secs(30),
+            "the pool never reached {busy} running, {queued} queued (now {}, {})",
+            engine.busy(),
+            engine.queued()
+        );
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+}
+
+async fn stop(mut running: Running) {
+    running.shutdown();
+    running.wait().await.unwrap();
+}
+
+#[test]
+fn localizes_reports_and_refuses_bad_input() {
+    let f = fixture();
+    runtime().block_on(async {
+        let mut s = settings(&[&f.map, &f.copy]);
+        s.workers = 2;
+        s.queue = 16;
+        s.max_message_bytes = 1 << 20;
+        s.max_image_width = 512;
+        s.max_image_height = 512;
+        let running = pntr_service::start(s).await.unwrap();
+        let addr = running.addr;
+        // Loading takes hundreds of milliseconds (two workers' model sessions): health says so.
+        let before = wait_serving(addr).await;
+        assert!(
+            before.iter().all(|s| *s == ServingStatus::NotServing),
+            "{before:?}"
+        );
+        assert!(
+            !before.is_empty(),
+            "health was SERVING before the models were loaded"
+        );
+        let mut c = client(addr).await;
+
+        // Raw frames.
+        let (mut good, mut total) = (0, 0);
+        for (i, v) in f.queries.iter().enumerate() {
+            let mut req = Request::new(request(v, "all"));
+            if i == 0 {
+                req.metadata_mut()
+                    .insert("x-request-id", "from-metadata".parse().unwrap());
+            }
+            let resp = c.localize(req).await.unwrap();
+            let echoed = resp.metadata().get("x-request-id").cloned();
+            let r = resp.into_inner();
+            if i == 0 {
+                assert_eq!(r.request_id, "from-metadata");
+                assert_eq!(echoed.unwrap(), "from-metadata");
+            } else {
+                assert_eq!(r.request_id.len(), 16, "a generated id");
+            }
+            assert_eq!(r.map_id, "all");
+            let stages: Vec<&str> = r.timings.iter().map(|t| t.stage.as_str()).collect();
+            assert_eq!(
+                stages,
+                [
+                    "queue",
+                    "extraction",
+                    "retrieval",
+                    "matching",
+                    "registration",
+                    "total"
+                ]
+            );
+            assert!(!r.retrieved_image_ids.is_empty());
+            total += 1;
+            if r.status == proto::Status::Localized as i32 {
+                assert!(r.reason.is_empty() && r.inliers >= 12 && !r.matched_image_id.is_empty());
+                assert!(r.confidence > 0.0 && r.confidence <= 1.0);
+                good += translation_error(&r, v).is_some_and(|e| e < 0.25) as usize;
+            } else {
+                assert_eq!(r.status, proto::Status::NotLocalized as i32);
+                assert!(r.pose.is_none() && !r.reason.is_empty());
+            }
+        }
+        eprintln!("{good} of {total} raw queries within 0.25 m");
+        assert!(good as f64 >= 0.7 * total as f64, "{good} of {total}");
+
+        // A PNG + PNG16 pair, with explicit intrinsics and its own request id.
+        let v = &f.queries[0];
+        let k = Intrinsics::hpointloc();
+        let mut req = wire::png_request(&v.rgb, &v.depth, Some(&k)).unwrap();
+        req.request_id = "png-1".into();
+        req.map_id = "all".into();
+        let r = c.localize(req).await.unwrap().into_inner();
+        assert_eq!(r.request_id, "png-1");
+        let e = translation_error(&r, v).expect("the PNG frame localizes");
+        assert!(e < 0.25, "PNG frame off by {e} m");
+
+        // Missing depth in every form (NaN, 0, negative, inf) is skipped, not refused.
+        let mut depth = v.depth.clone();
+        for (i, d) in depth.data.iter_mut().enumerate() {
+            if (i / 256) % 2 == 1 {
+                *d = [f32::NAN, 0.0, -1.0, f32::INFINITY][i % 4];
+            }
+        }
+        let (code, msg) = code_of(&mut c, {
+            let mut q = wire::raw_request(&v.rgb, &depth, None);
+            q.map_id = "all".into();
+            q
+        })
+        .await;
+        assert_eq!(code, Code::Ok, "{msg}");
+
+        // The stream answers each frame in order.
+        let frames: Vec<proto::LocalizeRequest> = f.queries[..3]
+            .iter()
+            .enumerate()
+            .map(|(i, v)| proto::LocalizeRequest {
+                request_id: format!("s{i}"),
+                ..request(v, "copy")
+            })
+            .collect();
+        let mut out = c
+            .localize_stream(tokio_stream(frames))
+            .await
+            .unwrap()
+            .into_inner();
+        let mut ids = Vec::new();
+        while let Some(r) = out.message().await.unwrap() {
+            assert_eq!(r.map_id, "copy");
+            ids.push(r.request_id);
+        }
+        assert_eq!(ids, ["s0", "s1", "s2"]);
+
+        // GetMapInfo.
+        let info = c
+            .get_map_info(proto::GetMapInfoRequest {
+                map_id: "all".into(),
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(info.map_id, "all");
+        assert_eq!(info.points, 4);
+        assert_eq!(info.images, 24);
+        assert_eq!(info.preset, "fast");
+        assert_eq!(info.camera_axes, "habitat");
+        assert_eq!((info.image_width, info.image_height), (256, 256));
+        assert_eq!(info.loaded_map_ids, ["all", "copy"]);
+        let e = c
+            .get_map_info(proto::GetMapInfoRequest::default())
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument);
+        assert!(e.message().contains("2 maps"), "{}", e.message());
+
+        // Every bad input: its code and a message that says what is wrong.
+        let rgb = &v.rgb;
+        let good_req = request(v, "all");
+        let with = |edit: &dyn Fn(&mut proto::LocalizeRequest)| {
+            let mut r = good_req.clone();
+            edit(&mut r);
+            r
+        };
+        let small = RgbImage::new(128, 256, rgb.data[..128 * 256 * 3].to_vec()).unwrap();
+        let big = (600u32, 100u32);
+        let cases: Vec<(&str, proto::LocalizeRequest, Code, &str)> = vec![
+            (
+                "no rgb",
+                with(&|r| r.rgb = None),
+                Code::InvalidArgument,
+                "rgb is missing",
+            ),
+            (
+                "no depth",
+                with(&|r| r.depth = None),
+                Code::InvalidArgument,
+                "depth is missing",
+            ),
+            (
+                "width vs data",
+                with(&|r| r.rgb.as_mut().unwrap().width = 250),
+                Code::InvalidArgument,
+                "bytes",
+            ),
+            (
+                "depth height vs data",
+                with(&|r| r.depth.as_mut().unwrap().height = 200),
+                Code::InvalidArgument,
+                "bytes",
+            ),
+            (
+                "rgb vs depth size",
+                with(&|r| r.rgb = wire::raw_request(&small, &v.depth, None).rgb),
+                Code::InvalidArgument,
+                "same size",
+            ),
+            (
+                "bad PNG",
+                with(&|r| r.rgb.as_mut().unwrap().encoding = ImageEncoding::Png as i32),
+                Code::InvalidArgument,
+                "not a readable PNG",
+            ),
+            (
+                "bad JPEG",
+                with(&|r| {
+                    let im = r.rgb.as_mut().unwrap();
+                    im.encoding = ImageEncoding::Jpeg as i32;
+                    im.data = b"\xff\xd8\xff\xe0 definitely not a jpeg".to_vec();
+                }),
+                Code::InvalidArgument,
+                "JPEG",
+            ),
+            (
+                "bad PNG16",
+                with(&|r| {
+                    let d = r.depth.as_mut().unwrap();
+                    d.encoding = DepthEncoding::Png16Millimeters as i32;
+                    d.data = b"\x89PNG\r\n\x1a\n truncated".to_vec();
+                }),
+                Code::InvalidArgument,
+                "PNG",
+            ),
+            (
+                "unspecified image encoding",
+                with(&|r| r.rgb.as_mut().unwrap().encoding = 0),
+                Code::InvalidArgument,
+                "IMAGE_ENCODING_UNSPECIFIED",
+            ),
+            (
+                "unspecified depth encoding",
+                with(&|r| r.depth.as_mut().unwrap().encoding = 0),
+                Code::InvalidArgument,
+                "DEPTH_ENCODING_UNSPECIFIED",
+            ),
+            (
+                "zero focal length",
+                with(&|r| {
+                    r.intrinsics = Some(proto::Intrinsics {
+                        fx: 0.0,
+                        fy: 128.0,
+                        cx: 127.5,
+                        cy: 127.5,
+                    })
+                }),
+                Code::InvalidArgument,
+                "focal",
+            ),
+            (
+                "negative focal length",
+                with(&|r| {
+                    r.intrinsics = Some(proto::Intrinsics {
+                        fx: 128.0,
+                        fy: -128.0,
+                        cx: 127.5,
+                        cy: 127.5,
+                    })
+                }),
+                Code::InvalidArgument,
+                "focal",
+            ),
+            (
+                "NaN focal length",
+                with(&|r| {
+                    r.intrinsics = Some(proto::Intrinsics {
+                        fx: f64::NAN,
+                        fy: 128.0,
+                        cx: 127.5,
+                        cy: 127.5,
+                    })
+                }),
+                Code::InvalidArgument,
+                "focal",
+            ),
+            (
+                "no intrinsics for a non-HPointLoc size",
+                {
+                    let rgb = RgbImage::new(64, 32, vec![100; 64 * 32 * 3]).unwrap();
+                    let d = DepthMap::from_metres(64, 32, vec![1.0; 64 * 32]).unwrap();
+                    in_all(wire::raw_request(&rgb, &d, None))
+                },
+                Code::InvalidArgument,
+                "intrinsics required",
+            ),
+            (
+                "too large",
+                {
+                    let rgb = RgbImage::new(big.0, big.1, vec![100; 600 * 100 * 3]).unwrap();
+                    let d = DepthMap::from_metres(big.0, big.1, vec![1.0; 600 * 100]).unwrap();
+                    let k = Intrinsics::from_fov(big.0, big.1, 90.0);
+                    in_all(wire::raw_request(&rgb, &d, Some(&k)))
+                },
+                Code::InvalidArgument,
+                "limit of 512x512",
+            ),
+            (
+                "no valid depth",
+                {
+                    let d = DepthMap {
+                        width: 256,
+                        height: 256,
+                        data: [f32::NAN, 0.0, -3.0, f32::INFINITY]
+                            .into_iter()
+                            .cycle()
+                            .take(256 * 256)
+                            .collect(),
+                    };
+                    in_all(wire::raw_request(rgb, &d, None))
+                },
+                Code::InvalidArgument,
+                "no valid pixel",
+            ),
+            (
+                "several maps, none named",
+                with(&|r| r.map_id.clear()),
+                Code::InvalidArgument,
+                "holds 2 maps",
+            ),
+            (
+                "unknown map",
+                with(&|r| r.map_id = "nope".into()),
+                Code::NotFound,
+                "nope",
+            ),
+            (
+                "oversized message",
+                {
+                    // 1.2 MB of pixels: over the server's 1 MiB message limit.
+                    let (w, h) = (400u32, 400u32);
+                    let rgb = RgbImage::new(w, h, vec![7; (w * h * 3) as usize]).unwrap();
+                    let d = DepthMap::from_metres(w, h, vec![1.0; (w * h) as usize]).unwrap();
+                    in_all(wire::raw_request(
+                        &rgb,
+                        &d,
+                        Some(&Intrinsics::from_fov(w, h, 90.0)),
+                    ))
+                },
+                Code::OutOfRange,
+                "too large",
+            ),
+        ];
+        for (name, req, want, text) in cases {
+            let (code, msg) = code_of(&mut c, req).await;
+            assert_eq!(code, want, "{name}: {msg}");
+            assert!(msg.contains(text), "{name}: `{msg}` lacks `{text}`");
+        }
+        // Still healthy and still answering.
+        assert_eq!(health(addr, "").await, ServingStatus::Serving);
+        let r = c.localize(request(v, "all")).await.unwrap().into_inner();
+        assert!(translation_error(&r, v).is_some_and(|e| e < 0.25), "{r:?}");
+
+        // Reflection lists the service.
+        let services = reflection_services(addr).await;
+        assert!(
+            services.iter().any(|s| s == "pntr.v1.Localizer"),
+            "{services:?}"
+        );
+        assert!(
+            services.iter().any(|s| s == "grpc.health.v1.Health"),
+            "{services:?}"
+        );
+
+        // Metrics.
+        let text = scrape(running.metrics_addr);
+        for name in [
+            "pntr_stage_duration_seconds_bucket{stage=\"extraction\"",
+            "pntr_stage_duration_seconds_bucket{stage=\"queue\"",
+            "pntr_stage_duration_seconds_count{stage=\"total\"}",
+            "pntr_requests_total{status=\"LOCALIZED\",code=\"OK\"}",
+            "pntr_requests_total{status=\"ERROR\",code=\"INVALID_ARGUMENT\"}",
+            "pntr_requests_total{status=\"ERROR\",code=\"NOT_FOUND\"}",
+            "pntr_in_flight_requests",
+            "pntr_queue_depth",
+            "pntr_map_images{map_id=\"all\"} 24",
+        ] {
+            assert!(text.contains(name), "the scrape lacks {name}:\n{text}");
+        }
+        // Nothing from requests' content in the labels.
+        assert!(!text.contains("png-1") && !text.contains("from-metadata"));
+        stop(running).await;
+    });
+}
+
+fn tokio_stream(
+    frames: Vec<proto::LocalizeRequest>,
+) -> impl pntr_service::tokio_stream::Stream<Item = proto::LocalizeRequest> {
+    pntr_service::tokio_stream::iter(frames)
+}
+
+async fn reflection_services(addr: SocketAddr) -> Vec<String> {
+    use pntr_service::tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use pntr_service::tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use pntr_service::tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    use pntr_service::tonic_reflection::pb::v1::ServerReflectionRequest;
+    let req = ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut out = ServerReflectionClient::new(channel(addr).await)
+        .server_reflection_info(tokio_stream_one(req))
+        .await
+        .unwrap()
+        .into_inner();
+    let r = out.message().await.unwrap().unwrap();
+    match r.message_response {
+        Some(MessageResponse::ListServicesResponse(l)) => {
+            l.service.into_iter().map(|s| s.name).collect()
+        }
+        other => panic!("unexpected reflection answer {other:?}"),
+    }
+}
+
+fn tokio_stream_one<T: Send + 'static>(x: T) -> impl pntr_service::tokio_stream::Stream<Item = T> {
+    pntr_service::tokio_stream::iter([x])
+}
+
+#[test]
+fn overload_deadlines_auth_and_drain() {
+    let f = fixture();
+    runtime().block_on(async {
+        let mut s = settings(&[&f.map]);
+        s.workers = 1;
+        s.queue = 1;
+        s.token = Some("t0ken-for-tests".into());
+        let mut running = pntr_service::start(s).await.unwrap();
+        let addr = running.addr;
+        running.ready().await.unwrap();
+        // Health needs no token.
+        assert_eq!(health(addr, "").await, ServingStatus::Serving);
+        let mut c = client(addr).await;
+        let v = &f.queries[0];
+        let authed = |r: proto::LocalizeRequest, token: &str| {
+            let mut req = Request::new(r);
+            req.metadata_mut()
+                .insert("authorization", format!("Bearer {token}").parse().unwrap());
+            req
+        };
+
+        // Without the token, or with a wrong one: UNAUTHENTICATED, for every RPC.
+        let e = c.localize(request(v, "")).await.unwrap_err();
+        assert_eq!(e.code(), Code::Unauthenticated);
+        assert!(!e.message().contains("t0ken"), "{}", e.message());
+        let e = c
+            .localize(authed(request(v, ""), "wrong"))
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::Unauthenticated);
+        let e = c
+            .get_map_info(proto::GetMapInfoRequest::default())
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::Unauthenticated);
+        let r = c
+            .localize(authed(request(v, ""), "t0ken-for-tests"))
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(r.map_id, "all", "an empty map id means the only map");
+        let single_s = r
+            .timings
+            .iter()
+            .find(|t| t.stage == "total")
+            .unwrap()
+            .seconds;
+        eprintln!("one localization: {:.0} ms", single_s * 1e3);
+
+        // Overload: one worker, one queue slot, many concurrent calls.
+        let mut tasks = Vec::new();
+        for _ in 0..8 {
+            let mut c = c.clone();
+            let req = authed(request(v, ""), "t0ken-for-tests");
+            tasks.push(tokio::spawn(async move {
+                match c.localize(req).await {
+                    Ok(_) => (Code::Ok, String::new()),
+                    Err(e) => (e.code(), e.message().to_string()),
+                }
+            }));
+        }
+        let mut codes = Vec::new();
+        for t in tasks {
+            codes.push(t.await.unwrap());
+        }
+        let ok = codes.iter().filter(|(c, _)| *c == Code::Ok).count();
+        let busy: Vec<_> = codes
+            .iter()
+            .filter(|(c, _)| *c == Code::ResourceExhausted)
+            .collect();
+        assert_eq!(ok + busy.len(), codes.len(), "{codes:?}");
+        assert!(ok >= 1 && !busy.is_empty(), "{codes:?}");
+        assert!(busy[0].1.contains("busy"), "{}", busy[0].1);
+
+        // A deadline that passes while the request waits for the busy worker: DEADLINE_EXCEEDED.
+        pool_state(&running, 0, 0).await;
+        let mut c1 = c.clone();
+        let long = tokio::spawn({
+            let req = authed(request(v, ""), "t0ken-for-tests");
+            async move { c1.localize(req).await.map(|_| ()) }
+        });
+        pool_state(&running, 1, 0).await;
+        let mut req = authed(request(v, ""), "t0ken-for-tests");
+        // Half a localization: ample to send the frame, short of the worker's remaining time.
+        // (A deadline that passes before the message is even received is answered by tonic's
+        // transport, as CANCELLED; the service answers DEADLINE_EXCEEDED from then on.)
+        let budget = Duration::from_secs_f64((single_s / 2.0).clamp(0.02, 0.5));
+        req.set_timeout(budget);
+        let e = c.localize(req).await.unwrap_err();
+        assert_eq!(e.code(), Code::DeadlineExceeded, "{}", e.message());
+        long.await.unwrap().unwrap();
+
+        // Shutdown drains an in-flight request, then stops. (The expired request above is still
+        // queued until the worker is free; it is dropped without running.)
+        pool_state(&running, 0, 0).await;
+        let mut c2 = c.clone();
+        let in_flight = tokio::spawn({
+            let req = authed(request(v, ""), "t0ken-for-tests");
+            async move { c2.localize(req).await }
+        });
+        pool_state(&running, 1, 0).await;
+        running.shutdown();
+        let r = in_flight
+            .await
+            .unwrap()
+            .expect("the in-flight request finishes");
+        assert!(!r.into_inner().map_id.is_empty());
+        tokio::time::timeout(Duration::from_secs(30), running.wait())
+            .await
+            .expect("stops after draining")
+            .unwrap();
+        assert!(
+            Endpoint::from_shared(format!("http://{addr}"))
+                .unwrap()
+                .connect()
+                .await
+                .is_err(),
+            "still accepting after shutdown"
+        );
+    });
+}
