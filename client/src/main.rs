@@ -4,9 +4,9 @@
 //! lives in the server crates so that the service, the CLI and the tests share one implementation.
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
-mod localize_demo;
 mod map_cmd;
 mod register_cmd;
+mod remote;
 mod synth_cmd;
 
 use std::path::PathBuf;
@@ -43,7 +43,8 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// The main job on the embedded default: synthesize the demo scene and report on it.
+    /// The main job on the embedded default: the demo scene and its map (made once, cached), served by
+    /// an in-process pntr-server and queried over gRPC; prints the recall table and stage timings.
     Demo {
         /// Where to put the demo data.
         #[arg(long, default_value = "out/demo")]

@@ -52,9 +52,16 @@ pub struct EvalArgs {
     /// Only this scene.
     #[arg(long)]
     pub scene: Option<String>,
-    /// A map file from `pntr build-db`; without it the map is built from the dataset first.
-    #[arg(long)]
+    /// A map file from `pntr build-db`; without it (and without --remote) the map is built from the
+    /// dataset first.
+    #[arg(long, conflicts_with = "remote")]
     pub db: Option<PathBuf>,
+    /// Send every query to a running pntr-server at this address instead of running the pipeline here.
+    #[arg(long)]
+    pub remote: Option<String>,
+    /// Map id sent with --remote (empty: the server's only map).
+    #[arg(long, default_value = "")]
+    pub map_id: String,
     /// Preset (default: the map's own, or `fast` when building).
     #[arg(long)]
     pub preset: Option<String>,
@@ -248,10 +255,96 @@ pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 
+/// Localise queries of `scenes` through `remote`.
+pub fn evaluate_remote(
+    remote: &mut crate::remote::Remote,
+    scenes: &[&SceneEntry],
+    opts: &EvalOptions,
+) -> Result<EvalReport> {
+    let total: usize = scenes.iter().map(|s| s.points.len()).sum();
+    let pb = bar(total, "localizing queries through the server");
+    let report = eval::run(
+        scenes,
+        opts,
+        &mut |q| remote.answer(q),
+        &mut |done, total| {
+            pb.set_length(total as u64);
+            pb.set_position(done as u64);
+        },
+    )?;
+    pb.finish_and_clear();
+    Ok(report)
+}
+
+/// Start a pntr-server on 127.0.0.1 (ephemeral port) serving `map`, localise up to `queries` queries of
+/// `scenes` through it, print the recall table and stage timings, and shut it down gracefully.
+pub fn serve_and_evaluate(
+    map: &Path,
+    models: &Path,
+    scenes: &[&SceneEntry],
+    queries: usize,
+) -> Result<()> {
+    use pntr_service::tokio;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let settings =
+        pntr_service::config::Settings::local(vec![map.to_path_buf()], models.to_path_buf());
+    let mut running = rt.block_on(async {
+        let r = pntr_service::start(settings).await?;
+        r.ready().await?;
+        Ok::<_, pntr_service::ServerError>(r)
+    })?;
+    println!(
+        "pntr-server serving {} on {} (Prometheus metrics on http://{}/metrics)",
+        map.display(),
+        running.addr,
+        running.metrics_addr
+    );
+    let mut remote = crate::remote::Remote::connect(&running.addr.to_string(), "")?;
+    let header = mapfile::read_header(map)?;
+    let opts = EvalOptions {
+        max_queries: queries,
+        preset: header.preset.name.clone(),
+        ..EvalOptions::default()
+    };
+    let report = evaluate_remote(&mut remote, scenes, &opts);
+    drop(remote);
+    running.shutdown();
+    rt.block_on(running.wait())?;
+    let report = report?;
+    println!(
+        "preset {}: {} + {} + {} + {:?}, {} retrieval candidates re-ranked by geometry",
+        header.preset.name,
+        header.preset.global,
+        header.preset.extractor,
+        header.preset.matcher,
+        header.preset.solver,
+        header.preset.candidates
+    );
+    print!("{}", eval::table(&report));
+    println!("(stage times as the server reports them; queries/s measured at the client, one request at a time)");
+    Ok(())
+}
+
 /// `pntr eval`.
 pub fn eval(args: &EvalArgs) -> Result<()> {
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+    if let Some(addr) = &args.remote {
+        let mut remote = crate::remote::Remote::connect(addr, &args.map_id)?;
+        let opts = EvalOptions {
+            legacy: args.legacy_metric,
+            max_queries: args.queries,
+            preset: "remote".into(),
+        };
+        let report = evaluate_remote(&mut remote, &scenes, &opts)?;
+        print!("{}", eval::table(&report));
+        write_json(&args.json, &report)?;
+        eprintln!("report written to {}", args.json.display());
+        return Ok(());
+    }
     let map = match &args.db {
         Some(p) => {
             let t = std::time::Instant::now();

@@ -7,6 +7,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use pntr_dataset::{DatasetIndex, Role, WriteOptions};
 use pntr_synth::{Summary, SynthConfig};
+
 use serde_json::json;
 
 /// Arguments of `pntr synth`.
@@ -185,30 +186,28 @@ pub fn info(dataset: &Path, as_json: bool) -> Result<()> {
     Ok(())
 }
 
-/// `pntr demo`: the embedded default job.
+/// `pntr demo`: the embedded default job. The demo scene and its map are made once and cached in `out`
+/// (as `pntr-server` with no `--db` does); a `pntr-server` is started in this process on 127.0.0.1 with an
+/// ephemeral port, and `queries` evenly spaced queries are localised through it over gRPC.
 pub fn demo(out: &Path, models: &Path, queries: usize) -> Result<()> {
-    let cfg = SynthConfig::default();
-    eprintln!(
-        "pntr demo: synthesizing the default scene ({} Points, {} query poses per Point, seed {}) into {}",
-        cfg.points_per_scene,
-        cfg.queries_per_point,
-        cfg.seed,
-        out.display()
-    );
-    let summary = generate(&cfg, out)?;
-    print_summary(&summary);
-    // Read it back through the dataset reader, as every later stage will.
+    let t0 = std::time::Instant::now();
+    let map =
+        pntr_service::demo::ensure_demo_map(out, models, &mut |m| eprintln!("pntr demo: {m}"))
+            .map_err(anyhow::Error::msg)?;
     let index = DatasetIndex::open(out)?;
-    let scene = index.scene(&summary.scenes[0].name)?;
-    let reader = scene.points[0].open()?;
-    let view = reader.view(Role::Query, 0)?;
+    let scene = index.scene(&pntr_synth::scene_name(0))?;
+    let (mut db, mut q) = (0, 0);
+    for p in &scene.points {
+        let r = p.open()?;
+        db += r.count(Role::Database);
+        q += r.count(Role::Query);
+    }
     println!(
-        "read back {}: {} Points, first query {}x{} with {:.1}% valid depth",
+        "demo scene {}: {} Points, {db} database views, {q} queries; map {} ({:.1} s to prepare)",
         scene.name,
         scene.points.len(),
-        view.rgb.width,
-        view.rgb.height,
-        100.0 * view.depth.valid_count() as f64 / (view.rgb.width * view.rgb.height) as f64
+        map.display(),
+        t0.elapsed().as_secs_f64()
     );
-    crate::localize_demo::run(scene, models, queries)
+    crate::map_cmd::serve_and_evaluate(&map, models, &[scene], queries)
 }

@@ -180,7 +180,7 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["map_id"], "synth000");
     assert_eq!(v["images"], 18);
-    assert_eq!(v["preset"], "fast");
+    assert_eq!(v["preset"], "xfeat-mnn");
     let report = dir.path().join("eval.json");
     let out = pntr(&[
         "eval",

@@ -1,65 +1,64 @@
-//! The README's main job, `pntr demo`, end to end: it synthesizes the demo scene, builds a VLAD map,
-//! localizes queries with the real models, and prints recall tables that must show real localization.
+//! The README's main job, `pntr demo`, end to end: it makes the demo scene and its map, starts a real
+//! pntr-server on 127.0.0.1, localizes queries through it over gRPC with the real models, and prints a
+//! recall table that must show real localization. A second run reuses the cached scene and map.
 
 use std::process::Command;
 
-#[test]
-fn demo_prints_a_recall_table_with_real_localization() {
-    let dir = tempfile::tempdir().unwrap();
+fn demo(dir: &std::path::Path, queries: &str) -> String {
     let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models");
     let out = Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args([
-            "demo",
-            "--out",
-            dir.path().to_str().unwrap(),
-            "--queries",
-            "20",
-        ])
+        .args(["demo", "--out", dir.to_str().unwrap(), "--queries", queries])
         .arg("--models")
         .arg(&models)
         .output()
         .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(
         out.status.success(),
         "{stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    assert!(stdout.contains("synth000         23      138"), "{stdout}");
-    assert!(stdout.contains("20 of 1089 queries"), "{stdout}");
-    // Two tables (with retrieval, then with the oracle): under each threshold header, 4 combined
-    // recalls then 4 translation-only recalls.
-    let lines: Vec<&str> = stdout.lines().collect();
-    let tables: Vec<Vec<f64>> = lines
-        .iter()
-        .enumerate()
-        .filter(|(_, l)| l.contains("(0.25m,2deg)"))
-        .map(|(i, _)| {
-            lines[i + 1]
-                .split_whitespace()
-                .map(|v| v.parse().unwrap())
-                .collect()
-        })
-        .collect();
-    assert_eq!(tables.len(), 2, "{stdout}");
-    for r in &tables {
+    stdout
+}
+
+fn row(stdout: &str, name: &str) -> Vec<f64> {
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with(name))
+        .unwrap_or_else(|| panic!("no `{name}` row in\n{stdout}"));
+    line[name.len()..]
+        .split_whitespace()
+        .map(|v| v.parse().unwrap())
+        .collect()
+}
+
+#[test]
+fn demo_serves_the_demo_map_and_prints_a_recall_table_with_real_localization() {
+    let dir = tempfile::tempdir().unwrap();
+    let stdout = demo(dir.path(), "20");
+    assert!(
+        stdout.contains("demo scene synth000: 23 Points, 138 database views, 1089 queries"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("pntr-server serving"), "{stdout}");
+    assert!(stdout.contains("20 queries"), "{stdout}");
+    for name in ["pipeline", "retrieval only"] {
+        let r = row(&stdout, name);
         assert_eq!(r.len(), 8, "{r:?}");
         assert!(r.iter().all(|x| (0.0..=1.0).contains(x)));
         assert!(r[0] >= r[1] && r[1] >= r[2] && r[2] >= r[3], "{r:?}");
     }
+    let p = row(&stdout, "pipeline");
     assert!(
-        tables[0][1] >= 0.5,
-        "with retrieval, recall at (1m,10deg) {}",
-        tables[0][1]
+        p[1] >= 0.7,
+        "through the server, recall at (1m,10deg) {}",
+        p[1]
     );
-    assert!(
-        tables[1][1] >= 0.8,
-        "with the oracle, recall at (1m,10deg) {}",
-        tables[1][1]
-    );
-    assert!(
-        stdout.contains("retrieval top-1 on the right Point"),
-        "{stdout}"
-    );
-    assert!(stdout.contains("mean per query: extraction"), "{stdout}");
+    assert!(stdout.contains("mean ms per query: extraction"), "{stdout}");
+    // The scene and the map are cached: a second run reuses both.
+    let map = dir.path().join("synth000-xfeat-mnn.pntrmap");
+    let before = std::fs::metadata(&map).unwrap().modified().unwrap();
+    let again = demo(dir.path(), "2");
+    assert!(again.contains("2 queries"), "{again}");
+    assert_eq!(std::fs::metadata(&map).unwrap().modified().unwrap(), before);
 }

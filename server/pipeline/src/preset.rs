@@ -67,8 +67,11 @@ pub const PRESETS: [&str; 7] = [
     "xfeat-mnn",
 ];
 
-/// The default preset (the best trade-off measured; see BENCHMARKS.md).
-pub const DEFAULT_PRESET: &str = "fast";
+/// The default preset: the best trade-off measured (BENCHMARKS.md, "Pipeline presets"): on the synthetic
+/// scenes XFeat + MNN matches `fast` (LighterGlue) within a query or two in every recall column at about
+/// a third of the time. Re-measure on real data before relying on that: learned matching is what holds
+/// up under lighting change and blur, which the renderer does not model.
+pub const DEFAULT_PRESET: &str = "xfeat-mnn";
 
 impl Preset {
     /// A built-in preset by name.

@@ -44,7 +44,9 @@ pub const DEFAULT_DRAIN_TIMEOUT_S: f64 = 30.0;
     about = "The pntr gRPC localization service (pntr.v1.Localizer)"
 )]
 pub struct Args {
-    /// A map file from `pntr build-db`; repeat (or separate with commas) to serve several maps.
+    /// A map file from `pntr build-db`; repeat (or separate with commas) to serve several maps. With no
+    /// map named here, in PNTR_DB or in a config file, the embedded default is served: the demo
+    /// synthetic scene and its map, generated once and cached in $PNTR_DEMO_DIR (default out/demo).
     #[arg(long = "db", env = "PNTR_DB", value_delimiter = ',')]
     pub db: Vec<PathBuf>,
     /// gRPC address, HOST:PORT (port 0 = any free port; the bound one is printed) [default: 127.0.0.1:50051].

@@ -26,6 +26,7 @@
 
 pub mod config;
 pub mod decode;
+pub mod demo;
 pub mod engine;
 pub mod server;
 pub mod service;

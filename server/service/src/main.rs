@@ -32,8 +32,30 @@ async fn signal() {
 }
 
 fn main() -> ExitCode {
-    let args = Args::parse();
+    let mut args = Args::parse();
     pntr_service::telemetry::init_tracing();
+    // The embedded default: no map named anywhere -> the demo scene's map, generated and cached.
+    if args.db.is_empty() && args.config.is_none() {
+        let models = args.models.clone().unwrap_or_else(|| "models".into());
+        let cache = std::path::PathBuf::from(
+            std::env::var_os("PNTR_DEMO_DIR").unwrap_or_else(|| "out/demo".into()),
+        );
+        match pntr_service::demo::ensure_demo_map(&cache, &models, &mut |m| {
+            eprintln!("pntr-server: {m}")
+        }) {
+            Ok(p) => {
+                eprintln!(
+                    "pntr-server: no --db given; serving the demo map {}",
+                    p.display()
+                );
+                args.db.push(p);
+            }
+            Err(e) => {
+                eprintln!("pntr-server: no --db given and the demo map could not be made: {e}");
+                return ExitCode::FAILURE;
+            }
+        }
+    }
     let settings = match Settings::from_args(args) {
         Ok(s) => s,
         Err(e) => {

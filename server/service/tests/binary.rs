@@ -20,15 +20,33 @@ use common::models;
 
 #[test]
 fn bad_settings_exit_2_with_the_reason() {
+    // A config file that names no map: refused at start.
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = dir.path().join("server.toml");
+    std::fs::write(&cfg, "workers = 1\n").unwrap();
     let out = Command::new(BIN)
-        .args(["--addr", "127.0.0.1:0"])
+        .args(["--addr", "127.0.0.1:0", "--config"])
+        .arg(&cfg)
         .env_remove("PNTR_DB")
-        .env_remove("PNTR_CONFIG")
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("no --db given"), "{err}");
+    // No map anywhere: the embedded default, which needs the models and says so when they are missing.
+    let out = Command::new(BIN)
+        .args(["--addr", "127.0.0.1:0", "--models", "/nonexistent/models"])
+        .env_remove("PNTR_DB")
+        .env_remove("PNTR_CONFIG")
+        .env("PNTR_DEMO_DIR", dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("demo map could not be made") && err.contains("/nonexistent/models"),
+        "{err}"
+    );
     let out = Command::new(BIN)
         .args(["--db", "/nonexistent/map.pntrmap"])
         .output()
