@@ -36,3 +36,4 @@ test: fmt lint unit
 bench: setup
 	$(CARGO) bench -p pntr-synth --bench render
 	$(CARGO) bench -p pntr-registration --bench registration
+	$(CARGO) run --release -p pntr-retrieval --example retrieval_scaling
