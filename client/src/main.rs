@@ -4,6 +4,8 @@
 //! lives in the server crates so that the service, the CLI and the tests share one implementation.
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
+mod bench_cmd;
+mod localize_cmd;
 mod map_cmd;
 mod register_cmd;
 mod remote;
@@ -34,6 +36,10 @@ enum Command {
     BuildDb(map_cmd::BuildArgs),
     /// Evaluate the pipeline on a dataset's queries (HPointLoc recall table, JSON report).
     Eval(map_cmd::EvalArgs),
+    /// Localize one frame (image files, or a dataset query) through a running pntr-server.
+    Localize(localize_cmd::LocalizeArgs),
+    /// Load-test a running pntr-server with a dataset's query frames.
+    Bench(bench_cmd::BenchArgs),
     /// List the scenes and Points of a dataset and check that every file reads.
     Info {
         /// Dataset root (the folder holding HPointLoc_dataset, or that folder).
@@ -71,6 +77,8 @@ fn main() {
         Command::Synth(args) => synth_cmd::run(&args),
         Command::Register(args) => register_cmd::run(&args),
         Command::BuildDb(args) => map_cmd::build_db(&args),
+        Command::Localize(args) => localize_cmd::run(&args),
+        Command::Bench(args) => bench_cmd::run(&args),
         Command::Eval(args) => map_cmd::eval(&args),
         Command::Info { dataset, json } => synth_cmd::info(&dataset, json),
         Command::Demo {

@@ -62,6 +62,12 @@ pub struct EvalArgs {
     /// Map id sent with --remote (empty: the server's only map).
     #[arg(long, default_value = "")]
     pub map_id: String,
+    /// Bearer token for --remote (or PNTR_TOKEN).
+    #[arg(long, env = "PNTR_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// CA certificate (PEM) for a TLS --remote.
+    #[arg(long)]
+    pub tls_ca: Option<PathBuf>,
     /// Preset (default: the map's own, or `fast` when building).
     #[arg(long)]
     pub preset: Option<String>,
@@ -302,7 +308,10 @@ pub fn serve_and_evaluate(
         running.addr,
         running.metrics_addr
     );
-    let mut remote = crate::remote::Remote::connect(&running.addr.to_string(), "")?;
+    let mut remote = crate::remote::Remote::connect(&crate::remote::ConnectArgs {
+        addr: running.addr.to_string(),
+        ..Default::default()
+    })?;
     let header = mapfile::read_header(map)?;
     let opts = EvalOptions {
         max_queries: queries,
@@ -333,7 +342,13 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
     if let Some(addr) = &args.remote {
-        let mut remote = crate::remote::Remote::connect(addr, &args.map_id)?;
+        let mut remote = crate::remote::Remote::connect(&crate::remote::ConnectArgs {
+            addr: addr.clone(),
+            map_id: args.map_id.clone(),
+            token: args.token.clone(),
+            tls_ca: args.tls_ca.clone(),
+            tls_domain: None,
+        })?;
         let opts = EvalOptions {
             legacy: args.legacy_metric,
             max_queries: args.queries,

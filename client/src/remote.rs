@@ -1,5 +1,7 @@
-//! Localising through a running `pntr-server`: the client side of `pntr eval --remote` and `pntr demo`.
+//! Talking to a running `pntr-server`: connection (plain or TLS), the bearer token, and the evaluation
+//! view of a response. Used by `pntr eval --remote`, `pntr demo`, `pntr localize` and `pntr bench`.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
@@ -7,74 +9,133 @@ use pntr_pipeline::eval::Answer;
 use pntr_pipeline::pipeline::{Query, StageTimes, Status};
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self, LocalizeResponse};
-use pntr_service::tonic::transport::Channel;
+use pntr_service::tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
 use pntr_service::{tokio, tonic, wire};
+
+/// How to reach the server: address, TLS and token (the options every client command shares).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct ConnectArgs {
+    /// Server address, HOST:PORT (or a URL).
+    #[arg(long)]
+    pub addr: String,
+    /// Map id sent with every request (empty: the server's only map).
+    #[arg(long, default_value = "")]
+    pub map_id: String,
+    /// Bearer token, when the server requires one (or PNTR_TOKEN).
+    #[arg(long, env = "PNTR_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// PEM file of the CA that signed the server's certificate: connect with TLS.
+    #[arg(long)]
+    pub tls_ca: Option<PathBuf>,
+    /// Name to verify in the server's certificate (default: the host of --addr).
+    #[arg(long)]
+    pub tls_domain: Option<String>,
+}
+
+/// Open a channel to the server.
+pub async fn channel(c: &ConnectArgs) -> Result<Channel> {
+    let scheme = if c.tls_ca.is_some() { "https" } else { "http" };
+    let url = if c.addr.contains("://") {
+        c.addr.clone()
+    } else {
+        format!("{scheme}://{}", c.addr)
+    };
+    let mut ep = Endpoint::from_shared(url.clone())
+        .with_context(|| format!("bad address {}", c.addr))?
+        .connect_timeout(Duration::from_secs(10))
+        .tcp_nodelay(true);
+    if let Some(ca) = &c.tls_ca {
+        let pem = std::fs::read(ca).with_context(|| format!("reading {}", ca.display()))?;
+        let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem));
+        let host = c.addr.rsplit_once(':').map(|(h, _)| h).unwrap_or(&c.addr);
+        tls = tls.domain_name(c.tls_domain.clone().unwrap_or_else(|| host.to_string()));
+        ep = ep.tls_config(tls).context("TLS configuration")?;
+    }
+    ep.connect()
+        .await
+        .with_context(|| format!("cannot reach pntr-server at {url}"))
+}
+
+/// A request with the map id and the token attached.
+pub fn request(
+    c: &ConnectArgs,
+    mut req: proto::LocalizeRequest,
+) -> Result<tonic::Request<proto::LocalizeRequest>> {
+    req.map_id = c.map_id.clone();
+    let mut r = tonic::Request::new(req);
+    if let Some(t) = &c.token {
+        r.metadata_mut().insert(
+            "authorization",
+            format!("Bearer {t}")
+                .parse()
+                .context("the token is not valid in an HTTP header")?,
+        );
+    }
+    Ok(r)
+}
+
+/// A gRPC client with its message limits raised for full-size frames.
+pub fn client(ch: Channel) -> LocalizerClient<Channel> {
+    LocalizerClient::new(ch)
+        .max_decoding_message_size(64 << 20)
+        .max_encoding_message_size(64 << 20)
+}
 
 /// A blocking client over a small Tokio runtime of its own.
 pub struct Remote {
     rt: tokio::runtime::Runtime,
     client: LocalizerClient<Channel>,
-    /// Map id sent with every request (empty = the server's only map).
-    pub map_id: String,
+    connect: ConnectArgs,
 }
 
 impl Remote {
-    /// Connect to `addr` (`host:port` or a URL).
-    pub fn connect(addr: &str, map_id: &str) -> Result<Self> {
+    /// Connect.
+    pub fn connect(c: &ConnectArgs) -> Result<Self> {
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()?;
-        let url = if addr.contains("://") {
-            addr.to_string()
-        } else {
-            format!("http://{addr}")
-        };
-        let channel = rt
-            .block_on(
-                tonic::transport::Endpoint::from_shared(url.clone())?
-                    .connect_timeout(Duration::from_secs(10))
-                    .connect(),
-            )
-            .with_context(|| format!("connecting to pntr-server at {url}"))?;
-        let client = LocalizerClient::new(channel)
-            .max_decoding_message_size(64 << 20)
-            .max_encoding_message_size(64 << 20);
+        let ch = rt.block_on(channel(c))?;
         Ok(Self {
             rt,
-            client,
-            map_id: map_id.to_string(),
+            client: client(ch),
+            connect: c.clone(),
         })
     }
 
-    /// Send one frame (raw RGB8 + float32 depth) and wait for the answer.
-    pub fn localize(&mut self, q: &Query) -> Result<LocalizeResponse, tonic::Status> {
-        let mut req = wire::raw_request(&q.rgb, &q.depth, Some(&q.intrinsics));
-        req.map_id = self.map_id.clone();
+    /// Send one request and wait for the answer.
+    pub fn send(&mut self, req: proto::LocalizeRequest) -> Result<LocalizeResponse, tonic::Status> {
+        let r = request(&self.connect, req).map_err(|e| tonic::Status::internal(e.to_string()))?;
         let mut client = self.client.clone();
-        self.rt
-            .block_on(client.localize(req))
-            .map(|r| r.into_inner())
+        self.rt.block_on(client.localize(r)).map(|r| r.into_inner())
     }
 
-    /// [`Remote::localize`] as an evaluation answer.
+    /// [`Remote::send`] of a query as raw RGB8 + float32 depth, as an evaluation answer.
     pub fn answer(&mut self, q: &Query) -> Result<Answer, pntr_pipeline::PipelineError> {
         let r = self
-            .localize(q)
+            .send(wire::raw_request(&q.rgb, &q.depth, Some(&q.intrinsics)))
             .map_err(|s| pntr_pipeline::PipelineError::Query(format!("server: {s}")))?;
         Ok(answer_of(&r))
     }
 }
 
+/// Server-reported stage times of a response, by name (queue included).
+pub fn stage_seconds(r: &LocalizeResponse) -> Vec<(String, f64)> {
+    r.timings
+        .iter()
+        .map(|t| (t.stage.clone(), t.seconds))
+        .collect()
+}
+
 /// The evaluation view of a response.
 pub fn answer_of(r: &LocalizeResponse) -> Answer {
     let mut times = StageTimes::default();
-    for t in &r.timings {
-        match t.stage.as_str() {
-            "extraction" => times.extraction = t.seconds,
-            "retrieval" => times.retrieval = t.seconds,
-            "matching" => times.matching = t.seconds,
-            "registration" => times.registration = t.seconds,
-            "total" => times.total = t.seconds,
+    for (stage, s) in stage_seconds(r) {
+        match stage.as_str() {
+            "extraction" => times.extraction = s,
+            "retrieval" => times.retrieval = s,
+            "matching" => times.matching = s,
+            "registration" => times.registration = s,
+            "total" => times.total = s,
             _ => {}
         }
     }

@@ -233,7 +233,8 @@ fn png_pixels(what: &str, reader: &mut png::Reader<Cursor<&[u8]>>) -> Result<Vec
     Ok(buf)
 }
 
-fn decode_png_rgb(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
+/// Decode an 8-bit PNG (RGB, RGBA, grey) to RGB8: (width, height, pixels).
+pub fn decode_png_rgb(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
     let mut reader = png_reader("rgb", data, limits)?;
     let (w, h) = (reader.info().width, reader.info().height);
     let buf = png_pixels("rgb", &mut reader)?;
@@ -272,7 +273,8 @@ fn decode_png_rgb(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), S
     Ok((w, h, out))
 }
 
-fn decode_png16(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<f32>), Status> {
+/// Decode a 16-bit grey PNG of millimetres to metres (0 = missing): (width, height, depths).
+pub fn decode_png16(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<f32>), Status> {
     let mut reader = png_reader("depth", data, limits)?;
     let (w, h) = (reader.info().width, reader.info().height);
     let (color, depth) = (reader.info().color_type, reader.info().bit_depth);
@@ -292,7 +294,8 @@ fn decode_png16(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<f32>), St
     Ok((w, h, v))
 }
 
-fn decode_jpeg(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
+/// Decode a JPEG to RGB8: (width, height, pixels).
+pub fn decode_jpeg(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
     use zune_jpeg::zune_core::bytestream::ZCursor;
     use zune_jpeg::zune_core::colorspace::ColorSpace;
     use zune_jpeg::zune_core::options::DecoderOptions;

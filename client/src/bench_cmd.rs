@@ -1,0 +1,392 @@
+//! `pntr bench`: load-test a running server with real query frames.
+//!
+//! Closed loop (`--concurrency C`): C clients send back to back, so the server sets the pace and the
+//! figure is the throughput it sustains at that concurrency. Open loop (`--rate R`): requests leave on a
+//! fixed schedule whatever the answers do, and latency is counted from the scheduled send time, so a
+//! slow server cannot hide its queueing (no coordinated omission). Frames are read from the dataset and
+//! encoded before the clock starts; a warm-up is sent and not counted.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Result};
+use pntr_dataset::{DatasetIndex, Role};
+use pntr_service::proto::{self, localizer_client::LocalizerClient};
+use pntr_service::tonic::transport::Channel;
+use pntr_service::{tokio, wire};
+use serde::Serialize;
+
+use crate::remote::{channel, client, request, stage_seconds, ConnectArgs};
+
+/// Arguments of `pntr bench`.
+#[derive(clap::Args, Debug)]
+pub struct BenchArgs {
+    /// Where the server is, and how to authenticate.
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// Dataset whose query frames are sent.
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Only this scene's queries.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Closed-loop clients sending back to back (with --rate: the most requests in flight, x64).
+    #[arg(long, default_value_t = 1)]
+    pub concurrency: usize,
+    /// Seconds to measure (after the warm-up).
+    #[arg(long, default_value_t = 10.0)]
+    pub duration: f64,
+    /// Open loop: requests per second on a fixed schedule instead of closed-loop clients.
+    #[arg(long)]
+    pub rate: Option<f64>,
+    /// Run these concurrencies one after another (e.g. 1,2,4,8) and print a table and a plot.
+    #[arg(long, value_delimiter = ',')]
+    pub sweep: Option<Vec<usize>>,
+    /// Seconds of warm-up, not counted.
+    #[arg(long, default_value_t = 2.0)]
+    pub warmup: f64,
+    /// Distinct frames to cycle through (evenly spaced queries of the dataset).
+    #[arg(long, default_value_t = 100)]
+    pub frames: usize,
+    /// Write the JSON report here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+struct Record {
+    latency: f64,
+    code: Option<String>,
+    localized: bool,
+    stages: Vec<(String, f64)>,
+}
+
+/// Latency percentiles, ms.
+#[derive(Debug, Clone, Serialize)]
+pub struct Latency {
+    p50: f64,
+    p90: f64,
+    p99: f64,
+    max: f64,
+    mean: f64,
+}
+
+/// One measured run (the JSON of `pntr bench`; a sweep writes a list of them).
+#[derive(Debug, Clone, Serialize)]
+pub struct BenchReport {
+    requests: usize,
+    errors: usize,
+    fps: f64,
+    latency_ms: Latency,
+    errors_by_code: BTreeMap<String, usize>,
+    stage_ms: BTreeMap<String, f64>,
+    localized_share: f64,
+    concurrency: usize,
+    rate: Option<f64>,
+    duration_s: f64,
+    frames: usize,
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((p / 100.0) * (sorted.len() - 1) as f64).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+fn report(
+    records: &[Record],
+    wall: f64,
+    concurrency: usize,
+    rate: Option<f64>,
+    frames: usize,
+) -> BenchReport {
+    let ok: Vec<&Record> = records.iter().filter(|r| r.code.is_none()).collect();
+    let mut lat: Vec<f64> = ok.iter().map(|r| 1e3 * r.latency).collect();
+    lat.sort_by(f64::total_cmp);
+    let mut errors_by_code = BTreeMap::new();
+    for r in records {
+        if let Some(c) = &r.code {
+            *errors_by_code.entry(c.clone()).or_insert(0) += 1;
+        }
+    }
+    let mut sums: BTreeMap<String, f64> = BTreeMap::new();
+    for r in &ok {
+        for (s, v) in &r.stages {
+            *sums.entry(s.clone()).or_insert(0.0) += v;
+        }
+    }
+    let n = ok.len().max(1) as f64;
+    BenchReport {
+        requests: records.len(),
+        errors: records.len() - ok.len(),
+        fps: ok.len() as f64 / wall.max(1e-9),
+        latency_ms: Latency {
+            p50: percentile(&lat, 50.0),
+            p90: percentile(&lat, 90.0),
+            p99: percentile(&lat, 99.0),
+            max: lat.last().copied().unwrap_or(0.0),
+            mean: lat.iter().sum::<f64>() / n,
+        },
+        errors_by_code,
+        stage_ms: sums.into_iter().map(|(k, v)| (k, 1e3 * v / n)).collect(),
+        localized_share: ok.iter().filter(|r| r.localized).count() as f64 / n,
+        concurrency,
+        rate,
+        duration_s: wall,
+        frames,
+    }
+}
+
+fn load_frames(args: &BenchArgs) -> Result<Vec<proto::LocalizeRequest>> {
+    let index = DatasetIndex::open(&args.dataset)?;
+    let scenes: Vec<_> = match &args.scene {
+        Some(s) => vec![index.scene(s)?],
+        None => index.scenes.iter().collect(),
+    };
+    let mut all = Vec::new();
+    for s in &scenes {
+        for p in &s.points {
+            let r = p.open()?;
+            for q in 0..r.count(Role::Query) {
+                all.push((p.clone(), q));
+            }
+        }
+    }
+    if all.is_empty() {
+        bail!("{}: no query frames", args.dataset.display());
+    }
+    let n = args.frames.clamp(1, all.len());
+    let step = all.len() as f64 / n as f64;
+    let mut out = Vec::with_capacity(n);
+    for i in 0..n {
+        let (p, q) = &all[(i as f64 * step) as usize];
+        let v = p.open()?.view(Role::Query, *q)?;
+        out.push(wire::raw_request(&v.rgb, &v.depth, None));
+    }
+    Ok(out)
+}
+
+async fn one(
+    mut c: LocalizerClient<Channel>,
+    connect: &ConnectArgs,
+    req: proto::LocalizeRequest,
+    started: Instant,
+) -> Record {
+    let res = match request(connect, req) {
+        Ok(r) => c.localize(r).await,
+        Err(e) => Err(pntr_service::tonic::Status::internal(e.to_string())),
+    };
+    let latency = started.elapsed().as_secs_f64();
+    match res {
+        Ok(r) => {
+            let r = r.into_inner();
+            Record {
+                latency,
+                code: None,
+                localized: r.status == proto::Status::Localized as i32,
+                stages: stage_seconds(&r),
+            }
+        }
+        Err(s) => Record {
+            latency,
+            code: Some(pntr_service::service::code_name(s.code()).to_string()),
+            localized: false,
+            stages: Vec::new(),
+        },
+    }
+}
+
+/// Run one measurement (closed loop at `concurrency`, or open loop at `rate`) for `duration` seconds.
+async fn measure(
+    args: &BenchArgs,
+    frames: Arc<Vec<proto::LocalizeRequest>>,
+    c: LocalizerClient<Channel>,
+    concurrency: usize,
+    rate: Option<f64>,
+    duration: f64,
+    live: bool,
+) -> (Vec<Record>, f64) {
+    let records = Arc::new(Mutex::new(Vec::new()));
+    let next = Arc::new(AtomicUsize::new(0));
+    let t0 = Instant::now();
+    let end = t0 + Duration::from_secs_f64(duration);
+    let progress = {
+        let records = records.clone();
+        tokio::spawn(async move {
+            if !live {
+                return;
+            }
+            let mut tick = tokio::time::interval(Duration::from_secs(1));
+            tick.tick().await;
+            loop {
+                tick.tick().await;
+                let (n, e) = {
+                    let r = records.lock().expect("records");
+                    (
+                        r.len(),
+                        r.iter().filter(|x: &&Record| x.code.is_some()).count(),
+                    )
+                };
+                eprint!(
+                    "\r{:>5.0} s  {n} requests  {:.1}/s  {e} errors   ",
+                    t0.elapsed().as_secs_f64(),
+                    n as f64 / t0.elapsed().as_secs_f64()
+                );
+            }
+        })
+    };
+    let mut tasks = Vec::new();
+    match rate {
+        None => {
+            for _ in 0..concurrency.max(1) {
+                let (c, frames, next, records, connect) = (
+                    c.clone(),
+                    frames.clone(),
+                    next.clone(),
+                    records.clone(),
+                    args.connect.clone(),
+                );
+                tasks.push(tokio::spawn(async move {
+                    while Instant::now() < end {
+                        let i = next.fetch_add(1, Ordering::Relaxed) % frames.len();
+                        let rec = one(c.clone(), &connect, frames[i].clone(), Instant::now()).await;
+                        records.lock().expect("records").push(rec);
+                    }
+                }));
+            }
+        }
+        Some(r) => {
+            let period = Duration::from_secs_f64(1.0 / r.max(1e-3));
+            let limit = Arc::new(tokio::sync::Semaphore::new(64 * concurrency.max(1)));
+            let mut k: u32 = 0;
+            loop {
+                let at = t0 + period * k;
+                if at >= end {
+                    break;
+                }
+                tokio::time::sleep_until(at.into()).await;
+                let permit = limit.clone().acquire_owned().await.expect("semaphore");
+                let (c, frames, records, connect) = (
+                    c.clone(),
+                    frames.clone(),
+                    records.clone(),
+                    args.connect.clone(),
+                );
+                let i = k as usize % frames.len();
+                tasks.push(tokio::spawn(async move {
+                    // Latency from the scheduled time, not from when a slot freed up.
+                    let rec = one(c, &connect, frames[i].clone(), at).await;
+                    records.lock().expect("records").push(rec);
+                    drop(permit);
+                }));
+                k += 1;
+            }
+        }
+    }
+    for t in tasks {
+        let _ = t.await;
+    }
+    let wall = t0.elapsed().as_secs_f64();
+    progress.abort();
+    if live {
+        eprintln!();
+    }
+    let records = std::mem::take(&mut *records.lock().expect("records"));
+    (records, wall)
+}
+
+fn print_row(r: &BenchReport) {
+    println!(
+        "{:>11} {:>8} {:>8.2} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>7} {:>9.3}",
+        r.rate
+            .map_or(format!("c={}", r.concurrency), |x| format!("{x}/s")),
+        r.requests,
+        r.fps,
+        r.latency_ms.p50,
+        r.latency_ms.p90,
+        r.latency_ms.p99,
+        r.latency_ms.max,
+        r.errors,
+        r.localized_share
+    );
+}
+
+/// `pntr bench`.
+pub fn run(args: &BenchArgs) -> Result<()> {
+    if !(args.duration.is_finite() && args.duration > 0.0 && args.warmup >= 0.0) {
+        bail!("--duration must be positive and --warmup not negative");
+    }
+    if let Some(r) = args.rate {
+        if !(r > 0.0 && r.is_finite()) {
+            bail!("--rate must be a positive number of requests per second");
+        }
+    }
+    let frames = Arc::new(load_frames(args)?);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let c = client(rt.block_on(channel(&args.connect))?);
+    let levels = args.sweep.clone().unwrap_or_else(|| vec![args.concurrency]);
+    let mut reports = Vec::new();
+    println!(
+        "{:>11} {:>8} {:>8} {:>9} {:>9} {:>9} {:>9} {:>7} {:>9}",
+        "load", "requests", "fps", "p50 ms", "p90 ms", "p99 ms", "max ms", "errors", "localized"
+    );
+    for &level in &levels {
+        if args.warmup > 0.0 {
+            rt.block_on(measure(
+                args,
+                frames.clone(),
+                c.clone(),
+                level,
+                args.rate,
+                args.warmup,
+                false,
+            ));
+        }
+        let (records, wall) = rt.block_on(measure(
+            args,
+            frames.clone(),
+            c.clone(),
+            level,
+            args.rate,
+            args.duration,
+            true,
+        ));
+        let r = report(&records, wall, level, args.rate, frames.len());
+        print_row(&r);
+        reports.push(r);
+    }
+    if reports.len() > 1 {
+        let top = reports.iter().map(|r| r.fps).fold(0.0, f64::max).max(1e-9);
+        println!("\nframes per second against concurrency");
+        for r in &reports {
+            let bar = "#".repeat((50.0 * r.fps / top).round() as usize);
+            println!("c={:<4} {bar} {:.2}", r.concurrency, r.fps);
+        }
+    }
+    let stages: Vec<String> = reports
+        .last()
+        .map(|r| {
+            r.stage_ms
+                .iter()
+                .map(|(k, v)| format!("{k} {v:.1}"))
+                .collect()
+        })
+        .unwrap_or_default();
+    println!("server-reported mean ms (last run): {}", stages.join(", "));
+    if let Some(path) = &args.json {
+        if reports.len() == 1 {
+            crate::map_cmd::write_json(path, &reports[0])?;
+        } else {
+            crate::map_cmd::write_json(path, &serde_json::json!({ "sweep": reports }))?;
+        }
+        eprintln!("report written to {}", path.display());
+    }
+    Ok(())
+}

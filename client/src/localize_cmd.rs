@@ -1,0 +1,224 @@
+//! `pntr localize`: send one frame to a server and print the answer.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use pntr_dataset::{DatasetIndex, Role};
+use pntr_pipeline::eval::pose_error;
+use pntr_service::decode::{decode_jpeg, decode_png16, decode_png_rgb, Limits};
+use pntr_service::proto::{self, LocalizeResponse};
+use pntr_service::wire;
+use serde_json::json;
+
+use crate::remote::{ConnectArgs, Remote};
+
+/// Arguments of `pntr localize`.
+#[derive(clap::Args, Debug)]
+pub struct LocalizeArgs {
+    /// Where the server is, and how to authenticate.
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// Colour image: PNG or JPEG.
+    #[arg(long, requires = "depth", conflicts_with = "dataset")]
+    pub rgb: Option<PathBuf>,
+    /// Depth image: 16-bit PNG in millimetres (0 = missing), or raw little-endian float32 metres
+    /// (`.f32`, the size of the colour image).
+    #[arg(long, requires = "rgb")]
+    pub depth: Option<PathBuf>,
+    /// Camera intrinsics `fx,fy,cx,cy` in pixels (default: the HPointLoc camera, 256x256 only).
+    #[arg(long, value_delimiter = ',', num_args = 4)]
+    pub intrinsics: Option<Vec<f64>>,
+    /// Dataset root, to send one of its query frames (with the ground truth printed beside the answer).
+    #[arg(long, requires_all = ["scene", "query"])]
+    pub dataset: Option<PathBuf>,
+    /// Scene of --dataset.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Query number within the scene (Points in order, their queries in order).
+    #[arg(long)]
+    pub query: Option<usize>,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+const LIMITS: Limits = Limits {
+    max_width: 16384,
+    max_height: 16384,
+};
+
+fn read(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).with_context(|| format!("reading {}", path.display()))
+}
+
+/// A request from image files, checked here so that a bad file is named before anything is sent.
+fn request_from_files(rgb: &Path, depth: &Path) -> Result<proto::LocalizeRequest> {
+    let bytes = read(rgb)?;
+    let ext = |p: &Path| {
+        p.extension()
+            .map(|e| e.to_string_lossy().to_lowercase())
+            .unwrap_or_default()
+    };
+    let (w, h, encoding) = match ext(rgb).as_str() {
+        "png" => {
+            let (w, h, _) = decode_png_rgb(&bytes, &LIMITS)
+                .map_err(|s| anyhow::anyhow!("{}: {}", rgb.display(), s.message()))?;
+            (w, h, proto::ImageEncoding::Png)
+        }
+        "jpg" | "jpeg" => {
+            let (w, h, _) = decode_jpeg(&bytes, &LIMITS)
+                .map_err(|s| anyhow::anyhow!("{}: {}", rgb.display(), s.message()))?;
+            (w, h, proto::ImageEncoding::Jpeg)
+        }
+        other => bail!(
+            "{}: unknown colour format `.{other}` (png, jpg)",
+            rgb.display()
+        ),
+    };
+    let dbytes = read(depth)?;
+    let (dw, dh, dencoding) = match ext(depth).as_str() {
+        "png" => {
+            let (dw, dh, _) = decode_png16(&dbytes, &LIMITS)
+                .map_err(|s| anyhow::anyhow!("{}: {}", depth.display(), s.message()))?;
+            (dw, dh, proto::DepthEncoding::Png16Millimeters)
+        }
+        "f32" => {
+            if dbytes.len() != (w * h * 4) as usize {
+                bail!(
+                    "{}: {} bytes are not {w}x{h} float32 depths (the colour image's size)",
+                    depth.display(),
+                    dbytes.len()
+                );
+            }
+            (w, h, proto::DepthEncoding::Float32Meters)
+        }
+        other => bail!(
+            "{}: unknown depth format `.{other}` (png, f32)",
+            depth.display()
+        ),
+    };
+    Ok(proto::LocalizeRequest {
+        rgb: Some(proto::Image {
+            width: w,
+            height: h,
+            encoding: encoding as i32,
+            data: bytes,
+        }),
+        depth: Some(proto::Depth {
+            width: dw,
+            height: dh,
+            encoding: dencoding as i32,
+            data: dbytes,
+        }),
+        ..Default::default()
+    })
+}
+
+fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool) -> Result<()> {
+    let status = proto::Status::try_from(r.status)
+        .map(|s| s.as_str_name())
+        .unwrap_or("UNKNOWN");
+    let pose = wire::pose(r.pose.as_ref());
+    let timings: serde_json::Map<String, serde_json::Value> = r
+        .timings
+        .iter()
+        .map(|t| (t.stage.clone(), json!(1e3 * t.seconds)))
+        .collect();
+    if as_json {
+        let mut v = json!({
+            "status": status,
+            "confidence": r.confidence,
+            "inliers": r.inliers,
+            "matched_image_id": r.matched_image_id,
+            "map_id": r.map_id,
+            "reason": r.reason,
+            "stage_ms": timings,
+            "pose": pose.map(|p| {
+                let q = p.rotation.quaternion();
+                json!({"translation": [p.translation.x, p.translation.y, p.translation.z],
+                       "rotation_wxyz": [q.w, q.i, q.j, q.k]})
+            }),
+        });
+        if let Some((dt, dr, id)) = &truth {
+            v["ground_truth"] =
+                json!({"query_id": id, "translation_error_m": dt, "rotation_error_deg": dr});
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!(
+        "status {status} (map {}), confidence {:.3}, {} inliers, matched {}",
+        r.map_id, r.confidence, r.inliers, r.matched_image_id
+    );
+    if !r.reason.is_empty() {
+        println!("reason: {}", r.reason);
+    }
+    if let Some(p) = pose {
+        let q = p.rotation.quaternion();
+        println!(
+            "world_from_camera: translation [{:.4}, {:.4}, {:.4}] m, rotation (w,x,y,z) [{:.5}, {:.5}, {:.5}, {:.5}]",
+            p.translation.x, p.translation.y, p.translation.z, q.w, q.i, q.j, q.k
+        );
+    }
+    if let Some((dt, dr, id)) = truth {
+        println!("against the ground truth of {id}: {dt:.3} m, {dr:.2} deg");
+    }
+    let t: Vec<String> = r
+        .timings
+        .iter()
+        .map(|t| format!("{} {:.1}", t.stage, 1e3 * t.seconds))
+        .collect();
+    println!("ms: {}", t.join(", "));
+    Ok(())
+}
+
+/// `pntr localize`.
+pub fn run(args: &LocalizeArgs) -> Result<()> {
+    let (mut req, truth) = match (&args.rgb, &args.depth, &args.dataset) {
+        (Some(rgb), Some(depth), None) => (request_from_files(rgb, depth)?, None),
+        (None, None, Some(root)) => {
+            let index = DatasetIndex::open(root)?;
+            let scene = index.scene(args.scene.as_deref().unwrap_or_default())?;
+            let k = args.query.unwrap_or(0);
+            let mut left = k;
+            let mut found = None;
+            for p in &scene.points {
+                let r = p.open()?;
+                let n = r.count(Role::Query);
+                if left < n {
+                    found = Some((p.query_id(left), r.view(Role::Query, left)?));
+                    break;
+                }
+                left -= n;
+            }
+            let Some((id, v)) = found else {
+                bail!("scene {} has fewer than {} queries", scene.name, k + 1);
+            };
+            (
+                wire::raw_request(&v.rgb, &v.depth, None),
+                Some((id, v.world_from_camera)),
+            )
+        }
+        _ => bail!("give --rgb and --depth, or --dataset, --scene and --query"),
+    };
+    if let Some(k) = &args.intrinsics {
+        req.intrinsics = Some(proto::Intrinsics {
+            fx: k[0],
+            fy: k[1],
+            cx: k[2],
+            cy: k[3],
+        });
+    }
+    let mut remote = Remote::connect(&args.connect)?;
+    let r = remote
+        .send(req)
+        .map_err(|s| anyhow::anyhow!("the server answered {:?}: {}", s.code(), s.message()))?;
+    let truth = match (truth, wire::pose(r.pose.as_ref())) {
+        (Some((id, gt)), Some(est)) if r.status == proto::Status::Localized as i32 => {
+            let (dt, dr) = pose_error(&est, &gt, false);
+            Some((dt, dr, id))
+        }
+        _ => None,
+    };
+    print(&r, truth, args.json)
+}

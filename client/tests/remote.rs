@@ -1,0 +1,253 @@
+//! The client commands against a real `pntr-server` started in this process on 127.0.0.1 (ephemeral
+//! port) with a map built by `pntr build-db` from a scene generated here: `pntr localize`, `pntr bench`
+//! (closed loop, open loop, sweep), `pntr eval --remote`, and the token check.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use pntr_service::config::Settings;
+use pntr_service::tokio;
+
+fn pntr(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .env_remove("PNTR_TOKEN")
+        .output()
+        .expect("pntr runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+#[test]
+fn localize_bench_and_remote_eval_against_a_live_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_str().unwrap();
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+    ok(&pntr(&[
+        "synth",
+        "--out",
+        root,
+        "--points-per-scene",
+        "3",
+        "--queries-per-point",
+        "3",
+        "--seed",
+        "12",
+    ]));
+    let map = dir.path().join("m.pntrmap");
+    ok(&pntr(&[
+        "build-db",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--out",
+        map.to_str().unwrap(),
+        "--models",
+        models,
+    ]));
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let mut open = Settings::local(vec![map.clone()], models.into());
+    open.workers = 2;
+    let mut locked = open.clone();
+    locked.token = Some("s3cret".into());
+    let (a, b) = rt.block_on(async {
+        let a = pntr_service::start(open).await.unwrap();
+        let b = pntr_service::start(locked).await.unwrap();
+        a.ready().await.unwrap();
+        b.ready().await.unwrap();
+        (a, b)
+    });
+    let addr = a.addr.to_string();
+
+    let out = ok(&pntr(&[
+        "localize",
+        "--addr",
+        &addr,
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--query",
+        "2",
+        "--json",
+    ]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["status"], "LOCALIZED", "{v}");
+    assert!(
+        v["ground_truth"]["translation_error_m"].as_f64().unwrap() < 0.25,
+        "{v}"
+    );
+    assert_eq!(v["pose"]["rotation_wxyz"].as_array().unwrap().len(), 4);
+    for s in [
+        "queue",
+        "extraction",
+        "retrieval",
+        "matching",
+        "registration",
+        "total",
+    ] {
+        assert!(v["stage_ms"][s].as_f64().is_some(), "stage {s}: {v}");
+    }
+
+    // Closed loop.
+    let report = dir.path().join("bench.json");
+    let out = ok(&pntr(&[
+        "bench",
+        "--addr",
+        &addr,
+        "--dataset",
+        root,
+        "--concurrency",
+        "2",
+        "--duration",
+        "2",
+        "--warmup",
+        "0.5",
+        "--frames",
+        "5",
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    assert!(out.contains("p99 ms"), "{out}");
+    let r = json(&report);
+    assert!(r["requests"].as_u64().unwrap() >= 2, "{r}");
+    assert_eq!(r["errors"], 0, "{r}");
+    assert!(r["fps"].as_f64().unwrap() > 0.0);
+    for k in ["p50", "p90", "p99", "max"] {
+        assert!(r["latency_ms"][k].as_f64().unwrap() > 0.0, "{k}: {r}");
+    }
+    assert!(r["latency_ms"]["p50"].as_f64() <= r["latency_ms"]["max"].as_f64());
+    assert!(r["errors_by_code"].as_object().unwrap().is_empty());
+    assert!(r["stage_ms"]["total"].as_f64().unwrap() > 0.0, "{r}");
+    assert!(r["localized_share"].as_f64().unwrap() >= 0.5, "{r}");
+
+    // Open loop and a sweep.
+    let out = ok(&pntr(&[
+        "bench",
+        "--addr",
+        &addr,
+        "--dataset",
+        root,
+        "--rate",
+        "4",
+        "--duration",
+        "1.5",
+        "--warmup",
+        "0",
+        "--frames",
+        "3",
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    assert!(out.contains("4/s"), "{out}");
+    assert!(json(&report)["requests"].as_u64().unwrap() >= 5);
+    ok(&pntr(&[
+        "bench",
+        "--addr",
+        &addr,
+        "--dataset",
+        root,
+        "--sweep",
+        "1,2",
+        "--duration",
+        "1",
+        "--warmup",
+        "0",
+        "--frames",
+        "3",
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    let sweep = json(&report)["sweep"].as_array().unwrap().clone();
+    assert_eq!(sweep.len(), 2);
+    assert_eq!(sweep[1]["concurrency"], 2);
+
+    // The evaluation through the server has the same keys as in process.
+    let eval = dir.path().join("eval.json");
+    ok(&pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--remote",
+        &addr,
+        "--queries",
+        "4",
+        "--json",
+        eval.to_str().unwrap(),
+    ]));
+    let e = json(&eval);
+    assert_eq!(e["queries"], 4);
+    assert!(e["recall"]["1m"].as_f64().unwrap() >= 0.5, "{e}");
+
+    // The token: refused without it (a clean error naming the code), accepted with it.
+    let locked_addr = b.addr.to_string();
+    let out = pntr(&[
+        "localize",
+        "--addr",
+        &locked_addr,
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--query",
+        "0",
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("Unauthenticated") && !err.contains("panicked"),
+        "{err}"
+    );
+    ok(&pntr(&[
+        "localize",
+        "--addr",
+        &locked_addr,
+        "--token",
+        "s3cret",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--query",
+        "0",
+    ]));
+    // A closed port is a clear error.
+    let out = pntr(&[
+        "localize",
+        "--addr",
+        "127.0.0.1:9",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--query",
+        "0",
+    ]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("cannot reach pntr-server"));
+
+    rt.block_on(async move {
+        let (mut a, mut b) = (a, b);
+        a.shutdown();
+        b.shutdown();
+        a.wait().await.unwrap();
+        b.wait().await.unwrap();
+    });
+}
