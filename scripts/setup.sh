@@ -5,13 +5,15 @@
 # Installs:
 #   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (HDF5 dataset I/O)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
-#   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py
+#   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py,
+#     and grpcio + grpcio-tools for the Python client (client/python) and its test
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 DEPS="$ROOT/.deps"
 ORT_VERSION="1.31.1"
-PY_PACKAGES=(numpy h5py onnx)
+GRPC_VERSION="1.85.1"
+PY_PACKAGES=(numpy h5py onnx "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION")
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -19,7 +21,7 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 
 # --- apt packages -------------------------------------------------------------------------------
-APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv)
+APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv openssl)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
@@ -42,7 +44,7 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c "import numpy, h5py, onnx" 2>/dev/null; then
+if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null; then
   log "python: installing ${PY_PACKAGES[*]}"
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else
