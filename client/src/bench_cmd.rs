@@ -54,6 +54,28 @@ pub struct BenchArgs {
     /// Write the JSON report here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Also measure the service's overhead: load this map in this process and time every frame
+    /// through the server (one at a time) and through the in-process pipeline, alternately.
+    #[arg(long)]
+    pub compare_in_process: Option<PathBuf>,
+    /// Folder of the ONNX models (for --compare-in-process).
+    #[arg(long, default_value = "models")]
+    pub models: PathBuf,
+    /// ONNX Runtime threads of the in-process pipeline (match the server's --ort-threads).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+}
+
+/// Service overhead: the same frames through the server and in process, alternately, one at a time.
+#[derive(Debug, Clone, Serialize)]
+pub struct Overhead {
+    pairs: usize,
+    remote_ms_mean: f64,
+    in_process_ms_mean: f64,
+    remote_ms_p50: f64,
+    in_process_ms_p50: f64,
+    /// remote mean / in-process mean.
+    ratio: f64,
 }
 
 struct Record {
@@ -141,7 +163,9 @@ fn report(
     }
 }
 
-fn load_frames(args: &BenchArgs) -> Result<Vec<proto::LocalizeRequest>> {
+fn load_frames(
+    args: &BenchArgs,
+) -> Result<Vec<(proto::LocalizeRequest, pntr_pipeline::pipeline::Query)>> {
     let index = DatasetIndex::open(&args.dataset)?;
     let scenes: Vec<_> = match &args.scene {
         Some(s) => vec![index.scene(s)?],
@@ -165,7 +189,14 @@ fn load_frames(args: &BenchArgs) -> Result<Vec<proto::LocalizeRequest>> {
     for i in 0..n {
         let (p, q) = &all[(i as f64 * step) as usize];
         let v = p.open()?.view(Role::Query, *q)?;
-        out.push(wire::raw_request(&v.rgb, &v.depth, None));
+        out.push((
+            wire::raw_request(&v.rgb, &v.depth, None),
+            pntr_pipeline::pipeline::Query {
+                rgb: v.rgb,
+                depth: v.depth,
+                intrinsics: pntr_core::Intrinsics::hpointloc(),
+            },
+        ));
     }
     Ok(out)
 }
@@ -325,7 +356,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             bail!("--rate must be a positive number of requests per second");
         }
     }
-    let frames = Arc::new(load_frames(args)?);
+    let loaded = load_frames(args)?;
+    let frames = Arc::new(loaded.iter().map(|(r, _)| r.clone()).collect::<Vec<_>>());
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -380,13 +412,79 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         })
         .unwrap_or_default();
     println!("server-reported mean ms (last run): {}", stages.join(", "));
+    let overhead = match &args.compare_in_process {
+        Some(map) => Some(compare(args, map, &loaded, &rt, &c)?),
+        None => None,
+    };
+    if let Some(o) = &overhead {
+        println!(
+            "service overhead over {} frames: through the server {:.1} ms mean ({:.1} p50), in process {:.1} ms mean ({:.1} p50): ratio {:.3}",
+            o.pairs, o.remote_ms_mean, o.remote_ms_p50, o.in_process_ms_mean, o.in_process_ms_p50, o.ratio
+        );
+    }
     if let Some(path) = &args.json {
-        if reports.len() == 1 {
-            crate::map_cmd::write_json(path, &reports[0])?;
+        let mut v = if reports.len() == 1 {
+            serde_json::to_value(&reports[0])?
         } else {
-            crate::map_cmd::write_json(path, &serde_json::json!({ "sweep": reports }))?;
+            serde_json::json!({ "sweep": reports })
+        };
+        if let Some(o) = &overhead {
+            v["overhead"] = serde_json::to_value(o)?;
         }
+        crate::map_cmd::write_json(path, &v)?;
         eprintln!("report written to {}", path.display());
     }
     Ok(())
+}
+
+/// Time every frame through the server and through an in-process pipeline on the same map, alternately.
+fn compare(
+    args: &BenchArgs,
+    map: &std::path::Path,
+    frames: &[(proto::LocalizeRequest, pntr_pipeline::pipeline::Query)],
+    rt: &tokio::runtime::Runtime,
+    c: &LocalizerClient<Channel>,
+) -> Result<Overhead> {
+    use anyhow::Context;
+    let m = crate::map_cmd::load_map(map, args.threads)?;
+    let preset = m.header.preset.clone();
+    let stage = pntr_features::config::FeatureConfig {
+        runtime: pntr_features::runtime::RuntimeOptions {
+            threads: args.threads,
+            ..Default::default()
+        },
+        ..preset.feature_config(args.models.clone())
+    }
+    .build()
+    .with_context(|| format!("loading the models from {}", args.models.display()))?;
+    let pipeline = pntr_pipeline::pipeline::Pipeline::new(Arc::new(m), stage, preset)?;
+    // One untimed pass of each warms both paths.
+    let (req0, q0) = &frames[0];
+    pipeline.localize(q0)?;
+    rt.block_on(one(c.clone(), &args.connect, req0.clone(), Instant::now()));
+    let (mut remote, mut local) = (Vec::new(), Vec::new());
+    for (req, q) in frames {
+        let r = rt.block_on(one(c.clone(), &args.connect, req.clone(), Instant::now()));
+        if let Some(code) = r.code {
+            bail!("the server answered {code} during the overhead measurement");
+        }
+        remote.push(1e3 * r.latency);
+        let t = Instant::now();
+        pipeline.localize(q)?;
+        local.push(1e3 * t.elapsed().as_secs_f64());
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let p50 = |v: &[f64]| {
+        let mut s = v.to_vec();
+        s.sort_by(f64::total_cmp);
+        percentile(&s, 50.0)
+    };
+    Ok(Overhead {
+        pairs: frames.len(),
+        remote_ms_mean: mean(&remote),
+        in_process_ms_mean: mean(&local),
+        remote_ms_p50: p50(&remote),
+        in_process_ms_p50: p50(&local),
+        ratio: mean(&remote) / mean(&local).max(1e-9),
+    })
 }

@@ -177,6 +177,32 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         report.to_str().unwrap(),
     ]));
     let sweep = json(&report)["sweep"].as_array().unwrap().clone();
+    // The service's overhead, measured against the in-process pipeline on the same frames.
+    ok(&pntr(&[
+        "bench",
+        "--addr",
+        &addr,
+        "--dataset",
+        root,
+        "--duration",
+        "0.5",
+        "--warmup",
+        "0",
+        "--frames",
+        "3",
+        "--compare-in-process",
+        map.to_str().unwrap(),
+        "--models",
+        models,
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    let o = &json(&report)["overhead"];
+    assert_eq!(o["pairs"], 3, "{o}");
+    assert!(
+        o["ratio"].as_f64().unwrap() > 0.0 && o["in_process_ms_mean"].as_f64().unwrap() > 0.0,
+        "{o}"
+    );
     assert_eq!(sweep.len(), 2);
     assert_eq!(sweep[1]["concurrency"], 2);
 
