@@ -22,7 +22,7 @@ fmt: setup
 
 lint: setup
 	$(CARGO) clippy --workspace --all-targets -- -D warnings
-	$(CARGO) clippy -p pntr-features --features cuda -- -D warnings
+	$(CARGO) clippy -p pntr-features -p pntr-service --features cuda -- -D warnings
 
 unit: setup
 	@if $(CARGO) nextest --version >/dev/null 2>&1; then \

@@ -15,7 +15,7 @@ use pntr_service::{tokio, tonic, wire};
 /// How to reach the server: address, TLS and token (the options every client command shares).
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct ConnectArgs {
-    /// Server address, HOST:PORT (or a URL).
+    /// Server address, HOST:PORT (or a URL); several, comma-separated, are balanced per request.
     #[arg(long)]
     pub addr: String,
     /// Map id sent with every request (empty: the server's only map).
@@ -32,28 +32,51 @@ pub struct ConnectArgs {
     pub tls_domain: Option<String>,
 }
 
-/// Open a channel to the server.
+/// Open a channel to the server. Several comma-separated addresses make one channel that balances
+/// requests over all of them (client-side load balancing across replicas).
 pub async fn channel(c: &ConnectArgs) -> Result<Channel> {
     let scheme = if c.tls_ca.is_some() { "https" } else { "http" };
-    let url = if c.addr.contains("://") {
-        c.addr.clone()
-    } else {
-        format!("{scheme}://{}", c.addr)
-    };
-    let mut ep = Endpoint::from_shared(url.clone())
-        .with_context(|| format!("bad address {}", c.addr))?
-        .connect_timeout(Duration::from_secs(10))
-        .tcp_nodelay(true);
-    if let Some(ca) = &c.tls_ca {
-        let pem = std::fs::read(ca).with_context(|| format!("reading {}", ca.display()))?;
-        let mut tls = ClientTlsConfig::new().ca_certificate(Certificate::from_pem(pem));
-        let host = c.addr.rsplit_once(':').map(|(h, _)| h).unwrap_or(&c.addr);
-        tls = tls.domain_name(c.tls_domain.clone().unwrap_or_else(|| host.to_string()));
-        ep = ep.tls_config(tls).context("TLS configuration")?;
+    let mut endpoints = Vec::new();
+    for addr in c.addr.split(',').map(str::trim).filter(|a| !a.is_empty()) {
+        let url = if addr.contains("://") {
+            addr.to_string()
+        } else {
+            format!("{scheme}://{addr}")
+        };
+        let mut ep = Endpoint::from_shared(url.clone())
+            .with_context(|| format!("bad address {addr}"))?
+            .connect_timeout(Duration::from_secs(10))
+            .tcp_nodelay(true);
+        if let Some(ca) = &c.tls_ca {
+            let pem = std::fs::read(ca).with_context(|| format!("reading {}", ca.display()))?;
+            let host = addr.rsplit_once(':').map(|(h, _)| h).unwrap_or(addr);
+            let tls = ClientTlsConfig::new()
+                .ca_certificate(Certificate::from_pem(pem))
+                .domain_name(c.tls_domain.clone().unwrap_or_else(|| host.to_string()));
+            ep = ep.tls_config(tls).context("TLS configuration")?;
+        }
+        endpoints.push((url, ep));
     }
-    ep.connect()
-        .await
-        .with_context(|| format!("cannot reach pntr-server at {url}"))
+    match endpoints.len() {
+        0 => anyhow::bail!("no server address given"),
+        1 => {
+            let (url, ep) = endpoints.remove(0);
+            ep.connect()
+                .await
+                .with_context(|| format!("cannot reach pntr-server at {url}"))
+        }
+        _ => {
+            // Fail early and clearly when a replica is down, rather than on some later request.
+            for (url, ep) in &endpoints {
+                ep.connect()
+                    .await
+                    .with_context(|| format!("cannot reach pntr-server at {url}"))?;
+            }
+            Ok(Channel::balance_list(
+                endpoints.into_iter().map(|(_, ep)| ep),
+            ))
+        }
+    }
 }
 
 /// A request with the map id and the token attached.

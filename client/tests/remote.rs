@@ -68,12 +68,15 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     open.workers = 2;
     let mut locked = open.clone();
     locked.token = Some("s3cret".into());
-    let (a, b) = rt.block_on(async {
+    let second = open.clone();
+    let (a, b, c) = rt.block_on(async {
         let a = pntr_service::start(open).await.unwrap();
         let b = pntr_service::start(locked).await.unwrap();
+        let c = pntr_service::start(second).await.unwrap();
         a.ready().await.unwrap();
         b.ready().await.unwrap();
-        (a, b)
+        c.ready().await.unwrap();
+        (a, b, c)
     });
     let addr = a.addr.to_string();
 
@@ -206,6 +209,38 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert_eq!(sweep.len(), 2);
     assert_eq!(sweep[1]["concurrency"], 2);
 
+    // Client-side balancing over two replicas, and a clear error when one is down.
+    let both = format!("{addr},{}", c.addr);
+    ok(&pntr(&[
+        "bench",
+        "--addr",
+        &both,
+        "--dataset",
+        root,
+        "--concurrency",
+        "2",
+        "--duration",
+        "1.5",
+        "--warmup",
+        "0",
+        "--frames",
+        "3",
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    assert_eq!(json(&report)["errors"], 0);
+    let out = pntr(&[
+        "bench",
+        "--addr",
+        &format!("{addr},127.0.0.1:9"),
+        "--dataset",
+        root,
+        "--duration",
+        "1",
+    ]);
+    assert!(String::from_utf8_lossy(&out.stderr)
+        .contains("cannot reach pntr-server at http://127.0.0.1:9"));
+
     // The evaluation through the server has the same keys as in process.
     let eval = dir.path().join("eval.json");
     ok(&pntr(&[
@@ -270,10 +305,9 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot reach pntr-server"));
 
     rt.block_on(async move {
-        let (mut a, mut b) = (a, b);
-        a.shutdown();
-        b.shutdown();
-        a.wait().await.unwrap();
-        b.wait().await.unwrap();
+        for mut s in [a, b, c] {
+            s.shutdown();
+            s.wait().await.unwrap();
+        }
     });
 }

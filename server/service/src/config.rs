@@ -79,6 +79,10 @@ pub struct Args {
     /// ONNX Runtime intra-op threads per worker [default: 1].
     #[arg(long, env = "PNTR_ORT_THREADS")]
     pub ort_threads: Option<usize>,
+    /// Where models run: `cpu` or `cuda[:N]` (needs a build with the `cuda` feature and the GPU build of
+    /// ONNX Runtime; falls back to the CPU with a warning) [default: cpu].
+    #[arg(long, env = "PNTR_DEVICE")]
+    pub device: Option<String>,
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT [default: 30].
     #[arg(long, env = "PNTR_DRAIN_TIMEOUT_S")]
     pub drain_timeout_s: Option<f64>,
@@ -97,6 +101,19 @@ pub struct Args {
     pub tls_key: Option<PathBuf>,
 }
 
+/// `cpu`, `cuda` or `cuda:N`.
+pub fn parse_device(s: &str) -> Result<pntr_features::runtime::Device, ConfigError> {
+    use pntr_features::runtime::Device;
+    match s {
+        "cpu" => Ok(Device::Cpu),
+        "cuda" => Ok(Device::Cuda(0)),
+        _ => match s.strip_prefix("cuda:").and_then(|n| n.parse::<i32>().ok()) {
+            Some(n) if n >= 0 => Ok(Device::Cuda(n)),
+            _ => bad(format!("device `{s}`: use cpu, cuda or cuda:N")),
+        },
+    }
+}
+
 /// The config file: the same settings as [`Args`], all optional, unknown keys refused.
 #[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -111,6 +128,7 @@ struct FileSettings {
     max_image_width: Option<u32>,
     max_image_height: Option<u32>,
     ort_threads: Option<usize>,
+    device: Option<String>,
     drain_timeout_s: Option<f64>,
     token: Option<String>,
     token_file: Option<PathBuf>,
@@ -174,6 +192,8 @@ pub struct Settings {
     pub max_image_height: u32,
     /// ONNX Runtime threads per worker.
     pub ort_threads: usize,
+    /// Where models run.
+    pub device: pntr_features::runtime::Device,
     /// Time given to in-flight requests at shutdown.
     pub drain_timeout: Duration,
     /// Bearer token required on every RPC but health.
@@ -195,6 +215,7 @@ impl std::fmt::Debug for Settings {
             .field("max_image_width", &self.max_image_width)
             .field("max_image_height", &self.max_image_height)
             .field("ort_threads", &self.ort_threads)
+            .field("device", &self.device)
             .field("drain_timeout", &self.drain_timeout)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("tls", &self.tls)
@@ -225,6 +246,7 @@ impl Settings {
             max_image_width: DEFAULT_MAX_IMAGE_SIDE,
             max_image_height: DEFAULT_MAX_IMAGE_SIDE,
             ort_threads: 1,
+            device: pntr_features::runtime::Device::Cpu,
             drain_timeout: Duration::from_secs_f64(DEFAULT_DRAIN_TIMEOUT_S),
             token: None,
             tls: None,
@@ -299,6 +321,7 @@ impl Settings {
                 .or(file.max_image_height)
                 .unwrap_or(DEFAULT_MAX_IMAGE_SIDE),
             ort_threads: args.ort_threads.or(file.ort_threads).unwrap_or(1),
+            device: parse_device(args.device.or(file.device).as_deref().unwrap_or("cpu"))?,
             drain_timeout: {
                 let s = args
                     .drain_timeout_s
@@ -410,6 +433,18 @@ mod tests {
         std::fs::write(&db, b"x").unwrap();
         std::fs::create_dir(dir.path().join("models")).unwrap();
         (dir, db)
+    }
+
+    #[test]
+    fn devices_parse_and_bad_ones_are_named() {
+        use pntr_features::runtime::Device;
+        assert_eq!(parse_device("cpu").unwrap(), Device::Cpu);
+        assert_eq!(parse_device("cuda").unwrap(), Device::Cuda(0));
+        assert_eq!(parse_device("cuda:1").unwrap(), Device::Cuda(1));
+        for bad in ["gpu", "cuda:-1", "cuda:x", ""] {
+            let e = parse_device(bad).unwrap_err().to_string();
+            assert!(e.contains("cpu, cuda or cuda:N"), "{e}");
+        }
     }
 
     #[test]

@@ -136,6 +136,7 @@ impl Engine {
     pub fn load(s: &Settings) -> Result<Self, String> {
         let runtime = RuntimeOptions {
             threads: s.ort_threads,
+            device: s.device,
             ..RuntimeOptions::default()
         };
         let mut maps: Vec<LoadedMap> = Vec::new();

@@ -1,0 +1,316 @@
+//! deploy/ cannot silently drift from the code: every metric the Grafana dashboard queries is scraped
+//! from a live server here, and the Prometheus, compose, Kubernetes and Docker files are parsed and held
+//! to the ports, variables, models and set-up commands the code and the README actually use.
+//! (No container engine or cluster runs here; schema checks are structural, see deploy/README.md.)
+
+use std::collections::BTreeSet;
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
+use pntr_pipeline::{map, mapfile};
+use pntr_service::config::Settings;
+use pntr_service::{tokio, wire};
+use serde_yaml::Value;
+
+fn root() -> PathBuf {
+    pntr_tests::workspace_root()
+}
+
+fn deploy(p: &str) -> PathBuf {
+    root().join("deploy").join(p)
+}
+
+fn scrape(addr: std::net::SocketAddr) -> String {
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    out
+}
+
+/// Metric names (`pntr_...`) in a PromQL expression.
+fn metric_names(expr: &str) -> Vec<String> {
+    let b = expr.as_bytes();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while let Some(j) = expr[i..].find("pntr_") {
+        let start = i + j;
+        let mut end = start;
+        while end < b.len() && (b[end].is_ascii_alphanumeric() || b[end] == b'_') {
+            end += 1;
+        }
+        out.push(expr[start..end].to_string());
+        i = end;
+    }
+    out
+}
+
+#[test]
+fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = pntr_synth::SynthConfig {
+        points_per_scene: 2,
+        queries_per_point: 2,
+        seed: 9,
+        ..Default::default()
+    };
+    pntr_synth::synthesize(&cfg, dir.path(), pntr_synth::plan_all(&cfg), &|| {}).unwrap();
+    let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
+    let models = root().join("models");
+    let preset = Preset::named(DEFAULT_PRESET).unwrap();
+    let stage = preset.feature_config(models.clone()).build().unwrap();
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    let m = map::build(
+        "synth000",
+        &scenes,
+        &preset,
+        &stage,
+        &models,
+        &mut |_, _| {},
+    )
+    .unwrap();
+    let path = dir.path().join("m.pntrmap");
+    mapfile::save(&m, &path).unwrap();
+    let view = index.scenes[0].points[0]
+        .open()
+        .unwrap()
+        .view(pntr_dataset::Role::Query, 0)
+        .unwrap();
+
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let mut settings = Settings::local(vec![path], models);
+    settings.workers = 1;
+    let scraped = rt.block_on(async {
+        let mut s = pntr_service::start(settings).await.unwrap();
+        s.ready().await.unwrap();
+        let mut c = pntr_service::proto::localizer_client::LocalizerClient::connect(format!(
+            "http://{}",
+            s.addr
+        ))
+        .await
+        .unwrap();
+        c.localize(wire::raw_request(&view.rgb, &view.depth, None))
+            .await
+            .unwrap();
+        let text = scrape(s.metrics_addr);
+        s.shutdown();
+        s.wait().await.unwrap();
+        text
+    });
+
+    let dash: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(deploy("grafana/dashboards/pntr.json")).unwrap())
+            .unwrap();
+    let mut names = BTreeSet::new();
+    let mut exprs = Vec::new();
+    for p in dash["panels"].as_array().unwrap() {
+        for t in p["targets"].as_array().unwrap() {
+            let e = t["expr"].as_str().unwrap().to_string();
+            names.extend(metric_names(&e));
+            exprs.push(e);
+        }
+    }
+    assert!(names.len() >= 4, "{names:?}");
+    for n in &names {
+        assert!(
+            scraped
+                .lines()
+                .any(|l| l.starts_with(&format!("{n}{{")) || l.starts_with(&format!("{n} "))),
+            "the dashboard queries {n}, which the server does not export:\n{scraped}"
+        );
+    }
+    // Label values the dashboard selects on exist too.
+    for sel in ["stage=\"total\"", "code=\"OK\""] {
+        assert!(exprs.iter().any(|e| e.contains(sel)));
+        assert!(scraped.contains(sel), "{sel} not in the scrape:\n{scraped}");
+    }
+    assert!(
+        scraped.contains("status=\"LOCALIZED\"") || scraped.contains("status=\"NOT_LOCALIZED\"")
+    );
+}
+
+fn yaml_docs(path: &Path) -> Vec<Value> {
+    let text = std::fs::read_to_string(path).unwrap();
+    serde_yaml::Deserializer::from_str(&text)
+        .map(|d| {
+            serde::Deserialize::deserialize(d).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+        })
+        .collect()
+}
+
+/// The PNTR_* variables the server and its logging read.
+fn known_variables() -> BTreeSet<String> {
+    let src = std::fs::read_to_string(root().join("server/service/src/config.rs")).unwrap();
+    let mut vars: BTreeSet<String> = src
+        .split("env = \"")
+        .skip(1)
+        .map(|s| s.split('"').next().unwrap().to_string())
+        .collect();
+    vars.extend(["PNTR_LOG".to_string(), "PNTR_DEMO_DIR".to_string()]);
+    assert!(
+        vars.contains("PNTR_DB") && vars.contains("PNTR_WORKERS"),
+        "{vars:?}"
+    );
+    vars
+}
+
+fn s<'a>(v: &'a Value, path: &[&str]) -> &'a Value {
+    path.iter().fold(v, |v, k| &v[*k])
+}
+
+#[test]
+fn prometheus_compose_kubernetes_and_docker_files_agree_with_the_code() {
+    let vars = known_variables();
+    // Prometheus scrapes the compose service on the metrics port.
+    let prom = &yaml_docs(&deploy("prometheus/prometheus.yml"))[0];
+    let target = s(prom, &["scrape_configs"])[0]["static_configs"][0]["targets"][0]
+        .as_str()
+        .unwrap();
+    assert_eq!(target, "pntr:9464");
+    let compose = &yaml_docs(&deploy("compose.yaml"))[0];
+    let ports: Vec<&str> = s(compose, &["services", "pntr", "ports"])
+        .as_sequence()
+        .unwrap()
+        .iter()
+        .map(|p| p.as_str().unwrap())
+        .collect();
+    assert!(
+        ports.contains(&"9464:9464") && ports.contains(&"50051:50051"),
+        "{ports:?}"
+    );
+    for (k, _) in s(compose, &["services", "pntr", "environment"])
+        .as_mapping()
+        .unwrap()
+    {
+        assert!(
+            vars.contains(k.as_str().unwrap()),
+            "compose sets unknown {k:?}"
+        );
+    }
+
+    // Kubernetes: well-formed objects; gRPC health probes on the gRPC port; only known variables.
+    let mut kinds = BTreeSet::new();
+    let mut configmaps = BTreeSet::new();
+    let mut deployments = Vec::new();
+    for f in std::fs::read_dir(deploy("k8s")).unwrap() {
+        let f = f.unwrap().path();
+        for d in yaml_docs(&f) {
+            let kind = d["kind"]
+                .as_str()
+                .unwrap_or_else(|| panic!("{}: no kind", f.display()));
+            assert!(
+                d["apiVersion"].is_string(),
+                "{}: no apiVersion",
+                f.display()
+            );
+            assert!(
+                d["metadata"]["name"].is_string(),
+                "{}: no metadata.name",
+                f.display()
+            );
+            kinds.insert(kind.to_string());
+            match kind {
+                "ConfigMap" => {
+                    configmaps.insert(d["metadata"]["name"].as_str().unwrap().to_string());
+                    for (k, v) in d["data"].as_mapping().unwrap() {
+                        assert!(
+                            vars.contains(k.as_str().unwrap()),
+                            "{}: unknown {k:?}",
+                            f.display()
+                        );
+                        assert!(v.is_string(), "{}: {k:?} must be a string", f.display());
+                    }
+                }
+                "Deployment" => deployments.push((f.clone(), d)),
+                _ => {}
+            }
+        }
+    }
+    for k in [
+        "Deployment",
+        "Service",
+        "ConfigMap",
+        "HorizontalPodAutoscaler",
+    ] {
+        assert!(kinds.contains(k), "no {k} in deploy/k8s");
+    }
+    for (f, d) in &deployments {
+        let spec = &d["spec"]["template"]["spec"];
+        assert_eq!(
+            d["spec"]["selector"]["matchLabels"],
+            d["spec"]["template"]["metadata"]["labels"]
+        );
+        for c in spec["containers"].as_sequence().unwrap() {
+            let ports: Vec<i64> = c["ports"]
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .map(|p| p["containerPort"].as_i64().unwrap())
+                .collect();
+            assert_eq!(ports, vec![50051, 9464], "{}", f.display());
+            for probe in ["readinessProbe", "livenessProbe"] {
+                assert_eq!(
+                    c[probe]["grpc"]["port"].as_i64(),
+                    Some(50051),
+                    "{}: {probe}",
+                    f.display()
+                );
+            }
+            for e in c["env"].as_sequence().into_iter().flatten() {
+                assert!(
+                    vars.contains(e["name"].as_str().unwrap()),
+                    "{}: env {:?}",
+                    f.display(),
+                    e["name"]
+                );
+            }
+            for e in c["envFrom"].as_sequence().into_iter().flatten() {
+                let name = e["configMapRef"]["name"].as_str().unwrap();
+                assert!(
+                    configmaps.contains(name),
+                    "{}: no ConfigMap {name}",
+                    f.display()
+                );
+            }
+            assert!(
+                c["resources"]["requests"]["memory"].is_string(),
+                "{}: memory request",
+                f.display()
+            );
+        }
+    }
+
+    // Docker: the build runs the README's set-up and builds the server; the models it copies exist;
+    // every PNTR_* it sets is one the server reads; the runtime stage is not root.
+    let readme = std::fs::read_to_string(root().join("README.md")).unwrap();
+    assert!(readme.contains("scripts/setup.sh"));
+    for file in ["Dockerfile", "Dockerfile.cuda"] {
+        let text = std::fs::read_to_string(deploy(file)).unwrap();
+        assert!(text.contains("bash scripts/setup.sh"), "{file}");
+        assert!(
+            text.contains("cargo build --release -p pntr-service"),
+            "{file}"
+        );
+        assert!(text.contains("USER 10001"), "{file}");
+        for word in text.split_whitespace() {
+            if let Some(m) = word.strip_prefix("models/") {
+                assert!(
+                    root().join("models").join(m).is_file(),
+                    "{file} copies missing models/{m}"
+                );
+            }
+            if let Some(v) = word.strip_prefix("PNTR_") {
+                let name = format!("PNTR_{}", v.split('=').next().unwrap());
+                assert!(vars.contains(&name), "{file} sets unknown {name}");
+            }
+        }
+    }
+    let dash = std::fs::read_to_string(deploy("grafana/dashboards/pntr.json")).unwrap();
+    let provider = &yaml_docs(&deploy("grafana/provisioning/dashboards/pntr.yaml"))[0];
+    assert_eq!(
+        s(provider, &["providers"])[0]["options"]["path"],
+        "/var/lib/grafana/dashboards"
+    );
+    assert!(dash.contains("\"uid\": \"prometheus\""));
+}
