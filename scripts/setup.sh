@@ -6,14 +6,16 @@
 #   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (HDF5 dataset I/O)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
 #   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py,
-#     and grpcio + grpcio-tools for the Python client (client/python) and its test
+#     grpcio + grpcio-tools for the Python client (client/python) and its test, and kubernetes-validate
+#     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 DEPS="$ROOT/.deps"
 ORT_VERSION="1.31.1"
 GRPC_VERSION="1.85.1"
-PY_PACKAGES=(numpy h5py onnx "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION")
+KV_VERSION="1.37.0"
+PY_PACKAGES=(numpy h5py onnx "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION")
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -44,7 +46,7 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null; then
+if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null; then
   log "python: installing ${PY_PACKAGES[*]}"
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else

@@ -314,3 +314,45 @@ fn prometheus_compose_kubernetes_and_docker_files_agree_with_the_code() {
     );
     assert!(dash.contains("\"uid\": \"prometheus\""));
 }
+
+/// Run kubernetes-validate (Kubernetes OpenAPI schemas bundled in the PyPI package; no network).
+fn kubernetes_validate(files: &[PathBuf]) -> std::process::Output {
+    std::process::Command::new(pntr_tests::python())
+        .args([
+            "-m",
+            "kubernetes_validate",
+            "-k",
+            "1.33.0",
+            "--strict",
+            "--no-warn",
+        ])
+        .args(files)
+        .output()
+        .expect("python runs")
+}
+
+#[test]
+fn kubernetes_manifests_pass_the_openapi_schemas_and_a_broken_one_does_not() {
+    let files: Vec<PathBuf> = std::fs::read_dir(deploy("k8s"))
+        .unwrap()
+        .map(|f| f.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "yaml"))
+        .collect();
+    assert!(files.len() >= 5);
+    let out = kubernetes_validate(&files);
+    assert!(
+        out.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The check can fail: a port given as text and an unknown field are refused.
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("bad.yaml");
+    let text = std::fs::read_to_string(deploy("k8s/service.yaml"))
+        .unwrap()
+        .replace("port: 50051", "port: fifty")
+        .replace("clusterIP: None", "clusterIP: None\n  sessionAffinty: None");
+    std::fs::write(&bad, text).unwrap();
+    assert!(!kubernetes_validate(&[bad]).status.success());
+}
