@@ -69,14 +69,36 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     let mut locked = open.clone();
     locked.token = Some("s3cret".into());
     let second = open.clone();
-    let (a, b, c) = rt.block_on(async {
+    // A TLS server with a certificate for localhost signed by a CA made here.
+    let mut ca_params = rcgen::CertificateParams::new(Vec::<String>::new()).unwrap();
+    ca_params.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+    let ca_key = rcgen::KeyPair::generate().unwrap();
+    let ca_pem = ca_params.self_signed(&ca_key).unwrap().pem();
+    let issuer = rcgen::Issuer::new(ca_params, ca_key);
+    let leaf_key = rcgen::KeyPair::generate().unwrap();
+    let leaf = rcgen::CertificateParams::new(vec!["localhost".to_string()])
+        .unwrap()
+        .signed_by(&leaf_key, &issuer)
+        .unwrap();
+    let (cert, key, ca) = (
+        dir.path().join("cert.pem"),
+        dir.path().join("key.pem"),
+        dir.path().join("ca.pem"),
+    );
+    std::fs::write(&cert, leaf.pem()).unwrap();
+    std::fs::write(&key, leaf_key.serialize_pem()).unwrap();
+    std::fs::write(&ca, ca_pem).unwrap();
+    let mut tls = locked.clone();
+    tls.tls = Some((cert, key));
+    let (a, b, c, t) = rt.block_on(async {
         let a = pntr_service::start(open).await.unwrap();
         let b = pntr_service::start(locked).await.unwrap();
         let c = pntr_service::start(second).await.unwrap();
-        a.ready().await.unwrap();
-        b.ready().await.unwrap();
-        c.ready().await.unwrap();
-        (a, b, c)
+        let t = pntr_service::start(tls).await.unwrap();
+        for s in [&a, &b, &c, &t] {
+            s.ready().await.unwrap();
+        }
+        (a, b, c, t)
     });
     let addr = a.addr.to_string();
 
@@ -290,6 +312,42 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         "--query",
         "0",
     ]));
+    // TLS with the token, end to end with `pntr`; without the CA the handshake fails cleanly.
+    let tls_addr = t.addr.to_string();
+    let v: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+        "localize",
+        "--addr",
+        &tls_addr,
+        "--tls-ca",
+        ca.to_str().unwrap(),
+        "--tls-domain",
+        "localhost",
+        "--token",
+        "s3cret",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--query",
+        "1",
+        "--json",
+    ])))
+    .unwrap();
+    assert_eq!(v["status"], "LOCALIZED", "{v}");
+    let out = pntr(&[
+        "localize",
+        "--addr",
+        &tls_addr,
+        "--token",
+        "s3cret",
+        "--dataset",
+        root,
+        "--scene",
+        "synth000",
+        "--query",
+        "1",
+    ]);
+    assert!(!out.status.success() && !String::from_utf8_lossy(&out.stderr).contains("panicked"));
     // A closed port is a clear error.
     let out = pntr(&[
         "localize",
@@ -305,7 +363,7 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot reach pntr-server"));
 
     rt.block_on(async move {
-        for mut s in [a, b, c] {
+        for mut s in [a, b, c, t] {
             s.shutdown();
             s.wait().await.unwrap();
         }
