@@ -104,36 +104,32 @@ impl Matcher for Mnn {
         if n == 0 || m == 0 {
             return Ok(Matches::default());
         }
-        let mut sim = vec![0f32; n * m];
-        for i in 0..n {
-            let da = a.descriptor(i);
-            for j in 0..m {
-                sim[i * m + j] = da.iter().zip(b.descriptor(j)).map(|(x, y)| x * y).sum();
-            }
-        }
-        let best_b: Vec<(usize, f32, f32)> = (0..n)
-            .map(|i| {
-                let row = &sim[i * m..(i + 1) * m];
-                let (mut bj, mut b1, mut b2) = (0, f32::NEG_INFINITY, f32::NEG_INFINITY);
-                for (j, &s) in row.iter().enumerate() {
-                    if s > b1 {
-                        b2 = b1;
-                        b1 = s;
-                        bj = j;
-                    } else if s > b2 {
-                        b2 = s;
-                    }
+        // All similarities at once as one matrix product (a blocked, vectorised sgemm), then the best
+        // match per row and per column in a single row-major pass.
+        let av = ndarray::ArrayView2::from_shape((n, a.dim), &a.descriptors)
+            .map_err(|e| FeatureError::Input(format!("descriptors of the first set: {e}")))?;
+        let bv = ndarray::ArrayView2::from_shape((m, b.dim), &b.descriptors)
+            .map_err(|e| FeatureError::Input(format!("descriptors of the second set: {e}")))?;
+        let sim = av.dot(&bv.t());
+        let mut best_b: Vec<(usize, f32, f32)> = Vec::with_capacity(n);
+        let mut best_a = vec![(0usize, f32::NEG_INFINITY); m];
+        for (i, row) in sim.outer_iter().enumerate() {
+            let (mut bj, mut b1, mut b2) = (0, f32::NEG_INFINITY, f32::NEG_INFINITY);
+            for (j, &s) in row.iter().enumerate() {
+                if s > b1 {
+                    b2 = b1;
+                    b1 = s;
+                    bj = j;
+                } else if s > b2 {
+                    b2 = s;
                 }
-                (bj, b1, b2)
-            })
-            .collect();
-        let best_a: Vec<usize> = (0..m)
-            .map(|j| {
-                (0..n)
-                    .max_by(|&x, &y| sim[x * m + j].total_cmp(&sim[y * m + j]))
-                    .unwrap_or(0)
-            })
-            .collect();
+                if s > best_a[j].1 {
+                    best_a[j] = (i, s);
+                }
+            }
+            best_b.push((bj, b1, b2));
+        }
+        let best_a: Vec<usize> = best_a.into_iter().map(|(i, _)| i).collect();
         let mut out = Matches::default();
         for (i, &(j, s1, s2)) in best_b.iter().enumerate() {
             if best_a[j] != i || s1 < self.params.min_similarity {
@@ -154,5 +150,92 @@ impl Matcher for Mnn {
 
     fn name(&self) -> &'static str {
         "mnn"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn features(n: usize, dim: usize, seed: u64) -> Features {
+        // A small deterministic generator: unit vectors with varied directions.
+        let mut x = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+        };
+        let mut descriptors = Vec::with_capacity(n * dim);
+        for _ in 0..n {
+            let v: Vec<f32> = (0..dim).map(|_| next()).collect();
+            let norm = v.iter().map(|a| a * a).sum::<f32>().sqrt();
+            descriptors.extend(v.iter().map(|a| a / norm));
+        }
+        Features {
+            keypoints: vec![[0.0, 0.0]; n],
+            scores: vec![1.0; n],
+            descriptors,
+            dim,
+            binary: Vec::new(),
+            image_size: (64, 64),
+        }
+    }
+
+    /// The definition, written the slow way: mutual best by cosine, above the threshold.
+    fn reference(a: &Features, b: &Features, min: f32) -> Vec<(u32, u32)> {
+        let dot = |i: usize, j: usize| -> f32 {
+            a.descriptor(i)
+                .iter()
+                .zip(b.descriptor(j))
+                .map(|(x, y)| x * y)
+                .sum()
+        };
+        let mut out = Vec::new();
+        for i in 0..a.len() {
+            let j = (0..b.len())
+                .max_by(|&p, &q| dot(i, p).total_cmp(&dot(i, q)))
+                .unwrap();
+            let back = (0..a.len())
+                .max_by(|&p, &q| dot(p, j).total_cmp(&dot(q, j)))
+                .unwrap();
+            if back == i && dot(i, j) >= min {
+                out.push((i as u32, j as u32));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn matrix_product_mnn_agrees_with_the_definition() {
+        // b is a noisy, shuffled copy of part of a, so there are true mutual matches.
+        let a = features(300, 64, 1);
+        let noise = features(250, 64, 2);
+        let mut b = noise.clone();
+        for j in 0..250 {
+            let i = (j * 7) % 300;
+            let mixed: Vec<f32> = a
+                .descriptor(i)
+                .iter()
+                .zip(noise.descriptor(j))
+                .map(|(x, y)| x + 0.3 * y)
+                .collect();
+            let norm = mixed.iter().map(|v| v * v).sum::<f32>().sqrt();
+            b.descriptors[j * 64..(j + 1) * 64]
+                .iter_mut()
+                .zip(&mixed)
+                .for_each(|(d, v)| *d = v / norm);
+        }
+        for min in [0.0, 0.82] {
+            let mnn = Mnn {
+                params: MnnParams {
+                    min_similarity: min,
+                    ..MnnParams::default()
+                },
+            };
+            let got = mnn.match_features(&a, &b).unwrap().pairs;
+            assert_eq!(got, reference(&a, &b, min), "min similarity {min}");
+            assert!(got.len() > 100, "{} matches", got.len());
+        }
     }
 }
