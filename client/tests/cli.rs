@@ -311,3 +311,77 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     .status
     .success());
 }
+
+#[test]
+fn build_db_killed_while_replacing_a_map_leaves_the_old_map_loadable() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = dir.path().join("small");
+    let large = dir.path().join("large");
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+    for (root, points) in [(&small, "2"), (&large, "8")] {
+        let out = pntr(&[
+            "synth",
+            "--out",
+            root.to_str().unwrap(),
+            "--points-per-scene",
+            points,
+            "--queries-per-point",
+            "2",
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let map = dir.path().join("m.pntrmap");
+    let build = |root: &std::path::Path| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_pntr"))
+            .args([
+                "build-db",
+                "--dataset",
+                root.to_str().unwrap(),
+                "--out",
+                map.to_str().unwrap(),
+            ])
+            .args(["--models", models])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    assert!(build(&small).wait().unwrap().success());
+    let original = std::fs::read(&map).unwrap();
+    // SIGKILL a rebuild from the larger dataset at several points of its run (loading models,
+    // extracting, training, writing): the map in place is always the complete old one, or, once a
+    // rebuild got to its rename, the complete new one; it always loads.
+    let report = dir.path().join("r.json");
+    for delay_ms in [50u64, 400, 1200, 2500, 4000] {
+        let mut child = build(&large);
+        std::thread::sleep(std::time::Duration::from_millis(delay_ms));
+        let _ = child.kill();
+        let _ = child.wait();
+        let now = std::fs::read(&map).unwrap();
+        let out = pntr(&[
+            "eval",
+            "--dataset",
+            small.to_str().unwrap(),
+            "--db",
+            map.to_str().unwrap(),
+            "--models",
+            models,
+            "--queries",
+            "1",
+            "--json",
+            report.to_str().unwrap(),
+        ]);
+        assert!(
+            out.status.success(),
+            "after a kill at {delay_ms} ms the map does not load: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        if now != original {
+            eprintln!("the rebuild completed before the kill at {delay_ms} ms");
+        }
+    }
+}

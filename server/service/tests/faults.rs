@@ -1,0 +1,135 @@
+//! Faults at start-up (issue 10): a corrupted map or a missing model stops the real `pntr-server`
+//! binary with a message naming the problem and a non-zero exit, and health never says SERVING.
+
+use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use pntr_service::tokio;
+use pntr_service::tonic_health::pb::health_check_response::ServingStatus;
+use pntr_service::tonic_health::pb::health_client::HealthClient;
+use pntr_service::tonic_health::pb::HealthCheckRequest;
+
+const BIN: &str = env!("CARGO_BIN_EXE_pntr-server");
+
+mod common;
+use common::models;
+
+/// Start the server, poll health until the process exits; return (exit code, stderr, ever SERVING).
+fn run_until_exit(db: &Path, models: &Path) -> (Option<i32>, String, bool) {
+    let mut child = Command::new(BIN)
+        .arg("--db")
+        .arg(db)
+        .arg("--models")
+        .arg(models)
+        .args([
+            "--addr",
+            "127.0.0.1:0",
+            "--metrics-addr",
+            "127.0.0.1:0",
+            "--workers",
+            "1",
+        ])
+        .env("PNTR_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let mut serving = false;
+    if let Some(addr) = line.split_whitespace().nth(3) {
+        let addr: SocketAddr = addr.parse().unwrap();
+        let rt = tokio::runtime::Runtime::new().unwrap();
+        let t = Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            assert!(
+                t.elapsed() < Duration::from_secs(120),
+                "the server neither served nor exited"
+            );
+            let s = rt.block_on(async {
+                let ep =
+                    pntr_service::tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
+                        .unwrap();
+                match ep.connect().await {
+                    Ok(ch) => HealthClient::new(ch)
+                        .check(HealthCheckRequest::default())
+                        .await
+                        .map(|r| r.into_inner().status)
+                        .ok(),
+                    Err(_) => None,
+                }
+            });
+            serving |= s == Some(ServingStatus::Serving as i32);
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+    let out = child.wait_with_output().unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+        serving,
+    )
+}
+
+fn variant(good: &Path, name: &str, edit: impl Fn(&mut Vec<u8>)) -> PathBuf {
+    let mut b = std::fs::read(good).unwrap();
+    edit(&mut b);
+    let p = good.with_file_name(name);
+    std::fs::write(&p, b).unwrap();
+    p
+}
+
+#[test]
+fn corrupted_maps_and_missing_models_stop_the_server_before_it_serves() {
+    let dir = tempfile::tempdir().unwrap();
+    let (good, _) = common::demo_map(dir.path());
+    let len = std::fs::metadata(&good).unwrap().len() as usize;
+    let cases = [
+        (
+            variant(&good, "truncated.pntrmap", |b| b.truncate(len / 2)),
+            "truncated",
+        ),
+        (
+            variant(&good, "flipped.pntrmap", |b| b[len / 2] ^= 0x08),
+            "checksum",
+        ),
+        (variant(&good, "version.pntrmap", |b| b[8] = 7), "version 7"),
+        (variant(&good, "empty.pntrmap", |b| b.clear()), "too short"),
+    ];
+    for (path, what) in &cases {
+        let (code, err, serving) = run_until_exit(path, &models());
+        assert!(
+            code.is_some_and(|c| c != 0),
+            "{}: exit {code:?}",
+            path.display()
+        );
+        assert!(!serving, "{}: health said SERVING", path.display());
+        let name = path.file_name().unwrap().to_string_lossy();
+        assert!(
+            err.contains(name.as_ref()) && err.contains(what),
+            "{}: {err}",
+            path.display()
+        );
+        assert!(!err.contains("panicked"), "{err}");
+    }
+    // The models: a folder without them, and an unreadable (garbage) model file.
+    let (code, err, serving) = run_until_exit(&good, Path::new("/nonexistent/models"));
+    assert!(code.is_some_and(|c| c != 0) && !serving, "{err}");
+    assert!(err.contains("/nonexistent/models"), "{err}");
+    let broken = dir.path().join("broken-models");
+    std::fs::create_dir(&broken).unwrap();
+    for f in std::fs::read_dir(models()).unwrap() {
+        let f = f.unwrap().path();
+        if f.extension().is_some_and(|e| e == "onnx") {
+            std::fs::write(broken.join(f.file_name().unwrap()), b"not an onnx model").unwrap();
+        }
+    }
+    let (code, err, serving) = run_until_exit(&good, &broken);
+    assert!(code.is_some_and(|c| c != 0) && !serving, "{err}");
+    assert!(err.contains("xfeat_backbone.onnx"), "{err}");
+}
