@@ -139,3 +139,47 @@ fn malformed_csv_is_a_clear_error() {
         !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--noise-bound")
     );
 }
+
+/// Mutation fuzzing of the CSV reader through the real binary (issue 10): every mutated file gives a
+/// result (exit 0) or an error naming the file (exit 1), never a panic or a signal.
+#[test]
+fn mutated_csv_files_never_crash_pntr_register() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = csv(20.0, 100).into_bytes();
+    let mut state = 0x2026_1122_u64;
+    let mut next = |n: usize| {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state % n.max(1) as u64) as usize
+    };
+    let path = dir.path().join("pairs.csv");
+    let alphabet = b",.-+eE0123456789 \n\rnaNinf\"x\x00\xff";
+    for _ in 0..60 {
+        let mut b = good.clone();
+        for _ in 0..1 + next(6) {
+            let i = next(b.len());
+            match next(4) {
+                0 => b[i] = alphabet[next(alphabet.len())],
+                1 => {
+                    b.remove(i);
+                }
+                2 => b.insert(i, alphabet[next(alphabet.len())]),
+                _ => b.truncate(i),
+            }
+        }
+        std::fs::write(&path, &b).unwrap();
+        let out = pntr(&["register", "--pairs", path.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            matches!(out.status.code(), Some(0) | Some(1)),
+            "status {:?} for {:?}: {err}",
+            out.status,
+            String::from_utf8_lossy(&b)
+        );
+        assert!(!err.contains("panicked"), "{err}");
+        if out.status.code() == Some(1) {
+            assert!(err.contains("pairs.csv"), "{err}");
+        }
+    }
+}
