@@ -133,3 +133,111 @@ fn corrupted_maps_and_missing_models_stop_the_server_before_it_serves() {
     assert!(code.is_some_and(|c| c != 0) && !serving, "{err}");
     assert!(err.contains("xfeat_backbone.onnx"), "{err}");
 }
+
+fn scrape(addr: SocketAddr) -> String {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    out
+}
+
+fn gauge(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(name))
+        .and_then(|l| l.split_whitespace().last())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(f64::NAN)
+}
+
+#[test]
+fn clients_that_disconnect_while_queued_leave_no_work_and_right_gauges() {
+    let dir = tempfile::tempdir().unwrap();
+    let (db, query) = common::demo_map(dir.path());
+    let mut s = pntr_service::config::Settings::local(vec![db], models());
+    s.workers = 1;
+    s.queue = 8;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    rt.block_on(async {
+        let mut running = pntr_service::start(s).await.unwrap();
+        running.ready().await.unwrap();
+        let (addr, metrics) = (running.addr, running.metrics_addr);
+        let url = format!("http://{addr}");
+        let req = pntr_service::wire::raw_request(&query.rgb, &query.depth, None);
+        // Until the in-flight gauge is `want` (or, with `at_least`, at least `want`).
+        let wait_for = |want: f64, at_least: bool| async move {
+            let t = Instant::now();
+            loop {
+                let g = gauge(&scrape(metrics), "pntr_in_flight_requests");
+                if g == want || (at_least && g >= want) {
+                    break;
+                }
+                assert!(
+                    t.elapsed() < Duration::from_secs(60),
+                    "in-flight never reached {want}"
+                );
+                tokio::time::sleep(Duration::from_millis(2)).await;
+            }
+        };
+        // One request occupies the only worker; six more wait in the queue on another connection.
+        let mut first =
+            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
+                .await
+                .unwrap();
+        let r0 = req.clone();
+        let a = tokio::spawn(async move { first.localize(r0).await });
+        wait_for(1.0, false).await;
+        let c = pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
+            .await
+            .unwrap();
+        let mut queued = tokio::task::JoinSet::new();
+        for _ in 0..6 {
+            let (mut c, r) = (c.clone(), req.clone());
+            queued.spawn(async move { c.localize(r).await });
+        }
+        // All six waiting (the first may have finished meanwhile).
+        wait_for(6.0, true).await;
+        // The waiting clients go away (their streams are reset).
+        queued.abort_all();
+        while queued.join_next().await.is_some() {}
+        drop(c);
+        assert!(
+            a.await.unwrap().is_ok(),
+            "the running request still completes"
+        );
+        wait_for(0.0, false).await;
+        // The abandoned jobs leave the queue as the worker reaches them, skipping each.
+        let t = Instant::now();
+        while gauge(&scrape(metrics), "pntr_queue_depth") != 0.0 {
+            assert!(
+                t.elapsed() < Duration::from_secs(60),
+                "the queue never drained"
+            );
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        // At most one of them had started before its client left.
+        let text = scrape(metrics);
+        let runs = text
+            .lines()
+            .find(|l| l.starts_with("pntr_stage_duration_seconds_count{stage=\"total\"}"))
+            .and_then(|l| l.split_whitespace().last())
+            .and_then(|v| v.parse::<f64>().ok())
+            .unwrap();
+        assert!(
+            runs <= 2.0,
+            "{runs} pipeline runs for 1 answered + 6 abandoned requests"
+        );
+        // And the server keeps answering.
+        let mut again = pntr_service::proto::localizer_client::LocalizerClient::connect(url)
+            .await
+            .unwrap();
+        assert!(again.localize(req).await.is_ok());
+        running.shutdown();
+        running.wait().await.unwrap();
+    });
+}
