@@ -13,29 +13,17 @@ use pntr_pipeline::map::{self, Map};
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::{Pipeline, Query, Status};
 use pntr_pipeline::preset::Preset;
-use pntr_synth::SynthConfig;
-
-fn models() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models")
-}
 
 fn dataset(root: &Path) -> DatasetIndex {
-    let cfg = SynthConfig {
-        points_per_scene: 5,
-        queries_per_point: 5,
-        seed: 33,
-        ..Default::default()
-    };
-    let planned = pntr_synth::plan_all(&cfg);
-    pntr_synth::synthesize(&cfg, root, planned, &|| {}).unwrap();
-    DatasetIndex::open(root).unwrap()
+    pntr_tests::synthetic_dataset(root, 5, 5, 33)
 }
 
 fn build(index: &DatasetIndex, preset: &Preset) -> (Map, pntr_features::config::FeatureStage) {
-    let stage = preset.feature_config(models()).build().unwrap();
+    let models = pntr_tests::models();
+    let stage = preset.feature_config(models.clone()).build().unwrap();
     let scenes: Vec<_> = index.scenes.iter().collect();
     let mut calls = 0;
-    let map = map::build("all", &scenes, preset, &stage, &models(), &mut |_, _| {
+    let map = map::build("all", &scenes, preset, &stage, &models, &mut |_, _| {
         calls += 1
     })
     .unwrap();
@@ -189,17 +177,7 @@ fn map_round_trip_pipeline_and_refused_files() {
                 return Err(pntr_pipeline::PipelineError::Query("dropped".into()));
             }
             let l = pipeline.localize(q)?;
-            Ok(Answer {
-                status: Some(l.status),
-                pose: l.pose,
-                retrieved: l
-                    .retrieved
-                    .iter()
-                    .map(|h| map.images[h.id].id.clone())
-                    .collect(),
-                matched: l.image.map(|i| map.images[i].id.clone()),
-                times: l.times,
-            })
+            Ok(Answer::of(&l, &map))
         },
         &mut |_, _| {},
     )
@@ -230,17 +208,7 @@ fn classical_preset_localizes_with_orb_bow_and_pnp() {
         &EvalOptions::default(),
         &mut |q| {
             let l = pipeline.localize(q)?;
-            Ok(Answer {
-                status: Some(l.status),
-                pose: l.pose,
-                retrieved: l
-                    .retrieved
-                    .iter()
-                    .map(|h| map.images[h.id].id.clone())
-                    .collect(),
-                matched: l.image.map(|i| map.images[i].id.clone()),
-                times: l.times,
-            })
+            Ok(Answer::of(&l, &map))
         },
         &mut |_, _| {},
     )

@@ -14,11 +14,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-use pntr_dataset::{DatasetIndex, Role, View};
-use pntr_pipeline::{map, mapfile, preset::Preset};
+use pntr_dataset::{Role, View};
+use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
 use pntr_service::{tokio, wire, Running};
-use pntr_synth::SynthConfig;
 use serde_json::Value;
 
 const SCENE: &str = "synth000";
@@ -32,27 +31,12 @@ struct Fixture {
     queries: usize,
 }
 
-fn models() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models")
-}
-
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
-        let cfg = SynthConfig {
-            points_per_scene: 3,
-            queries_per_point: 3,
-            seed: 5,
-            ..Default::default()
-        };
-        let planned = pntr_synth::plan_all(&cfg);
-        pntr_synth::synthesize(&cfg, dir.path(), planned, &|| {}).unwrap();
-        let index = DatasetIndex::open(dir.path()).unwrap();
-        let preset = Preset::named("fast").unwrap();
-        let stage = preset.feature_config(models()).build().unwrap();
-        let scenes: Vec<_> = index.scenes.iter().collect();
-        let built = map::build("all", &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+        let index = pntr_tests::synthetic_dataset(dir.path(), 3, 3, 5);
+        let built = pntr_tests::build_map(&index, "fast", "all");
         let path = dir.path().join("all.pntrmap");
         mapfile::save(&built, &path).unwrap();
         let scene = index.scene(SCENE).unwrap();
@@ -227,7 +211,10 @@ print(json.dumps(meta))
 fn localizes_against_a_real_server() {
     let f = fixture();
     let rt = runtime();
-    let running = serve(&rt, Settings::local(vec![f.map.clone()], models()));
+    let running = serve(
+        &rt,
+        Settings::local(vec![f.map.clone()], pntr_tests::models()),
+    );
     let addr = running.addr.to_string();
     let dataset = f.dir.path().to_str().unwrap();
 
@@ -381,7 +368,7 @@ fn token_and_tls() {
     let tls_dir = tempfile::tempdir().unwrap();
     let (cert, key) = self_signed(tls_dir.path());
     let rt = runtime();
-    let mut s = Settings::local(vec![f.map.clone()], models());
+    let mut s = Settings::local(vec![f.map.clone()], pntr_tests::models());
     s.token = Some("py-t0ken".into());
     s.tls = Some((cert.clone(), key));
     let running = serve(&rt, s);

@@ -16,8 +16,8 @@ use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
-use pntr_dataset::{DatasetIndex, Role, View};
-use pntr_pipeline::{map, mapfile, preset::Preset};
+use pntr_dataset::{Role, View};
+use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self, DepthEncoding, ImageEncoding};
@@ -28,7 +28,6 @@ use pntr_service::tonic_health::pb::health_check_response::ServingStatus;
 use pntr_service::tonic_health::pb::health_client::HealthClient;
 use pntr_service::tonic_health::pb::HealthCheckRequest;
 use pntr_service::{wire, Running};
-use pntr_synth::SynthConfig;
 
 /// The dataset and map, made once for all tests of this file.
 struct Fixture {
@@ -41,28 +40,12 @@ struct Fixture {
     queries: Vec<View>,
 }
 
-fn models() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../models")
-}
-
 fn fixture() -> &'static Fixture {
     static F: OnceLock<Fixture> = OnceLock::new();
     F.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
-        let cfg = SynthConfig {
-            points_per_scene: 4,
-            queries_per_point: 4,
-            seed: 5,
-            ..Default::default()
-        };
-        let planned = pntr_synth::plan_all(&cfg);
-        pntr_synth::synthesize(&cfg, dir.path(), planned, &|| {}).unwrap();
-        let index = DatasetIndex::open(dir.path()).unwrap();
-        let preset = Preset::named("fast").unwrap();
-        let stage = preset.feature_config(models()).build().unwrap();
-        let scenes: Vec<_> = index.scenes.iter().collect();
-        let mut built =
-            map::build("all", &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+        let index = pntr_tests::synthetic_dataset(dir.path(), 4, 4, 5);
+        let mut built = pntr_tests::build_map(&index, "fast", "all");
         let path = dir.path().join("all.pntrmap");
         mapfile::save(&built, &path).unwrap();
         built.header.map_id = "copy".into();
@@ -173,7 +156,10 @@ fn scrape(addr: SocketAddr) -> String {
 }
 
 fn settings(dbs: &[&Path]) -> Settings {
-    Settings::local(dbs.iter().map(|p| p.to_path_buf()).collect(), models())
+    Settings::local(
+        dbs.iter().map(|p| p.to_path_buf()).collect(),
+        pntr_tests::models(),
+    )
 }
 
 /// Wait until the worker pool is in the given state (jobs running, jobs queued).

@@ -230,20 +230,7 @@ pub fn evaluate_in_process(
     let report = eval::run(
         scenes,
         opts,
-        &mut |q| {
-            let l = pipeline.localize(q)?;
-            Ok(Answer {
-                status: Some(l.status),
-                pose: l.pose,
-                retrieved: l
-                    .retrieved
-                    .iter()
-                    .map(|h| map.images[h.id].id.clone())
-                    .collect(),
-                matched: l.image.map(|i| map.images[i].id.clone()),
-                times: l.times,
-            })
-        },
+        &mut |q| Ok(Answer::of(&pipeline.localize(q)?, &map)),
         &mut |done, total| {
             pb.set_length(total as u64);
             pb.set_position(done as u64);

@@ -55,3 +55,42 @@ pub fn run_python(script: &str, args: &[&std::ffi::OsStr]) -> String {
     );
     String::from_utf8(out.stdout).expect("utf-8 output")
 }
+
+/// The committed ONNX models.
+pub fn models() -> PathBuf {
+    workspace_root().join("models")
+}
+
+/// Generate one synthetic scene (`synth000`) of `points` Points with `queries` query draws each into
+/// `root`, and list it.
+pub fn synthetic_dataset(
+    root: &std::path::Path,
+    points: usize,
+    queries: usize,
+    seed: u64,
+) -> pntr_dataset::DatasetIndex {
+    let cfg = pntr_synth::SynthConfig {
+        points_per_scene: points,
+        queries_per_point: queries,
+        seed,
+        ..Default::default()
+    };
+    pntr_synth::synthesize(&cfg, root, pntr_synth::plan_all(&cfg), &|| {}).expect("synthesize");
+    pntr_dataset::DatasetIndex::open(root).expect("list the generated dataset")
+}
+
+/// Build the map `map_id` of every scene of `index` with the named preset and the committed models.
+pub fn build_map(
+    index: &pntr_dataset::DatasetIndex,
+    preset: &str,
+    map_id: &str,
+) -> pntr_pipeline::map::Map {
+    let preset = pntr_pipeline::preset::Preset::named(preset).expect("preset");
+    let stage = preset
+        .feature_config(models())
+        .build()
+        .expect("models load");
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    pntr_pipeline::map::build(map_id, &scenes, &preset, &stage, &models(), &mut |_, _| {})
+        .expect("map builds")
+}

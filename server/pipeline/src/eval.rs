@@ -48,6 +48,23 @@ pub struct Answer {
     pub times: StageTimes,
 }
 
+impl Answer {
+    /// The answer of the in-process pipeline, with map indices turned into image ids.
+    pub fn of(l: &crate::pipeline::Localization, map: &crate::map::Map) -> Self {
+        Self {
+            status: Some(l.status),
+            pose: l.pose,
+            retrieved: l
+                .retrieved
+                .iter()
+                .map(|h| map.images[h.id].id.clone())
+                .collect(),
+            matched: l.image.map(|i| map.images[i].id.clone()),
+            times: l.times,
+        }
+    }
+}
+
 /// Translation (m) and rotation (deg) error of `est` against `gt`, both `world_from_camera` in Habitat
 /// axes. `legacy`: the published code's folded angle with the axes mismatch.
 pub fn pose_error(est: &Isometry3<f64>, gt: &Isometry3<f64>, legacy: bool) -> (f64, f64) {
