@@ -241,3 +241,176 @@ fn map_files_never_panic_the_loader() {
         load(&c);
     });
 }
+
+/// A small Point file (2 database views with labels, 1 query, 8x6 pixels) so that mutations land in
+/// HDF5 metadata (superblock, object headers, B-trees, heaps, filter messages) rather than pixels.
+fn small_point(path: &Path, gzip: Option<u8>) -> Vec<u8> {
+    let (w, h) = (8u32, 6u32);
+    let view = |k: u32, labels: bool| pntr_dataset::View {
+        world_from_camera: nalgebra::Isometry3::translation(k as f64, 0.0, 1.0),
+        rgb: pntr_core::RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * k) as u8).collect())
+            .unwrap(),
+        depth: pntr_core::DepthMap {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| 0.5 + (i % 5) as f32 * 0.3).collect(),
+        },
+        semantic: labels
+            .then(|| pntr_core::LabelMap::new(w, h, (0..w * h).map(|i| i % 3).collect()).unwrap()),
+    };
+    let record = pntr_dataset::PointRecord {
+        db: vec![view(1, true), view(2, true)],
+        queries: vec![view(3, false)],
+        instance_categories: Some(vec![0, 4, 7]),
+    };
+    pntr_dataset::write_point(
+        path,
+        &record,
+        &pntr_dataset::WriteOptions { gzip_level: gzip },
+    )
+    .unwrap();
+    std::fs::read(path).unwrap()
+}
+
+/// What the reader child process made of one file.
+#[derive(Debug, PartialEq)]
+enum Verdict {
+    /// Read completely.
+    Read,
+    /// Refused with an error.
+    Refused,
+    /// The HDF5 C library crashed, and the process said which file and field before dying.
+    LibraryCrashNamed,
+}
+
+/// The reader child process (`pntr-h5-fuzz-target`): one path in, one verdict out. Restarted after a
+/// crash.
+struct H5Child {
+    child: std::process::Child,
+    stdin: std::process::ChildStdin,
+    answers: std::sync::mpsc::Receiver<String>,
+    stderr: PathBuf,
+    dir: PathBuf,
+    starts: usize,
+}
+
+impl H5Child {
+    fn start(dir: &Path, starts: usize) -> Self {
+        use std::io::BufRead;
+        use std::process::{Command, Stdio};
+        let stderr = dir.join(format!("child-{starts}.log"));
+        let mut child = Command::new(env!("CARGO_BIN_EXE_pntr-h5-fuzz-target"))
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&stderr).unwrap())
+            .spawn()
+            .expect("start pntr-h5-fuzz-target");
+        let stdin = child.stdin.take().unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let (tx, answers) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Self {
+            child,
+            stdin,
+            answers,
+            stderr,
+            dir: dir.to_path_buf(),
+            starts: starts + 1,
+        }
+    }
+
+    /// Send one path. `Err` describes a failure the product must not have: a hang, a panic, or a
+    /// crash that did not name the file.
+    fn read(&mut self, path: &Path) -> Result<Verdict, String> {
+        use std::io::Write;
+        use std::sync::mpsc::RecvTimeoutError;
+        let sent = writeln!(self.stdin, "{}", path.display()).and_then(|_| self.stdin.flush());
+        let answer = match sent {
+            Ok(()) => self.answers.recv_timeout(Duration::from_secs(30)),
+            Err(_) => Err(RecvTimeoutError::Disconnected),
+        };
+        match answer.as_deref() {
+            Ok("ok") => return Ok(Verdict::Read),
+            Ok("err") => return Ok(Verdict::Refused),
+            _ => {}
+        }
+        let _ = self.child.kill();
+        let status = self.child.wait().ok();
+        let log = std::fs::read_to_string(&self.stderr).unwrap_or_default();
+        let named = log.contains("pntr: the HDF5 library crashed while reading `")
+            && log.contains(&path.display().to_string());
+        let signalled = {
+            use std::os::unix::process::ExitStatusExt;
+            status.is_some_and(|s| s.signal().is_some())
+        };
+        let verdict = if named && signalled && answer.is_err() {
+            Ok(Verdict::LibraryCrashNamed)
+        } else {
+            let tail: Vec<&str> = log.lines().rev().take(8).collect();
+            Err(format!(
+                "answer {answer:?}, exit {status:?}, stderr tail:\n{}",
+                tail.join("\n")
+            ))
+        };
+        *self = H5Child::start(&self.dir.clone(), self.starts);
+        verdict
+    }
+}
+
+impl Drop for H5Child {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[test]
+fn hdf5_points_never_crash_the_reader_unexplained() {
+    let dir = tempfile::tempdir().unwrap();
+    let seeds = vec![
+        small_point(&dir.path().join("gzip.hdf5"), Some(1)),
+        small_point(&dir.path().join("plain.hdf5"), None),
+    ];
+    let child = std::cell::RefCell::new(H5Child::start(dir.path(), 0));
+    // The unmutated seeds must read back: otherwise every mutation would be refused for one reason.
+    for name in ["gzip.hdf5", "plain.hdf5"] {
+        let verdict = child.borrow_mut().read(&dir.path().join(name));
+        assert_eq!(verdict, Ok(Verdict::Read), "seed {name}");
+    }
+    // Kept inputs: those that crashed HDF5 before the reader's structural checks must now be
+    // refused; those that crash inside HDF5 where no check can reach (`hdf5-lib-*`) must at least
+    // name the file as the process dies.
+    for p in corpus("hdf5") {
+        let name = p.file_name().unwrap().to_string_lossy().to_string();
+        let verdict = child.borrow_mut().read(&p);
+        if name.starts_with("hdf5-lib-") {
+            assert!(verdict.is_ok(), "{name}: {verdict:?}");
+        } else {
+            assert_eq!(verdict, Ok(Verdict::Refused), "{name}");
+        }
+    }
+    let path = dir.path().join("mutated.hdf5");
+    let verdicts = std::cell::RefCell::new([0usize; 3]);
+    fuzz("hdf5", &seeds, 5000, &|b| {
+        std::fs::write(&path, b).unwrap();
+        let verdict = child.borrow_mut().read(&path);
+        match verdict {
+            Ok(v) => verdicts.borrow_mut()[v as usize] += 1,
+            Err(e) => panic!("the HDF5 reader failed without naming the file: {e}"),
+        }
+    });
+    let [read, refused, named] = *verdicts.borrow();
+    eprintln!(
+        "hdf5: {read} mutated files read, {refused} refused with an error, \
+         {named} crashed inside libhdf5 naming the file"
+    );
+    // Both outcomes must occur, or the mutations are not reaching the reader.
+    assert!(read > 0 && refused > 0, "read {read}, refused {refused}");
+}

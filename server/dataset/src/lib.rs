@@ -13,17 +13,22 @@
 //! - The writer produces what h5py produces by default (no "latest" file format), so the files open
 //!   with h5py and with the HPointLoc code exactly like the real dataset, and it writes to a temporary
 //!   name and renames, so an interrupted write never leaves a half file under the final name.
+//! - HDF5 1.10 crashes on some damaged files instead of returning an error (found by fuzzing): the
+//!   reader checks each dataset's storage (sizes, chunk shapes and positions) before reading, and
+//!   every HDF5 call runs with a note naming the file and field that a fatal-signal handler prints,
+//!   so a crash that slips through still says which file to replace (`last_words`).
 //! - Poses come out as `world_from_camera` in Habitat camera axes, exactly as stored; conversion to
 //!   OpenCV axes is an explicit call into `pntr_core`.
 
 mod error;
+mod last_words;
 pub mod layout;
 mod reader;
 mod writer;
 
 pub use error::DatasetError;
 pub use layout::{DatasetIndex, PointEntry, SceneEntry};
-pub use reader::PointReader;
+pub use reader::{PointReader, MAX_IMAGE_SIDE, MAX_VIEWS};
 pub use writer::{write_point, WriteOptions};
 
 use nalgebra::Isometry3;

@@ -2,12 +2,25 @@
 
 use std::path::{Path, PathBuf};
 
+use hdf5::dataset::Layout;
 use hdf5::types::{FloatSize, IntSize, TypeDescriptor};
 use nalgebra::Isometry3;
 use ndarray::{s, Array2, ArrayD};
 use pntr_core::{pose_from_hpointloc, DepthMap, LabelMap, RgbImage};
 
+use crate::last_words::h5;
 use crate::{DatasetError, PointRecord, Role, View};
+
+/// Largest image side accepted (pixels). HPointLoc frames are 256x256; a header claiming more than
+/// this is corrupt or not HPointLoc, and refusing it keeps a damaged file from asking for gigabytes.
+pub const MAX_IMAGE_SIDE: usize = 8192;
+
+/// Most views of one role accepted in one Point file (HPointLoc has 6 database views and a few dozen
+/// queries per Point). Poses are read eagerly, so this bounds what opening a file allocates.
+pub const MAX_VIEWS: usize = 100_000;
+
+/// Longest instance-to-category table accepted (one byte per instance id).
+const MAX_INSTANCES: usize = 1 << 24;
 
 /// What element type a field must have.
 #[derive(Clone, Copy)]
@@ -65,9 +78,11 @@ impl PointReader {
                 message: "no such file".into(),
             });
         }
-        let file = hdf5::File::open(path).map_err(|e| DatasetError::Open {
-            path: path.to_path_buf(),
-            message: e.to_string(),
+        let file = h5(path, "the file's structure", || hdf5::File::open(path)).map_err(|e| {
+            DatasetError::Open {
+                path: path.to_path_buf(),
+                message: e.to_string(),
+            }
         })?;
         let mut size: Option<(usize, usize)> = None;
         let db = Self::validate_role(path, &file, Role::Database, &mut size)?;
@@ -84,7 +99,7 @@ impl PointReader {
     }
 
     fn dataset(path: &Path, file: &hdf5::File, field: &str) -> Result<hdf5::Dataset, DatasetError> {
-        file.dataset(field)
+        h5(path, field, || file.dataset(field))
             .map_err(|_| DatasetError::field(path, field, "missing"))
     }
 
@@ -94,9 +109,7 @@ impl PointReader {
         field: &str,
         expect: Expect,
     ) -> Result<(), DatasetError> {
-        let desc = ds
-            .dtype()
-            .and_then(|t| t.to_descriptor())
+        let desc = h5(path, field, || ds.dtype().and_then(|t| t.to_descriptor()))
             .map_err(|e| DatasetError::field(path, field, format!("unreadable dtype: {e}")))?;
         let ok = match expect {
             Expect::U8 => matches!(desc, TypeDescriptor::Unsigned(IntSize::U1)),
@@ -121,6 +134,88 @@ impl PointReader {
                 field,
                 format!("dtype is {desc:?}, expected {want}"),
             ));
+        }
+        h5(path, field, || Self::check_storage(path, ds, field))
+    }
+
+    /// Structural checks HDF5 1.10 leaves out and crashes without (both found by fuzzing): the bytes a
+    /// compact or contiguous dataset stores must be exactly what its shape and type need and lie
+    /// inside the file; every chunk of a chunked dataset must start on a chunk boundary inside the
+    /// extent and lie inside the file. A file failing them is refused before any data is read.
+    fn check_storage(path: &Path, ds: &hdf5::Dataset, field: &str) -> Result<(), DatasetError> {
+        let bad = |problem: String| DatasetError::field(path, field, problem);
+        let file_len = std::fs::metadata(path)
+            .map_err(|e| bad(format!("cannot stat the file: {e}")))?
+            .len();
+        let elem = ds
+            .dtype()
+            .map_err(|e| bad(format!("unreadable dtype: {e}")))?
+            .size() as u64;
+        let shape = ds.shape();
+        let need = shape
+            .iter()
+            .try_fold(elem, |acc, &d| acc.checked_mul(d as u64))
+            .ok_or_else(|| bad(format!("shape {shape:?} overflows")))?;
+        match ds.layout() {
+            Layout::Compact | Layout::Contiguous => {
+                let stored = ds.storage_size();
+                if stored != need {
+                    return Err(bad(format!(
+                        "stores {stored} bytes where shape {shape:?} needs {need}: damaged file"
+                    )));
+                }
+                if let Some(offset) = ds.offset() {
+                    if offset.checked_add(stored).is_none_or(|end| end > file_len) {
+                        return Err(bad(format!(
+                            "data at byte {offset} (+{stored}) lies past the end of the file ({file_len} bytes)"
+                        )));
+                    }
+                }
+            }
+            Layout::Chunked => {
+                let chunk = ds.chunk().unwrap_or_default();
+                // A fixed-size dataset's chunks may not exceed its extent (HDF5's own rule, which
+                // 1.10 does not re-check when reading: a chunk of [1, 6, 8, 1025] over [2, 6, 8, 1]
+                // made it copy past its buffer).
+                let fits =
+                    ds.is_resizable() || chunk.iter().zip(&shape).all(|(&c, &d)| c <= d.max(1));
+                if chunk.len() != shape.len() || chunk.contains(&0) || !fits {
+                    return Err(bad(format!(
+                        "chunk shape {chunk:?} does not fit shape {shape:?}: damaged file"
+                    )));
+                }
+                let most: usize = shape
+                    .iter()
+                    .zip(&chunk)
+                    .map(|(d, c)| d.div_ceil(*c))
+                    .product();
+                let count = ds.num_chunks().unwrap_or(0);
+                if count > most {
+                    return Err(bad(format!("{count} chunks where the shape allows {most}")));
+                }
+                for i in 0..count {
+                    let info = ds
+                        .chunk_info(i)
+                        .ok_or_else(|| bad(format!("chunk {i} is unreadable")))?;
+                    let aligned = info
+                        .offset
+                        .iter()
+                        .zip(shape.iter().zip(&chunk))
+                        .all(|(&o, (&d, &c))| (o as usize) < d && (o as usize) % c == 0);
+                    let inside = info
+                        .addr
+                        .checked_add(info.size)
+                        .is_some_and(|end| end <= file_len);
+                    if info.offset.len() != shape.len() || !aligned || !inside {
+                        return Err(bad(format!(
+                            "chunk {i} (offset {:?}, {} bytes at {}) is outside the dataset or the file",
+                            info.offset, info.size, info.addr
+                        )));
+                    }
+                }
+            }
+            #[allow(unreachable_patterns)]
+            other => return Err(bad(format!("unsupported storage layout {other:?}"))),
         }
         Ok(())
     }
@@ -148,6 +243,16 @@ impl PointReader {
             ));
         }
         let (n, h, w) = (shape[0], shape[1], shape[2]);
+        if h > MAX_IMAGE_SIDE || w > MAX_IMAGE_SIDE || n > MAX_VIEWS {
+            return Err(DatasetError::field(
+                path,
+                &f_rgb,
+                format!(
+                    "shape {shape:?} is beyond the reader's limits ({MAX_VIEWS} views, \
+                     {MAX_IMAGE_SIDE} pixels a side): the file is damaged or not HPointLoc"
+                ),
+            ));
+        }
         match size {
             Some((sh, sw)) if (*sh, *sw) != (h, w) => {
                 return Err(DatasetError::field(
@@ -174,7 +279,7 @@ impl PointReader {
             }
         };
 
-        let (has_semantic, semantic_has_channel) = match file.dataset(&f_sem) {
+        let (has_semantic, semantic_has_channel) = match h5(path, &f_sem, || file.dataset(&f_sem)) {
             Err(_) => (false, false),
             Ok(sem) => {
                 Self::check_dtype(path, &sem, &f_sem, Expect::Int)?;
@@ -233,7 +338,7 @@ impl PointReader {
                 format!("shape {shape:?}, expected ({rows}, {cols})"),
             ));
         }
-        ds.read_2d::<f64>().map_err(h5err(path, field))
+        h5(path, field, || ds.read_2d::<f64>()).map_err(h5err(path, field))
     }
 
     /// The file this reader reads.
@@ -269,14 +374,11 @@ impl PointReader {
     }
 
     fn read_frame<T: hdf5::H5Type>(&self, field: &str, i: usize) -> Result<Vec<T>, DatasetError> {
-        let ds = self
-            .file
-            .dataset(field)
-            .map_err(|_| DatasetError::field(&self.path, field, "missing"))?;
-        let arr: ArrayD<T> = match ds.ndim() {
+        let ds = Self::dataset(&self.path, &self.file, field)?;
+        let arr: ArrayD<T> = h5(&self.path, field, || match ds.ndim() {
             3 => ds.read_slice(s![i, .., ..]),
             _ => ds.read_slice(s![i, .., .., ..]),
-        }
+        })
         .map_err(h5err(&self.path, field))?;
         let (v, _) = arr.into_raw_vec_and_offset();
         Ok(v)
@@ -322,18 +424,24 @@ impl PointReader {
     /// The instance-to-category table (`semantic_category`), if the file has one.
     pub fn instance_categories(&self) -> Result<Option<Vec<u8>>, DatasetError> {
         let field = "semantic_category";
-        match self.file.dataset(field) {
+        match h5(&self.path, field, || self.file.dataset(field)) {
             Err(_) => Ok(None),
             Ok(ds) => {
                 Self::check_dtype(&self.path, &ds, field, Expect::U8)?;
-                if ds.ndim() != 1 {
+                if ds.ndim() != 1 || ds.size() > MAX_INSTANCES {
                     return Err(DatasetError::field(
                         &self.path,
                         field,
-                        format!("shape {:?}, expected one dimension", ds.shape()),
+                        format!(
+                            "shape {:?}, expected one dimension of at most {MAX_INSTANCES}",
+                            ds.shape()
+                        ),
                     ));
                 }
-                Ok(Some(ds.read_raw::<u8>().map_err(h5err(&self.path, field))?))
+                Ok(Some(
+                    h5(&self.path, field, || ds.read_raw::<u8>())
+                        .map_err(h5err(&self.path, field))?,
+                ))
             }
         }
     }

@@ -31,6 +31,10 @@ pub const DEFAULT_METRICS_ADDR: &str = "127.0.0.1:9464";
 /// Default maximum size of one gRPC message (a 4096 x 4096 raw RGB frame with float depth is 112 MiB,
 /// a 640 x 480 one 2 MiB).
 pub const DEFAULT_MAX_MESSAGE_BYTES: usize = 16 << 20;
+/// Default most concurrent RPCs per client connection (HTTP/2 SETTINGS_MAX_CONCURRENT_STREAMS). A robot
+/// needs one; a load balancer multiplexing many robots needs more. The request queue bounds the work
+/// either way; this bounds what one connection can hold open.
+pub const DEFAULT_MAX_STREAMS_PER_CONNECTION: u32 = 64;
 /// Default largest accepted image side.
 pub const DEFAULT_MAX_IMAGE_SIDE: u32 = 4096;
 /// Default time in-flight requests get to finish after SIGTERM/SIGINT.
@@ -70,6 +74,10 @@ pub struct Args {
     /// Largest gRPC message accepted or sent, bytes [default: 16 MiB].
     #[arg(long, env = "PNTR_MAX_MESSAGE_BYTES")]
     pub max_message_bytes: Option<usize>,
+    /// Most concurrent RPCs (HTTP/2 streams) one client connection may have open; further calls wait
+    /// in the client until one ends [default: 64].
+    #[arg(long, env = "PNTR_MAX_STREAMS_PER_CONNECTION")]
+    pub max_streams_per_connection: Option<u32>,
     /// Largest accepted image width [default: 4096].
     #[arg(long, env = "PNTR_MAX_IMAGE_WIDTH")]
     pub max_image_width: Option<u32>,
@@ -125,6 +133,7 @@ struct FileSettings {
     workers: Option<usize>,
     queue: Option<usize>,
     max_message_bytes: Option<usize>,
+    max_streams_per_connection: Option<u32>,
     max_image_width: Option<u32>,
     max_image_height: Option<u32>,
     ort_threads: Option<usize>,
@@ -186,6 +195,8 @@ pub struct Settings {
     pub queue: usize,
     /// Largest gRPC message, bytes.
     pub max_message_bytes: usize,
+    /// Most concurrent HTTP/2 streams per client connection.
+    pub max_streams_per_connection: u32,
     /// Largest image width.
     pub max_image_width: u32,
     /// Largest image height.
@@ -212,6 +223,10 @@ impl std::fmt::Debug for Settings {
             .field("workers", &self.workers)
             .field("queue", &self.queue)
             .field("max_message_bytes", &self.max_message_bytes)
+            .field(
+                "max_streams_per_connection",
+                &self.max_streams_per_connection,
+            )
             .field("max_image_width", &self.max_image_width)
             .field("max_image_height", &self.max_image_height)
             .field("ort_threads", &self.ort_threads)
@@ -243,6 +258,7 @@ impl Settings {
             workers,
             queue: 4 * workers,
             max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
+            max_streams_per_connection: DEFAULT_MAX_STREAMS_PER_CONNECTION,
             max_image_width: DEFAULT_MAX_IMAGE_SIDE,
             max_image_height: DEFAULT_MAX_IMAGE_SIDE,
             ort_threads: 1,
@@ -312,6 +328,10 @@ impl Settings {
                 .max_message_bytes
                 .or(file.max_message_bytes)
                 .unwrap_or(DEFAULT_MAX_MESSAGE_BYTES),
+            max_streams_per_connection: args
+                .max_streams_per_connection
+                .or(file.max_streams_per_connection)
+                .unwrap_or(DEFAULT_MAX_STREAMS_PER_CONNECTION),
             max_image_width: args
                 .max_image_width
                 .or(file.max_image_width)
@@ -373,6 +393,12 @@ impl Settings {
             return bad(format!(
                 "--max-message-bytes must be between 1024 and 1073741824, not {}",
                 self.max_message_bytes
+            ));
+        }
+        if !(1..=10_000).contains(&self.max_streams_per_connection) {
+            return bad(format!(
+                "--max-streams-per-connection must be 1 to 10000, not {}",
+                self.max_streams_per_connection
             ));
         }
         for (name, v) in [

@@ -312,7 +312,8 @@ struct Busy<'a>(&'a AtomicUsize);
 
 impl Drop for Busy<'_> {
     fn drop(&mut self) {
-        self.0.fetch_sub(1, Ordering::SeqCst);
+        let n = self.0.fetch_sub(1, Ordering::SeqCst).saturating_sub(1);
+        metrics::gauge!(telemetry::BUSY_WORKERS).set(n as f64);
     }
 }
 
@@ -330,7 +331,8 @@ fn worker(
         let Ok(job) = job else {
             return; // closed and drained
         };
-        busy.fetch_add(1, Ordering::SeqCst);
+        let b = busy.fetch_add(1, Ordering::SeqCst) + 1;
+        metrics::gauge!(telemetry::BUSY_WORKERS).set(b as f64);
         let guard = Busy(&busy);
         let n = queued.fetch_sub(1, Ordering::SeqCst).saturating_sub(1);
         metrics::gauge!(telemetry::QUEUE_DEPTH).set(n as f64);
@@ -343,11 +345,39 @@ fn worker(
             reply,
         } = job;
         let outcome = span.in_scope(|| run(&pipelines[map], &query, deadline, enqueued, &reply));
+        // Stage times are recorded here, for every frame a worker localized, whether or not its
+        // caller is still there to hear the answer: they describe the work done.
+        if let Some(Outcome::Done {
+            result: Ok(loc),
+            queued,
+        }) = &outcome
+        {
+            record_stages(loc, *queued);
+        }
         // The worker counts as free before the caller hears back.
         drop(guard);
         if let Some(o) = outcome {
             let _ = reply.send(o);
         }
+    }
+}
+
+/// Seconds per stage of one localized frame, in the order the response lists them.
+pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f64); 6] {
+    let t = &loc.times;
+    [
+        ("queue", queued.as_secs_f64()),
+        ("extraction", t.extraction),
+        ("retrieval", t.retrieval),
+        ("matching", t.matching),
+        ("registration", t.registration),
+        ("total", t.total),
+    ]
+}
+
+fn record_stages(loc: &Localization, queued: Duration) {
+    for (stage, s) in stage_seconds(loc, queued) {
+        metrics::histogram!(telemetry::STAGE_DURATION, "stage" => stage).record(s);
     }
 }
 

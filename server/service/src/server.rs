@@ -175,7 +175,8 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
         .build_v1()
         .map_err(|e| ServerError::Serve(format!("reflection: {e}")))?;
 
-    let mut builder = Server::builder();
+    let mut builder =
+        Server::builder().max_concurrent_streams(Some(settings.max_streams_per_connection));
     if let Some(tls) = tls {
         builder = builder
             .tls_config(tls)

@@ -183,19 +183,31 @@ pub fn code_name(code: Code) -> &'static str {
     }
 }
 
-/// Keeps `pntr_in_flight_requests` right on every exit path, cancellation included.
-struct InFlight;
+/// Keeps `pntr_in_flight_requests` right on every exit path, and counts a request whose caller went
+/// away before the answer (tonic drops the handler's future) as `ERROR`/`CANCELLED`.
+struct InFlight {
+    counted: bool,
+}
 
 impl InFlight {
     fn new() -> Self {
         metrics::gauge!(IN_FLIGHT).increment(1.0);
-        Self
+        Self { counted: false }
+    }
+
+    fn count(&mut self, status: &'static str, code: Code) {
+        count(status, code);
+        self.counted = true;
     }
 }
 
 impl Drop for InFlight {
     fn drop(&mut self) {
         metrics::gauge!(IN_FLIGHT).decrement(1.0);
+        if !self.counted {
+            count("ERROR", Code::Cancelled);
+            tracing::info!("the caller went away before the answer");
+        }
     }
 }
 
@@ -218,14 +230,20 @@ impl LocalizerService {
         request_id: String,
         deadline: Option<Instant>,
     ) -> Result<proto::LocalizeResponse, Status> {
-        let _in_flight = InFlight::new();
+        let mut in_flight = InFlight::new();
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
-        let result = self.run(msg, deadline, span.clone()).instrument(span).await;
+        let result = self
+            .run(msg, deadline, span.clone())
+            .instrument(span.clone())
+            .await;
+        let _entered = span.enter();
         match &result {
-            Ok(r) if r.status == proto::Status::Localized as i32 => count("LOCALIZED", Code::Ok),
-            Ok(_) => count("NOT_LOCALIZED", Code::Ok),
+            Ok(r) if r.status == proto::Status::Localized as i32 => {
+                in_flight.count("LOCALIZED", Code::Ok)
+            }
+            Ok(_) => in_flight.count("NOT_LOCALIZED", Code::Ok),
             Err(e) => {
-                count("ERROR", e.code());
+                in_flight.count("ERROR", e.code());
                 if e.code() == Code::Internal {
                     tracing::error!(code = ?e.code(), message = e.message(), "request failed");
                 } else {
@@ -301,17 +319,7 @@ impl LocalizerService {
             }
         };
         let t = &loc.times;
-        let stages = [
-            ("queue", queued.as_secs_f64()),
-            ("extraction", t.extraction),
-            ("retrieval", t.retrieval),
-            ("matching", t.matching),
-            ("registration", t.registration),
-            ("total", t.total),
-        ];
-        for (stage, s) in stages {
-            metrics::histogram!(STAGE_DURATION, "stage" => stage).record(s);
-        }
+        let stages = crate::engine::stage_seconds(&loc, queued);
         let m = &engine.maps[map].map;
         let localized = loc.status == pntr_pipeline::pipeline::Status::Localized;
         let matched = loc.image.filter(|_| localized).map(|i| &m.images[i]);

@@ -23,6 +23,8 @@ pub const REQUESTS_TOTAL: &str = "pntr_requests_total";
 pub const IN_FLIGHT: &str = "pntr_in_flight_requests";
 /// Gauge of requests waiting for a worker.
 pub const QUEUE_DEPTH: &str = "pntr_queue_depth";
+/// Gauge of workers running the pipeline now (work outlives a caller that left; this shows it end).
+pub const BUSY_WORKERS: &str = "pntr_busy_workers";
 /// Gauge of database images per loaded map (`map_id`).
 pub const MAP_IMAGES: &str = "pntr_map_images";
 
@@ -54,10 +56,12 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
             );
             metrics::describe_gauge!(IN_FLIGHT, "Requests being handled (queued or running)");
             metrics::describe_gauge!(QUEUE_DEPTH, "Requests waiting for a worker");
+            metrics::describe_gauge!(BUSY_WORKERS, "Workers running the pipeline");
             metrics::describe_gauge!(MAP_IMAGES, "Database images of each loaded map");
             // Register the series so a scrape shows them before the first request.
             metrics::gauge!(IN_FLIGHT).set(0.0);
             metrics::gauge!(QUEUE_DEPTH).set(0.0);
+            metrics::gauge!(BUSY_WORKERS).set(0.0);
             metrics::counter!(REQUESTS_TOTAL, "status" => "LOCALIZED", "code" => "OK").absolute(0);
             Ok(handle)
         })

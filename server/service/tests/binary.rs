@@ -63,19 +63,16 @@ fn scrape(addr: SocketAddr) -> String {
     out
 }
 
-#[cfg(unix)]
-#[test]
-fn sigterm_drains_in_flight_and_exits_zero() {
-    let dir = tempfile::tempdir().unwrap();
-    let (db, query) = common::demo_map(dir.path());
-
+/// Start `pntr-server` on `db` with ephemeral ports and `extra` flags; returns it with its gRPC and
+/// metrics addresses (read from the line it prints).
+fn spawn(db: &std::path::Path, extra: &[&str]) -> (std::process::Child, SocketAddr, SocketAddr) {
     let mut child = Command::new(BIN)
         .arg("--db")
-        .arg(&db)
+        .arg(db)
         .arg("--models")
         .arg(models())
         .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
-        .args(["--workers", "1", "--drain-timeout-s", "60"])
+        .args(extra)
         .env("PNTR_LOG", "warn")
         .stdout(Stdio::piped())
         .spawn()
@@ -91,33 +88,133 @@ fn sigterm_drains_in_flight_and_exits_zero() {
     let addr: SocketAddr = words[3].parse().unwrap();
     let metrics: SocketAddr = words[6].parse().unwrap();
     assert_ne!(addr.port(), 0);
+    (child, addr, metrics)
+}
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()
-        .unwrap();
+        .unwrap()
+}
+
+/// Poll health until SERVING.
+async fn wait_serving(url: &str) {
+    let t = Instant::now();
+    loop {
+        let channel = pntr_service::tonic::transport::Endpoint::from_shared(url.to_string())
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let s = HealthClient::new(channel)
+            .check(HealthCheckRequest::default())
+            .await
+            .unwrap()
+            .into_inner()
+            .status;
+        if s == ServingStatus::Serving as i32 {
+            return;
+        }
+        assert!(t.elapsed() < Duration::from_secs(120), "never SERVING");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+fn gauge(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(name))
+        .and_then(|l| l.split_whitespace().last())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(f64::NAN)
+}
+
+/// Fire `n` requests at once, spread over `channels` connections, and return the most requests the
+/// server held at any time (its in-flight gauge, polled) and how many were answered.
+async fn burst(
+    url: &str,
+    metrics: SocketAddr,
+    channels: usize,
+    n: usize,
+    req: &pntr_service::proto::LocalizeRequest,
+) -> (f64, usize) {
+    let mut clients = Vec::new();
+    for _ in 0..channels {
+        clients.push(LocalizerClient::connect(url.to_string()).await.unwrap());
+    }
+    let mut calls = tokio::task::JoinSet::new();
+    for i in 0..n {
+        let (mut c, r) = (clients[i % channels].clone(), req.clone());
+        calls.spawn(async move { c.localize(r).await.map(|_| ()) });
+    }
+    let (mut peak, mut answered) = (0.0f64, 0);
+    while !calls.is_empty() {
+        peak = peak.max(gauge(&scrape(metrics), "pntr_in_flight_requests"));
+        while let Some(done) = calls.try_join_next() {
+            match done.unwrap() {
+                Ok(()) => answered += 1,
+                Err(e) => eprintln!("call failed: {e:?}"),
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    (peak, answered)
+}
+
+#[test]
+fn one_connection_holds_at_most_max_streams_per_connection() {
+    let dir = tempfile::tempdir().unwrap();
+    let (db, query) = common::demo_map(dir.path());
+    let (child, addr, metrics) = spawn(
+        &db,
+        &[
+            "--workers",
+            "2",
+            "--queue",
+            "32",
+            "--max-streams-per-connection",
+            "2",
+        ],
+    );
+    let _server = KillOnDrop(child);
+    let req = wire::raw_request(&query.rgb, &query.depth, None);
+    runtime().block_on(async {
+        let url = format!("http://{addr}");
+        wait_serving(&url).await;
+        // Eight calls on one connection: the client waits for stream credit, so the server never
+        // holds more than two of them, and all eight are answered.
+        let (peak, ok) = burst(&url, metrics, 1, 8, &req).await;
+        assert_eq!(ok, 8);
+        assert!(peak <= 2.0, "one connection held {peak} requests at once");
+        // The limit is per connection: over four connections the same burst is held at once.
+        let (peak, ok) = burst(&url, metrics, 4, 8, &req).await;
+        assert_eq!(ok, 8);
+        assert!(peak > 2.0, "four connections never held more than {peak}");
+    });
+}
+
+/// Stops a server child however the test ends.
+struct KillOnDrop(std::process::Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+#[cfg(unix)]
+#[test]
+fn sigterm_drains_in_flight_and_exits_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let (db, query) = common::demo_map(dir.path());
+
+    let (mut child, addr, metrics) = spawn(&db, &["--workers", "1", "--drain-timeout-s", "60"]);
+    let rt = runtime();
     rt.block_on(async {
         let url = format!("http://{addr}");
-        let t = Instant::now();
-        loop {
-            let channel = pntr_service::tonic::transport::Endpoint::from_shared(url.clone())
-                .unwrap()
-                .connect()
-                .await
-                .unwrap();
-            let s = HealthClient::new(channel)
-                .check(HealthCheckRequest::default())
-                .await
-                .unwrap()
-                .into_inner()
-                .status;
-            if s == ServingStatus::Serving as i32 {
-                break;
-            }
-            assert!(t.elapsed() < Duration::from_secs(120), "never SERVING");
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
+        wait_serving(&url).await;
         let mut c = LocalizerClient::connect(url).await.unwrap();
         let req = wire::raw_request(&query.rgb, &query.depth, None);
         let in_flight = tokio::spawn(async move { c.localize(req).await });

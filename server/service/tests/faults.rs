@@ -151,8 +151,17 @@ fn gauge(text: &str, name: &str) -> f64 {
         .unwrap_or(f64::NAN)
 }
 
+/// Pipeline runs that finished with an answer recorded (the `total` stage histogram's count).
+fn total_runs(text: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with("pntr_stage_duration_seconds_count{stage=\"total\"}"))
+        .and_then(|l| l.split_whitespace().last())
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or(0.0)
+}
+
 #[test]
-fn clients_that_disconnect_while_queued_leave_no_work_and_right_gauges() {
+fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauges() {
     let dir = tempfile::tempdir().unwrap();
     let (db, query) = common::demo_map(dir.path());
     let mut s = pntr_service::config::Settings::local(vec![db], models());
@@ -221,21 +230,79 @@ fn clients_that_disconnect_while_queued_leave_no_work_and_right_gauges() {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         // At most one of them had started before its client left.
-        let text = scrape(metrics);
-        let runs = text
-            .lines()
-            .find(|l| l.starts_with("pntr_stage_duration_seconds_count{stage=\"total\"}"))
-            .and_then(|l| l.split_whitespace().last())
-            .and_then(|v| v.parse::<f64>().ok())
-            .unwrap();
+        let runs = total_runs(&scrape(metrics));
         assert!(
             runs <= 2.0,
             "{runs} pipeline runs for 1 answered + 6 abandoned requests"
         );
         // And the server keeps answering.
-        let mut again = pntr_service::proto::localizer_client::LocalizerClient::connect(url)
-            .await
-            .unwrap();
+        let mut again =
+            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
+                .await
+                .unwrap();
+        assert!(again.localize(req.clone()).await.is_ok());
+
+        // A client that leaves while its request is *running*: the pipeline cannot be interrupted
+        // mid-frame, so the worker finishes the frame and drops the answer; the gauges return to
+        // zero and the request is counted once, as CANCELLED.
+        let counter = |text: &str, code: &str| {
+            let key = format!("pntr_requests_total{{status=\"ERROR\",code=\"{code}\"}}");
+            text.lines()
+                .find(|l| l.starts_with(&key))
+                .and_then(|l| l.split_whitespace().last())
+                .and_then(|v| v.parse::<f64>().ok())
+                .unwrap_or(0.0)
+        };
+        let wait_busy = |want: f64| async move {
+            let t = Instant::now();
+            while gauge(&scrape(metrics), "pntr_busy_workers") != want {
+                assert!(
+                    t.elapsed() < Duration::from_secs(60),
+                    "busy workers never reached {want}"
+                );
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        };
+        wait_busy(0.0).await;
+        let cancelled_before = counter(&scrape(metrics), "CANCELLED");
+        let runs_before = total_runs(&scrape(metrics));
+        let mut leaving =
+            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
+                .await
+                .unwrap();
+        let r = req.clone();
+        let call = tokio::spawn(async move { leaving.localize(r).await });
+        wait_busy(1.0).await;
+        call.abort();
+        let _ = call.await;
+        wait_for(0.0, false).await;
+        wait_busy(0.0).await;
+        let text = scrape(metrics);
+        assert_eq!(
+            counter(&text, "CANCELLED"),
+            cancelled_before + 1.0,
+            "{text}"
+        );
+        assert_eq!(gauge(&text, "pntr_queue_depth"), 0.0);
+        // The frame was finished, not run twice or left half-done.
+        assert_eq!(total_runs(&text), runs_before + 1.0);
+
+        // A deadline shorter than the work: DEADLINE_EXCEEDED at the deadline, the worker still
+        // frees itself, nothing stays in flight.
+        let mut hurried =
+            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
+                .await
+                .unwrap();
+        let mut r = pntr_service::tonic::Request::new(req.clone());
+        r.set_timeout(Duration::from_millis(15));
+        let e = hurried.localize(r).await.unwrap_err();
+        assert_eq!(
+            e.code(),
+            pntr_service::tonic::Code::DeadlineExceeded,
+            "{e:?}"
+        );
+        wait_for(0.0, false).await;
+        wait_busy(0.0).await;
         assert!(again.localize(req).await.is_ok());
         running.shutdown();
         running.wait().await.unwrap();
