@@ -1,5 +1,6 @@
 //! The `pntr-server` binary itself: refuses bad settings with exit code 2, prints the bound ports on
-//! one stdout line, and on SIGTERM finishes an in-flight request and exits 0.
+//! one stdout line, bounds the streams of one connection, and on SIGTERM refuses new requests,
+//! finishes the ones it holds and exits 0.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::SocketAddr;
@@ -141,7 +142,13 @@ async fn burst(
 ) -> (f64, usize) {
     let mut clients = Vec::new();
     for _ in 0..channels {
-        clients.push(LocalizerClient::connect(url.to_string()).await.unwrap());
+        let mut c = LocalizerClient::connect(url.to_string()).await.unwrap();
+        // One call first, so the server's SETTINGS frame (with its stream limit) has reached the
+        // client: streams opened before that may be refused (REFUSED_STREAM, safe to retry).
+        c.get_map_info(pntr_service::proto::GetMapInfoRequest::default())
+            .await
+            .unwrap();
+        clients.push(c);
     }
     let mut calls = tokio::task::JoinSet::new();
     for i in 0..n {
@@ -206,42 +213,88 @@ impl Drop for KillOnDrop {
 
 #[cfg(unix)]
 #[test]
-fn sigterm_drains_in_flight_and_exits_zero() {
+fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
     let dir = tempfile::tempdir().unwrap();
     let (db, query) = common::demo_map(dir.path());
 
-    let (mut child, addr, metrics) = spawn(&db, &["--workers", "1", "--drain-timeout-s", "60"]);
+    let (child, addr, metrics) = spawn(&db, &["--workers", "1", "--drain-timeout-s", "60"]);
+    let mut server = KillOnDrop(child);
     let rt = runtime();
     rt.block_on(async {
         let url = format!("http://{addr}");
         wait_serving(&url).await;
-        let mut c = LocalizerClient::connect(url).await.unwrap();
+        let c = LocalizerClient::connect(url.clone()).await.unwrap();
         let req = wire::raw_request(&query.rgb, &query.depth, None);
-        let in_flight = tokio::spawn(async move { c.localize(req).await });
-        // Wait until the server holds the request, then ask it to stop.
+        // Five requests held (one running on the only worker, four queued: the default queue is
+        // 4 x workers), then SIGTERM.
+        let mut held = tokio::task::JoinSet::new();
+        for _ in 0..5 {
+            let (mut c, r) = (c.clone(), req.clone());
+            held.spawn(async move { c.localize(r).await });
+        }
         let t = Instant::now();
-        while !scrape(metrics).contains("pntr_in_flight_requests 1") {
+        while gauge(&scrape(metrics), "pntr_in_flight_requests") != 5.0 {
             assert!(
                 t.elapsed() < Duration::from_secs(30),
-                "the request never arrived"
+                "the requests never arrived"
             );
             tokio::time::sleep(Duration::from_millis(1)).await;
         }
         let killed = Command::new("kill")
-            .args(["-TERM", &child.id().to_string()])
+            .args(["-TERM", &server.0.id().to_string()])
             .status()
             .unwrap();
         assert!(killed.success());
-        let r = in_flight
-            .await
-            .unwrap()
-            .expect("the in-flight request is answered during the drain")
-            .into_inner();
-        assert_eq!(r.map_id, "demo");
+        // A new request is refused while those five still drain.
+        let t = Instant::now();
+        let mut answered = Vec::new();
+        loop {
+            let probe = async {
+                let Ok(channel) =
+                    pntr_service::tonic::transport::Endpoint::from_shared(url.clone())
+                        .unwrap()
+                        .connect_timeout(Duration::from_secs(1))
+                        .connect()
+                        .await
+                else {
+                    return true; // the listener is closed
+                };
+                let mut r = pntr_service::tonic::Request::new(req.clone());
+                r.set_timeout(Duration::from_millis(200));
+                matches!(
+                    LocalizerClient::new(channel).localize(r).await,
+                    Err(e) if e.code() == pntr_service::tonic::Code::Unavailable
+                )
+            };
+            let refused = probe.await;
+            while let Some(done) = held.try_join_next() {
+                answered.push(done.unwrap());
+            }
+            if refused {
+                assert!(
+                    !held.is_empty(),
+                    "new requests were refused only after the drain had finished"
+                );
+                break;
+            }
+            assert!(
+                t.elapsed() < Duration::from_secs(10),
+                "new requests still accepted after SIGTERM"
+            );
+        }
+        // And every held request is answered.
+        while let Some(done) = held.join_next().await {
+            answered.push(done.unwrap());
+        }
+        assert_eq!(answered.len(), 5);
+        for r in answered {
+            let r = r.expect("a held request is answered during the drain");
+            assert_eq!(r.into_inner().map_id, "demo");
+        }
     });
     let t = Instant::now();
     let status = loop {
-        if let Some(s) = child.try_wait().unwrap() {
+        if let Some(s) = server.0.try_wait().unwrap() {
             break s;
         }
         assert!(
