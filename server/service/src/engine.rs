@@ -262,14 +262,15 @@ impl Engine {
             return Err(SubmitError::Closed);
         };
         // Count first so a worker that takes the job at once never sees the counter below zero.
-        let n = self.queued.fetch_add(1, Ordering::SeqCst) + 1;
+        // The gauge moves by increments, not by setting a value read earlier: those commute, so a
+        // worker taking the job between the two steps cannot leave a stale depth behind.
+        self.queued.fetch_add(1, Ordering::SeqCst);
+        metrics::gauge!(telemetry::QUEUE_DEPTH).increment(1.0);
         match tx.try_send(job) {
-            Ok(()) => {
-                metrics::gauge!(telemetry::QUEUE_DEPTH).set(n as f64);
-                Ok(())
-            }
+            Ok(()) => Ok(()),
             Err(e) => {
                 self.queued.fetch_sub(1, Ordering::SeqCst);
+                metrics::gauge!(telemetry::QUEUE_DEPTH).decrement(1.0);
                 Err(match e {
                     TrySendError::Full(_) => SubmitError::Full,
                     TrySendError::Disconnected(_) => SubmitError::Closed,
@@ -312,8 +313,8 @@ struct Busy<'a>(&'a AtomicUsize);
 
 impl Drop for Busy<'_> {
     fn drop(&mut self) {
-        let n = self.0.fetch_sub(1, Ordering::SeqCst).saturating_sub(1);
-        metrics::gauge!(telemetry::BUSY_WORKERS).set(n as f64);
+        self.0.fetch_sub(1, Ordering::SeqCst);
+        metrics::gauge!(telemetry::BUSY_WORKERS).decrement(1.0);
     }
 }
 
@@ -331,11 +332,11 @@ fn worker(
         let Ok(job) = job else {
             return; // closed and drained
         };
-        let b = busy.fetch_add(1, Ordering::SeqCst) + 1;
-        metrics::gauge!(telemetry::BUSY_WORKERS).set(b as f64);
+        busy.fetch_add(1, Ordering::SeqCst);
+        metrics::gauge!(telemetry::BUSY_WORKERS).increment(1.0);
         let guard = Busy(&busy);
-        let n = queued.fetch_sub(1, Ordering::SeqCst).saturating_sub(1);
-        metrics::gauge!(telemetry::QUEUE_DEPTH).set(n as f64);
+        queued.fetch_sub(1, Ordering::SeqCst);
+        metrics::gauge!(telemetry::QUEUE_DEPTH).decrement(1.0);
         let Job {
             map,
             query,

@@ -7,8 +7,9 @@
 //! - **Whole map in memory, loaded once.** Maps (`pntr build-db`) and models load at start, in the
 //!   background: the ports are bound first and `grpc.health.v1` says NOT_SERVING until everything is
 //!   loaded, then SERVING ([`server`]).
-//! - **CPU work off the async runtime, bounded.** tonic's runtime only decodes, validates and waits;
-//!   a fixed pool of worker threads, each with its own model sessions, runs the pipeline, fed by a
+//! - **CPU work off the async runtime, bounded.** tonic's runtime only waits; frames are decoded on
+//!   blocking threads, at most max(2, workers) at once (so a huge PNG never stalls health checks, and
+//!   decoded frames waiting for the queue take bounded memory); a fixed pool of worker threads, each with its own model sessions, runs the pipeline, fed by a
 //!   bounded queue. A full queue is RESOURCE_EXHAUSTED at once, not unbounded latency, and client
 //!   deadlines are honoured: work whose deadline passed while queued is dropped, DEADLINE_EXCEEDED
 //!   ([`engine`], [`service`]).

@@ -160,10 +160,13 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
         .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
         .await;
 
-    let state = Arc::new(State::new(Limits {
-        max_width: settings.max_image_width,
-        max_height: settings.max_image_height,
-    }));
+    let state = Arc::new(State::new(
+        Limits {
+            max_width: settings.max_image_width,
+            max_height: settings.max_image_height,
+        },
+        settings.workers.max(2),
+    ));
     let gate = Gate::new(settings.token.as_deref());
     let localizer =
         proto::localizer_server::LocalizerServer::new(LocalizerService::new(state.clone()))

@@ -22,19 +22,25 @@ use crate::proto;
 use crate::telemetry::{IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION};
 use crate::wire;
 
-/// Shared state of the service: the engine once loaded, and the frame limits.
+/// Shared state of the service: the engine once loaded, the frame limits, and the permits for
+/// decoding frames.
 #[derive(Debug)]
 pub struct State {
     engine: OnceLock<Arc<Engine>>,
     limits: Limits,
+    decoders: Arc<tokio::sync::Semaphore>,
 }
 
 impl State {
     /// A state without an engine yet (every Localize answers UNAVAILABLE until [`State::set_engine`]).
-    pub fn new(limits: Limits) -> Self {
+    /// At most `decoders` frames are decoded at once (PNG/JPEG decoding runs on blocking threads, so a
+    /// large frame never stalls the async threads that answer health checks and other calls, and the
+    /// permits bound the memory that decoded frames can take before the queue admits them).
+    pub fn new(limits: Limits, decoders: usize) -> Self {
         Self {
             engine: OnceLock::new(),
             limits,
+            decoders: Arc::new(tokio::sync::Semaphore::new(decoders.max(1))),
         }
     }
 
@@ -264,7 +270,24 @@ impl LocalizerService {
         let map = engine.resolve(&msg.map_id)?;
         let map_id = engine.maps[map].id.clone();
         span.record("map_id", map_id.as_str());
-        let query = decode::query(&msg, &self.state.limits)?;
+        let permit = self
+            .state
+            .decoders
+            .clone()
+            .acquire_owned()
+            .await
+            .map_err(|_| Status::unavailable("the server is shutting down"))?;
+        let limits = self.state.limits;
+        // The permit travels with the decoding, which finishes even if the caller leaves meanwhile.
+        let query = tokio::task::spawn_blocking(move || {
+            let _permit = permit;
+            decode::query(&msg, &limits)
+        })
+        .await
+        .map_err(|e| {
+            tracing::error!(error = %e, "decoding the frame failed");
+            Status::internal("internal error while decoding the frame (logged)")
+        })??;
         let (tx, rx) = oneshot::channel();
         let job = Job {
             map,
