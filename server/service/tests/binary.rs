@@ -2,7 +2,7 @@
 //! one stdout line, bounds the streams of one connection, and on SIGTERM refuses new requests,
 //! finishes the ones it holds and exits 0.
 
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -17,7 +17,7 @@ use pntr_service::wire;
 const BIN: &str = env!("CARGO_BIN_EXE_pntr-server");
 
 mod common;
-use common::models;
+use common::{gauge, models, scrape};
 
 #[test]
 fn bad_settings_exit_2_with_the_reason() {
@@ -54,14 +54,6 @@ fn bad_settings_exit_2_with_the_reason() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/map.pntrmap"));
-}
-
-fn scrape(addr: SocketAddr) -> String {
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out
 }
 
 /// Start `pntr-server` on `db` with ephemeral ports and `extra` flags; returns it with its gRPC and
@@ -121,14 +113,6 @@ async fn wait_serving(url: &str) {
         assert!(t.elapsed() < Duration::from_secs(120), "never SERVING");
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-}
-
-fn gauge(text: &str, name: &str) -> f64 {
-    text.lines()
-        .find(|l| l.starts_with(name))
-        .and_then(|l| l.split_whitespace().last())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(f64::NAN)
 }
 
 /// Fire `n` requests at once, spread over `channels` connections, and return the most requests the

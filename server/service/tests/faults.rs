@@ -15,7 +15,7 @@ use pntr_service::tonic_health::pb::HealthCheckRequest;
 const BIN: &str = env!("CARGO_BIN_EXE_pntr-server");
 
 mod common;
-use common::models;
+use common::{gauge, models, scrape};
 
 /// Start the server, poll health until the process exits; return (exit code, stderr, ever SERVING).
 fn run_until_exit(db: &Path, models: &Path) -> (Option<i32>, String, bool) {
@@ -134,23 +134,6 @@ fn corrupted_maps_and_missing_models_stop_the_server_before_it_serves() {
     assert!(err.contains("xfeat_backbone.onnx"), "{err}");
 }
 
-fn scrape(addr: SocketAddr) -> String {
-    use std::io::{Read, Write};
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out
-}
-
-fn gauge(text: &str, name: &str) -> f64 {
-    text.lines()
-        .find(|l| l.starts_with(name))
-        .and_then(|l| l.split_whitespace().last())
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(f64::NAN)
-}
-
 /// Pipeline runs that finished with an answer recorded (the `total` stage histogram's count).
 fn total_runs(text: &str) -> f64 {
     text.lines()
@@ -178,21 +161,24 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
         let (addr, metrics) = (running.addr, running.metrics_addr);
         let url = format!("http://{addr}");
         let req = pntr_service::wire::raw_request(&query.rgb, &query.depth, None);
-        // Until the in-flight gauge is `want` (or, with `at_least`, at least `want`).
-        let wait_for = |want: f64, at_least: bool| async move {
+        // Until gauge `name` is `want` (or, with `at_least`, at least `want`).
+        let wait_gauge = |name: &'static str, want: f64, at_least: bool| async move {
             let t = Instant::now();
             loop {
-                let g = gauge(&scrape(metrics), "pntr_in_flight_requests");
+                let g = gauge(&scrape(metrics), name);
                 if g == want || (at_least && g >= want) {
                     break;
                 }
                 assert!(
                     t.elapsed() < Duration::from_secs(60),
-                    "in-flight never reached {want}"
+                    "{name} never reached {want}"
                 );
-                tokio::time::sleep(Duration::from_millis(2)).await;
+                tokio::time::sleep(Duration::from_millis(1)).await;
             }
         };
+        let wait_for =
+            |want: f64, at_least: bool| wait_gauge("pntr_in_flight_requests", want, at_least);
+        let wait_busy = |want: f64| wait_gauge("pntr_busy_workers", want, false);
         // One request occupies the only worker; six more wait in the queue on another connection.
         let mut first =
             pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
@@ -258,16 +244,6 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
                 .and_then(|l| l.split_whitespace().last())
                 .and_then(|v| v.parse::<f64>().ok())
                 .unwrap_or(0.0)
-        };
-        let wait_busy = |want: f64| async move {
-            let t = Instant::now();
-            while gauge(&scrape(metrics), "pntr_busy_workers") != want {
-                assert!(
-                    t.elapsed() < Duration::from_secs(60),
-                    "busy workers never reached {want}"
-                );
-                tokio::time::sleep(Duration::from_millis(1)).await;
-            }
         };
         wait_busy(0.0).await;
         let cancelled_before = counter(&scrape(metrics), "CANCELLED");

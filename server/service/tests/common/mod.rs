@@ -33,3 +33,24 @@ pub fn demo_map(dir: &std::path::Path) -> (PathBuf, View) {
         .unwrap();
     (db, query)
 }
+
+/// The Prometheus text a server's `/metrics` endpoint serves now.
+#[allow(dead_code)] // not every test file scrapes
+pub fn scrape(addr: std::net::SocketAddr) -> String {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    out
+}
+
+/// The value of the first series of `name` in scraped text (NaN when absent).
+#[allow(dead_code)] // not every test file scrapes
+pub fn gauge(text: &str, name: &str) -> f64 {
+    text.lines()
+        .find(|l| l.starts_with(name))
+        .and_then(|l| l.split_whitespace().last())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(f64::NAN)
+}
