@@ -39,6 +39,12 @@ pub const DEFAULT_MAX_STREAMS_PER_CONNECTION: u32 = 64;
 pub const DEFAULT_MAX_IMAGE_SIDE: u32 = 4096;
 /// Default time in-flight requests get to finish after SIGTERM/SIGINT.
 pub const DEFAULT_DRAIN_TIMEOUT_S: f64 = 30.0;
+/// Default interval of the HTTP/2 PINGs the server sends on every connection. A robot that drops off
+/// the network without closing its connection leaves a half-open TCP connection behind; the ping that
+/// goes unanswered is how the server notices and frees it.
+pub const DEFAULT_KEEPALIVE_INTERVAL_S: f64 = 30.0;
+/// Default time a PING may go unanswered before the server closes the connection.
+pub const DEFAULT_KEEPALIVE_TIMEOUT_S: f64 = 20.0;
 
 /// Command-line arguments (each also read from its `PNTR_*` environment variable).
 #[derive(clap::Parser, Debug, Default, Clone)]
@@ -94,6 +100,13 @@ pub struct Args {
     /// Seconds in-flight requests get to finish after SIGTERM/SIGINT [default: 30].
     #[arg(long, env = "PNTR_DRAIN_TIMEOUT_S")]
     pub drain_timeout_s: Option<f64>,
+    /// Seconds between the HTTP/2 PINGs sent on every connection to find dead peers; 0 turns them off
+    /// [default: 30].
+    #[arg(long, env = "PNTR_KEEPALIVE_INTERVAL_S")]
+    pub keepalive_interval_s: Option<f64>,
+    /// Seconds a PING may go unanswered before the connection is closed [default: 20].
+    #[arg(long, env = "PNTR_KEEPALIVE_TIMEOUT_S")]
+    pub keepalive_timeout_s: Option<f64>,
     /// Require `authorization: Bearer <TOKEN>` on every RPC but health (prefer PNTR_TOKEN or --token-file:
     /// a flag is visible in the process list).
     #[arg(long, env = "PNTR_TOKEN", hide_env_values = true)]
@@ -139,6 +152,8 @@ struct FileSettings {
     ort_threads: Option<usize>,
     device: Option<String>,
     drain_timeout_s: Option<f64>,
+    keepalive_interval_s: Option<f64>,
+    keepalive_timeout_s: Option<f64>,
     token: Option<String>,
     token_file: Option<PathBuf>,
     tls_cert: Option<PathBuf>,
@@ -207,6 +222,10 @@ pub struct Settings {
     pub device: pntr_features::runtime::Device,
     /// Time given to in-flight requests at shutdown.
     pub drain_timeout: Duration,
+    /// Interval of the server's HTTP/2 keep-alive PINGs (`None`: none are sent).
+    pub keepalive_interval: Option<Duration>,
+    /// Time a keep-alive PING may go unanswered before the connection is closed.
+    pub keepalive_timeout: Duration,
     /// Bearer token required on every RPC but health.
     pub token: Option<String>,
     /// TLS certificate chain and key (PEM files).
@@ -232,10 +251,29 @@ impl std::fmt::Debug for Settings {
             .field("ort_threads", &self.ort_threads)
             .field("device", &self.device)
             .field("drain_timeout", &self.drain_timeout)
+            .field("keepalive_interval", &self.keepalive_interval)
+            .field("keepalive_timeout", &self.keepalive_timeout)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("tls", &self.tls)
             .finish()
     }
+}
+
+/// A number of seconds from the flags or the file (or `default`), which must lie in `lo..=hi`.
+fn seconds(
+    name: &str,
+    given: Option<f64>,
+    default: f64,
+    lo: f64,
+    hi: f64,
+) -> Result<Duration, ConfigError> {
+    let s = given.unwrap_or(default);
+    if !(s.is_finite() && (lo..=hi).contains(&s)) {
+        return bad(format!(
+            "{name} must be between {lo} and {hi} seconds, not {s}"
+        ));
+    }
+    Ok(Duration::from_secs_f64(s))
 }
 
 fn default_workers() -> usize {
@@ -264,6 +302,8 @@ impl Settings {
             ort_threads: 1,
             device: pntr_features::runtime::Device::Cpu,
             drain_timeout: Duration::from_secs_f64(DEFAULT_DRAIN_TIMEOUT_S),
+            keepalive_interval: Some(Duration::from_secs_f64(DEFAULT_KEEPALIVE_INTERVAL_S)),
+            keepalive_timeout: Duration::from_secs_f64(DEFAULT_KEEPALIVE_TIMEOUT_S),
             token: None,
             tls: None,
         }
@@ -342,18 +382,28 @@ impl Settings {
                 .unwrap_or(DEFAULT_MAX_IMAGE_SIDE),
             ort_threads: args.ort_threads.or(file.ort_threads).unwrap_or(1),
             device: parse_device(args.device.or(file.device).as_deref().unwrap_or("cpu"))?,
-            drain_timeout: {
-                let s = args
-                    .drain_timeout_s
-                    .or(file.drain_timeout_s)
-                    .unwrap_or(DEFAULT_DRAIN_TIMEOUT_S);
-                if !(s.is_finite() && (0.0..=86_400.0).contains(&s)) {
-                    return bad(format!(
-                        "drain-timeout-s must be between 0 and 86400 seconds, not {s}"
-                    ));
-                }
-                Duration::from_secs_f64(s)
-            },
+            drain_timeout: seconds(
+                "drain-timeout-s",
+                args.drain_timeout_s.or(file.drain_timeout_s),
+                DEFAULT_DRAIN_TIMEOUT_S,
+                0.0,
+                86_400.0,
+            )?,
+            keepalive_interval: Some(seconds(
+                "keepalive-interval-s",
+                args.keepalive_interval_s.or(file.keepalive_interval_s),
+                DEFAULT_KEEPALIVE_INTERVAL_S,
+                0.0,
+                3_600.0,
+            )?)
+            .filter(|d| !d.is_zero()),
+            keepalive_timeout: seconds(
+                "keepalive-timeout-s",
+                args.keepalive_timeout_s.or(file.keepalive_timeout_s),
+                DEFAULT_KEEPALIVE_TIMEOUT_S,
+                0.1,
+                600.0,
+            )?,
             token,
             tls,
         };
@@ -520,6 +570,40 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("--workers"), "{e}");
+        // Keep-alive: on by default, 0 turns it off, nonsense is named.
+        let s = Settings::from_args(base.clone()).unwrap();
+        assert_eq!(s.keepalive_interval, Some(Duration::from_secs(30)));
+        assert_eq!(
+            s.max_streams_per_connection,
+            DEFAULT_MAX_STREAMS_PER_CONNECTION
+        );
+        let s = Settings::from_args(Args {
+            keepalive_interval_s: Some(0.0),
+            ..base.clone()
+        })
+        .unwrap();
+        assert_eq!(s.keepalive_interval, None);
+        for (interval, timeout, name) in [
+            (Some(-1.0), None, "keepalive-interval-s"),
+            (Some(f64::NAN), None, "keepalive-interval-s"),
+            (None, Some(0.0), "keepalive-timeout-s"),
+        ] {
+            let e = Settings::from_args(Args {
+                keepalive_interval_s: interval,
+                keepalive_timeout_s: timeout,
+                ..base.clone()
+            })
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains(name), "{e}");
+        }
+        let e = Settings::from_args(Args {
+            max_streams_per_connection: Some(0),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("--max-streams-per-connection"), "{e}");
         let e = Settings::from_args(Args {
             addr: Some("nonsense".into()),
             ..base.clone()

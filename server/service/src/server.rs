@@ -178,8 +178,10 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
         .build_v1()
         .map_err(|e| ServerError::Serve(format!("reflection: {e}")))?;
 
-    let mut builder =
-        Server::builder().max_concurrent_streams(Some(settings.max_streams_per_connection));
+    let mut builder = Server::builder()
+        .max_concurrent_streams(Some(settings.max_streams_per_connection))
+        .http2_keepalive_interval(settings.keepalive_interval)
+        .http2_keepalive_timeout(Some(settings.keepalive_timeout));
     if let Some(tls) = tls {
         builder = builder
             .tls_config(tls)

@@ -1,5 +1,6 @@
 //! The `pntr-server` binary itself: refuses bad settings with exit code 2, prints the bound ports on
-//! one stdout line, bounds the streams of one connection, and on SIGTERM refuses new requests,
+//! one stdout line, bounds the streams of one connection, closes connections whose peer stopped
+//! answering keep-alive PINGs, and on SIGTERM refuses new requests,
 //! finishes the ones it holds and exits 0.
 
 use std::io::{BufRead, BufReader};
@@ -288,4 +289,65 @@ fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
         std::thread::sleep(Duration::from_millis(20));
     };
     assert_eq!(status.code(), Some(0), "{status:?}");
+}
+
+/// Open a raw HTTP/2 connection that never answers anything, and watch it for `watch`: returns whether
+/// the server sent a PING and whether it closed the connection.
+fn silent_http2_peer(addr: SocketAddr, watch: Duration) -> (bool, bool) {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    // Client preface and an empty SETTINGS frame; after that, silence: no SETTINGS ack, no PING ack.
+    s.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n").unwrap();
+    s.write_all(&[0, 0, 0, 4, 0, 0, 0, 0, 0]).unwrap();
+    let (mut buf, mut pinged) = (Vec::new(), false);
+    let t = Instant::now();
+    while t.elapsed() < watch {
+        s.set_read_timeout(Some(Duration::from_millis(200)))
+            .unwrap();
+        let mut chunk = [0u8; 4096];
+        match s.read(&mut chunk) {
+            Ok(0) => return (pinged, true),
+            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ) => {}
+            Err(_) => return (pinged, true), // reset
+        }
+        // Frames: 3-byte length, type, flags, 4-byte stream id, payload. Type 6 is PING.
+        while buf.len() >= 9 {
+            let len = u32::from_be_bytes([0, buf[0], buf[1], buf[2]]) as usize;
+            if buf.len() < 9 + len {
+                break;
+            }
+            pinged |= buf[3] == 6 && buf[4] & 1 == 0;
+            buf.drain(..9 + len);
+        }
+    }
+    (pinged, false)
+}
+
+#[test]
+fn keepalive_pings_close_connections_whose_peer_is_gone() {
+    let dir = tempfile::tempdir().unwrap();
+    let (db, _) = common::demo_map(dir.path());
+    // A peer that stops answering is found by the unanswered PING and its connection closed.
+    let (child, addr, _) = spawn(
+        &db,
+        &[
+            "--keepalive-interval-s",
+            "0.5",
+            "--keepalive-timeout-s",
+            "0.5",
+        ],
+    );
+    let _server = KillOnDrop(child);
+    let (pinged, closed) = silent_http2_peer(addr, Duration::from_secs(30));
+    assert!(pinged && closed, "pinged {pinged}, closed {closed}");
+    // With the PINGs turned off, the same silent peer keeps its connection.
+    let (child, addr, _) = spawn(&db, &["--keepalive-interval-s", "0"]);
+    let _server = KillOnDrop(child);
+    let (pinged, closed) = silent_http2_peer(addr, Duration::from_secs(3));
+    assert!(!pinged && !closed, "pinged {pinged}, closed {closed}");
 }
