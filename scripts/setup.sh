@@ -3,11 +3,13 @@
 # CPython 3.11). Safe to run twice; when everything is present it only checks and returns in a second.
 #
 # Installs:
-#   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (HDF5 dataset I/O)
+#   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (system HDF5, kept for tools;
+#     the build links HDF5 2.2 statically, compiled from source by hdf5-metno)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
 #   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py,
 #     grpcio + grpcio-tools for the Python client (client/python) and its test, and kubernetes-validate
-#     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs
+#     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs,
+#     and cmake 4.4 from PyPI (the static HDF5 build needs cmake >= 3.26; .cargo/config.toml points at it)
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -15,7 +17,8 @@ DEPS="$ROOT/.deps"
 ORT_VERSION="1.31.1"
 GRPC_VERSION="1.85.1"
 KV_VERSION="1.37.0"
-PY_PACKAGES=(numpy h5py onnx "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION")
+CMAKE_VERSION="4.4.4"
+PY_PACKAGES=(numpy h5py onnx "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION")
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -46,7 +49,8 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null; then
+if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
+  || ! "$DEPS/venv/bin/cmake" --version 2>/dev/null | grep -q "version $CMAKE_VERSION"; then
   log "python: installing ${PY_PACKAGES[*]}"
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else

@@ -384,9 +384,8 @@ fn hdf5_points_never_crash_the_reader_unexplained() {
         let verdict = child.borrow_mut().read(&dir.path().join(name));
         assert_eq!(verdict, Ok(Verdict::Read), "seed {name}");
     }
-    // Kept inputs: those that crashed HDF5 before the reader's structural checks must now be
-    // refused; those that crash inside HDF5 where no check can reach (`hdf5-lib-*`) must at least
-    // name the file as the process dies.
+    // Kept inputs (each crashed libhdf5 1.10.8) must now be refused; one that crashes inside the
+    // linked HDF5 where no check can reach (`hdf5-lib-*`) must at least name the file as it dies.
     for p in corpus("hdf5") {
         let name = p.file_name().unwrap().to_string_lossy().to_string();
         let verdict = child.borrow_mut().read(&p);

@@ -1,9 +1,9 @@
 //! Naming the file when the HDF5 C library crashes.
 //!
-//! HDF5 1.10 (Debian's libhdf5) segfaults on some damaged files instead of returning an error;
-//! fuzzing found such inputs (see RELIABILITY.md). The reader refuses every one found so far with
-//! structural checks before reading, but a crash inside C code cannot be caught and turned into an
-//! error. What can be done is to make the death say why: every call into HDF5 goes through
+//! The HDF5 C library can crash on damaged files instead of returning an error: fuzzing found three
+//! such inputs for Debian's libhdf5 1.10.8 (see RELIABILITY.md). The statically linked HDF5 2.2 and the
+//! reader's structural checks refuse all of them, but a crash inside C code cannot be caught and turned
+//! into an error. What can be done is to make the death say why: every call into HDF5 goes through
 //! [`h5`], which records "reading field F of file P" in a fixed static buffer while the call runs,
 //! and a handler for SIGSEGV, SIGBUS, SIGILL, SIGFPE and SIGABRT writes that note to stderr (with
 //! `write(2)`, which is async-signal-safe) and then hands the signal to the handler that was there
@@ -42,7 +42,7 @@ pub(crate) fn h5<T>(path: &Path, field: &str, f: impl FnOnce() -> T) -> T {
     let _held = CALLS.lock().unwrap_or_else(|e| e.into_inner());
     let note = format!(
         "\npntr: the HDF5 library crashed while reading `{field}` of {}: the file is damaged \
-         (HDF5 1.10 does not check every structure it reads). Replace or remove this file.\n",
+         (the HDF5 library does not check every structure it reads). Replace or remove this file.\n",
         path.display()
     );
     let bytes = note.as_bytes();

@@ -13,10 +13,12 @@
 //! - The writer produces what h5py produces by default (no "latest" file format), so the files open
 //!   with h5py and with the HPointLoc code exactly like the real dataset, and it writes to a temporary
 //!   name and renames, so an interrupted write never leaves a half file under the final name.
-//! - HDF5 1.10 crashes on some damaged files instead of returning an error (found by fuzzing): the
-//!   reader checks each dataset's storage (sizes, chunk shapes and positions) before reading, and
-//!   every HDF5 call runs with a note naming the file and field that a fatal-signal handler prints,
-//!   so a crash that slips through still says which file to replace (`last_words`).
+//! - Damaged files must be refused, not crash the process. HDF5 is linked statically at 2.2 (built from
+//!   source by hdf5-metno): Debian's libhdf5 1.10.8 segfaulted on damaged files that 2.2 refuses with an
+//!   error (found by fuzzing, RELIABILITY.md). The reader also checks each dataset's storage (sizes,
+//!   chunk shapes and positions) before reading, and every HDF5 call runs with a note naming the file
+//!   and field that a fatal-signal handler prints, so a crash that slips through still says which file
+//!   to replace (`last_words`).
 //! - Poses come out as `world_from_camera` in Habitat camera axes, exactly as stored; conversion to
 //!   OpenCV axes is an explicit call into `pntr_core`.
 

@@ -99,8 +99,13 @@ impl PointReader {
     }
 
     fn dataset(path: &Path, file: &hdf5::File, field: &str) -> Result<hdf5::Dataset, DatasetError> {
-        h5(path, field, || file.dataset(field))
-            .map_err(|_| DatasetError::field(path, field, "missing"))
+        h5(path, field, || file.dataset(field)).map_err(|e| {
+            if h5(path, field, || file.link_exists(field)) {
+                DatasetError::field(path, field, format!("unreadable: {e}"))
+            } else {
+                DatasetError::field(path, field, "missing")
+            }
+        })
     }
 
     fn check_dtype(
@@ -138,7 +143,7 @@ impl PointReader {
         h5(path, field, || Self::check_storage(path, ds, field))
     }
 
-    /// Structural checks HDF5 1.10 leaves out and crashes without (both found by fuzzing): the bytes a
+    /// Structural checks HDF5 1.10 left out and crashed without (both found by fuzzing): the bytes a
     /// compact or contiguous dataset stores must be exactly what its shape and type need and lie
     /// inside the file; every chunk of a chunked dataset must start on a chunk boundary inside the
     /// extent and lie inside the file. A file failing them is refused before any data is read.
@@ -175,7 +180,7 @@ impl PointReader {
             Layout::Chunked => {
                 let chunk = ds.chunk().unwrap_or_default();
                 // A fixed-size dataset's chunks may not exceed its extent (HDF5's own rule, which
-                // 1.10 does not re-check when reading: a chunk of [1, 6, 8, 1025] over [2, 6, 8, 1]
+                // 1.10 did not re-check when reading: a chunk of [1, 6, 8, 1025] over [2, 6, 8, 1]
                 // made it copy past its buffer).
                 let fits =
                     ds.is_resizable() || chunk.iter().zip(&shape).all(|(&c, &d)| c <= d.max(1));
