@@ -18,7 +18,7 @@ use pntr_service::wire;
 const BIN: &str = env!("CARGO_BIN_EXE_pntr-server");
 
 mod common;
-use common::{gauge, models, scrape};
+use common::{gauge, models, runtime, scrape};
 
 #[test]
 fn bad_settings_exit_2_with_the_reason() {
@@ -83,14 +83,6 @@ fn spawn(db: &std::path::Path, extra: &[&str]) -> (std::process::Child, SocketAd
     let metrics: SocketAddr = words[6].parse().unwrap();
     assert_ne!(addr.port(), 0);
     (child, addr, metrics)
-}
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
 }
 
 /// Poll health until SERVING.

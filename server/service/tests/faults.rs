@@ -150,11 +150,7 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
     let mut s = pntr_service::config::Settings::local(vec![db], models());
     s.workers = 1;
     s.queue = 8;
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = common::runtime();
     rt.block_on(async {
         let mut running = pntr_service::start(s).await.unwrap();
         running.ready().await.unwrap();

@@ -6,7 +6,6 @@ mod common;
 use pntr_service::config::Settings;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::GetMapInfoRequest;
-use pntr_service::tokio;
 use pntr_service::tonic::transport::{Certificate, ClientTlsConfig, Endpoint};
 use pntr_service::tonic::{Code, Request};
 use pntr_service::tonic_health::pb::health_client::HealthClient;
@@ -36,11 +35,7 @@ fn tls_with_token() {
     s.workers = 1;
     s.tls = Some((cert, key));
     s.token = Some("tls-token".into());
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = common::runtime();
     rt.block_on(async {
         let mut running = pntr_service::start(s).await.unwrap();
         running.ready().await.unwrap();

@@ -54,3 +54,13 @@ pub fn gauge(text: &str, name: &str) -> f64 {
         .and_then(|v| v.parse().ok())
         .unwrap_or(f64::NAN)
 }
+
+/// A two-thread tokio runtime for tests that drive async clients and servers.
+#[allow(dead_code)] // not every test file needs one
+pub fn runtime() -> pntr_service::tokio::runtime::Runtime {
+    pntr_service::tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
