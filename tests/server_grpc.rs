@@ -233,6 +233,7 @@ fn localizes_reports_and_refuses_bad_input() {
                     "retrieval",
                     "matching",
                     "registration",
+                    "verification",
                     "total"
                 ]
             );
@@ -240,11 +241,12 @@ fn localizes_reports_and_refuses_bad_input() {
             total += 1;
             if r.status == proto::Status::Localized as i32 {
                 assert!(r.reason.is_empty() && r.inliers >= 12 && !r.matched_image_id.is_empty());
-                assert!(r.confidence > 0.0 && r.confidence <= 1.0);
+                assert!(r.confidence >= r.min_confidence && r.confidence <= 1.0);
+                assert_eq!(r.covariance.len(), 36);
                 good += translation_error(&r, v).is_some_and(|e| e < 0.25) as usize;
             } else {
                 assert_eq!(r.status, proto::Status::NotLocalized as i32);
-                assert!(r.pose.is_none() && !r.reason.is_empty());
+                assert!(r.pose.is_none() && !r.reason.is_empty() && r.covariance.is_empty());
             }
         }
         eprintln!("{good} of {total} raw queries within 0.25 m");
@@ -530,6 +532,7 @@ fn localizes_reports_and_refuses_bad_input() {
         for name in [
             "pntr_stage_duration_seconds_bucket{stage=\"extraction\"",
             "pntr_stage_duration_seconds_bucket{stage=\"queue\"",
+            "pntr_stage_duration_seconds_bucket{stage=\"verification\"",
             "pntr_stage_duration_seconds_count{stage=\"total\"}",
             "pntr_requests_total{status=\"LOCALIZED\",code=\"OK\"}",
             "pntr_requests_total{status=\"ERROR\",code=\"INVALID_ARGUMENT\"}",

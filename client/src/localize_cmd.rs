@@ -128,6 +128,8 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         let mut v = json!({
             "status": status,
             "confidence": r.confidence,
+            "min_confidence": r.min_confidence,
+            "covariance": (r.covariance.len() == 36).then_some(&r.covariance),
             "inliers": r.inliers,
             "matched_image_id": r.matched_image_id,
             "map_id": r.map_id,
@@ -147,8 +149,8 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         return Ok(());
     }
     println!(
-        "status {status} (map {}), confidence {:.3}, {} inliers, matched {}",
-        r.map_id, r.confidence, r.inliers, r.matched_image_id
+        "status {status} (map {}), confidence {:.3} (threshold {:.2}), {} inliers, matched {}",
+        r.map_id, r.confidence, r.min_confidence, r.inliers, r.matched_image_id
     );
     if !r.reason.is_empty() {
         println!("reason: {}", r.reason);
@@ -158,6 +160,13 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         println!(
             "world_from_camera: translation [{:.4}, {:.4}, {:.4}] m, rotation (w,x,y,z) [{:.5}, {:.5}, {:.5}, {:.5}]",
             p.translation.x, p.translation.y, p.translation.z, q.w, q.i, q.j, q.k
+        );
+    }
+    if r.covariance.len() == 36 {
+        let sd = |i: usize| r.covariance[i * 7].max(0.0).sqrt();
+        println!(
+            "standard deviation (from the covariance): position x {:.3} y {:.3} z {:.3} m, rotation x {:.2} y {:.2} z {:.2} deg",
+            sd(0), sd(1), sd(2), sd(3).to_degrees(), sd(4).to_degrees(), sd(5).to_degrees()
         );
     }
     if let Some((dt, dr, id)) = truth {

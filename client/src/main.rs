@@ -5,6 +5,7 @@
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
 mod bench_cmd;
+mod calibrate_cmd;
 mod localize_cmd;
 mod map_cmd;
 mod register_cmd;
@@ -36,6 +37,8 @@ enum Command {
     BuildDb(map_cmd::BuildArgs),
     /// Evaluate the pipeline on a dataset's queries (HPointLoc recall table, JSON report).
     Eval(map_cmd::EvalArgs),
+    /// Fit the confidence calibration on a dataset the map covers and one it does not.
+    Calibrate(calibrate_cmd::CalibrateArgs),
     /// Localize one frame (image files, or a dataset query) through a running pntr-server.
     Localize(localize_cmd::LocalizeArgs),
     /// Load-test a running pntr-server with a dataset's query frames.
@@ -80,6 +83,7 @@ fn main() {
         Command::Localize(args) => localize_cmd::run(&args),
         Command::Bench(args) => bench_cmd::run(&args),
         Command::Eval(args) => map_cmd::eval(&args),
+        Command::Calibrate(args) => calibrate_cmd::run(&args),
         Command::Info { dataset, json } => synth_cmd::info(&dataset, json),
         Command::Demo {
             out,

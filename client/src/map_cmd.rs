@@ -7,6 +7,7 @@ use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use pntr_dataset::{DatasetIndex, SceneEntry};
 use pntr_features::runtime::RuntimeOptions;
+use pntr_pipeline::calibration::Calibration;
 use pntr_pipeline::eval::{self, Answer, EvalOptions, EvalReport};
 use pntr_pipeline::map::{self, Map};
 use pntr_pipeline::mapfile;
@@ -86,6 +87,50 @@ pub struct EvalArgs {
     /// Write the JSON report here.
     #[arg(long)]
     pub json: PathBuf,
+    /// A dataset of places the map does not cover: its queries are sent too and every LOCALIZED answer
+    /// counts as a false positive (`negatives` in the report).
+    #[arg(long)]
+    pub negatives: Option<PathBuf>,
+    /// Evaluate at most this many negative queries, evenly spaced (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub negative_queries: usize,
+    /// Camera effects applied to every query before it is localized: `none` or `robot` (exposure,
+    /// gamma, white balance, blur, noise, JPEG, depth noise and dropouts; seeded per query).
+    #[arg(long, default_value = "none")]
+    pub effects: String,
+    /// Calibration file for the confidence (default: the one shipped in models/, embedded).
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
+    /// LOCALIZED threshold on the calibrated confidence (default: the calibration's own).
+    #[arg(long)]
+    pub min_confidence: Option<f64>,
+}
+
+/// The query transformation `--effects` names.
+pub fn effects(name: &str) -> Result<Option<pntr_synth::effects::RobotEffects>> {
+    match name {
+        "none" => Ok(None),
+        "robot" => Ok(Some(pntr_synth::effects::RobotEffects::default())),
+        other => anyhow::bail!("--effects {other}: unknown (none, robot)"),
+    }
+}
+
+/// The calibration `--calibration` names (the embedded default without it).
+pub fn calibration(path: Option<&Path>) -> Result<Arc<Calibration>> {
+    Ok(Arc::new(match path {
+        Some(p) => Calibration::load(p)?,
+        None => Calibration::embedded(),
+    }))
+}
+
+/// The scenes of a `--negatives` dataset.
+pub fn negative_scenes(path: Option<&Path>) -> Result<Vec<SceneEntry>> {
+    match path {
+        None => Ok(Vec::new()),
+        Some(p) => Ok(DatasetIndex::open(p)
+            .with_context(|| format!("--negatives {}", p.display()))?
+            .scenes),
+    }
 }
 
 fn bar(total: usize, what: &str) -> ProgressBar {
@@ -143,7 +188,7 @@ pub fn build_map(
     Ok(map)
 }
 
-fn feature_stage(
+pub(crate) fn feature_stage(
     preset: &Preset,
     models: &Path,
     threads: usize,
@@ -223,14 +268,26 @@ pub fn evaluate_in_process(
     pipeline: &Pipeline,
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
+    effects: Option<pntr_synth::effects::RobotEffects>,
 ) -> Result<EvalReport> {
     let map = pipeline.map.clone();
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total, "localizing queries");
+    let mut seed = 0u64;
     let report = eval::run(
         scenes,
         opts,
-        &mut |q| Ok(Answer::of(&pipeline.localize(q)?, &map)),
+        &mut |q| {
+            seed += 1;
+            match &effects {
+                None => Ok(Answer::of(&pipeline.localize(q)?, &map)),
+                Some(fx) => {
+                    let mut q = q.clone();
+                    fx.apply(&mut q.rgb, &mut q.depth, seed);
+                    Ok(Answer::of(&pipeline.localize(&q)?, &map))
+                }
+            }
+        },
         &mut |done, total| {
             pb.set_length(total as u64);
             pb.set_position(done as u64);
@@ -245,6 +302,13 @@ pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
     let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
     std::fs::write(&tmp, serde_json::to_vec_pretty(value)?)
         .with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Write `text` to `path` atomically.
+pub fn write_text(path: &Path, text: &str) -> Result<()> {
+    let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
+    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
 }
 
@@ -336,10 +400,16 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             tls_ca: args.tls_ca.clone(),
             tls_domain: None,
         })?;
+        if args.effects != "none" || args.calibration.is_some() || args.min_confidence.is_some() {
+            anyhow::bail!("--effects, --calibration and --min-confidence work in process only (the server applies its own calibration and threshold)");
+        }
         let opts = EvalOptions {
             legacy: args.legacy_metric,
             max_queries: args.queries,
             preset: "remote".into(),
+            negatives: negative_scenes(args.negatives.as_deref())?,
+            max_negatives: args.negative_queries,
+            min_confidence: None,
         };
         let report = evaluate_remote(&mut remote, &scenes, &opts)?;
         print!("{}", eval::table(&report));
@@ -371,13 +441,20 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         None => map.header.preset.clone(),
     };
     let stage = feature_stage(&preset, &args.models, args.threads)?;
-    let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?;
+    let fx = effects(&args.effects)?;
+    let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?.with_calibration(
+        calibration(args.calibration.as_deref())?,
+        args.min_confidence,
+    );
     let opts = EvalOptions {
         legacy: args.legacy_metric,
         max_queries: args.queries,
         preset: preset.name.clone(),
+        negatives: negative_scenes(args.negatives.as_deref())?,
+        max_negatives: args.negative_queries,
+        min_confidence: Some(pipeline.min_confidence()),
     };
-    let report = evaluate_in_process(&pipeline, &scenes, &opts)?;
+    let report = evaluate_in_process(&pipeline, &scenes, &opts, fx)?;
     print!("{}", eval::table(&report));
     write_json(&args.json, &report)?;
     eprintln!("report written to {}", args.json.display());

@@ -158,6 +158,7 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
             "retrieval" => times.retrieval = s,
             "matching" => times.matching = s,
             "registration" => times.registration = s,
+            "verification" => times.verification = s,
             "total" => times.total = s,
             _ => {}
         }
@@ -177,5 +178,8 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
         retrieved: r.retrieved_image_ids.clone(),
         matched: (!r.matched_image_id.is_empty()).then(|| r.matched_image_id.clone()),
         times,
+        confidence: r.confidence,
+        estimate: None,
+        threshold: Some(r.min_confidence),
     }
 }

@@ -121,12 +121,31 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         "{v}"
     );
     assert_eq!(v["pose"]["rotation_wxyz"].as_array().unwrap().len(), 4);
+    // The covariance robots fuse: 36 numbers, symmetric, positive variances (ROS order).
+    let cov: Vec<f64> = v["covariance"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no covariance: {v}"))
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect();
+    assert_eq!(cov.len(), 36);
+    for r in 0..6 {
+        assert!(cov[r * 7] > 0.0, "{cov:?}");
+        for c in 0..6 {
+            assert!((cov[r * 6 + c] - cov[c * 6 + r]).abs() <= 1e-12 * cov[r * 7].max(cov[c * 7]));
+        }
+    }
+    // A LOCALIZED answer is at least as confident as the threshold the server reports.
+    let conf = v["confidence"].as_f64().unwrap();
+    let threshold = v["min_confidence"].as_f64().unwrap();
+    assert!(threshold >= 0.5 && conf >= threshold && conf <= 1.0, "{v}");
     for s in [
         "queue",
         "extraction",
         "retrieval",
         "matching",
         "registration",
+        "verification",
         "total",
     ] {
         assert!(v["stage_ms"][s].as_f64().is_some(), "stage {s}: {v}");

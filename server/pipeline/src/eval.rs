@@ -46,6 +46,13 @@ pub struct Answer {
     pub matched: Option<String>,
     /// Stage timings.
     pub times: StageTimes,
+    /// The calibrated confidence of the best pose found (LOCALIZED or not).
+    pub confidence: f64,
+    /// The best pose found even when it was not LOCALIZED (in-process only; remote answers carry the
+    /// pose of LOCALIZED frames only), for the precision/recall curve over the threshold.
+    pub estimate: Option<Isometry3<f64>>,
+    /// The LOCALIZED threshold the localiser reported, when it reports one (the server does).
+    pub threshold: Option<f64>,
 }
 
 impl Answer {
@@ -61,6 +68,9 @@ impl Answer {
                 .collect(),
             matched: l.image.map(|i| map.images[i].id.clone()),
             times: l.times,
+            confidence: l.confidence,
+            estimate: l.estimate.or(l.pose),
+            threshold: None,
         }
     }
 }
@@ -136,6 +146,58 @@ pub struct EvalReport {
     pub failed_requests: usize,
     /// The preset, when known.
     pub preset: String,
+    /// Share of LOCALIZED answers within each threshold (`1m_10deg`, `5m_20deg`); 1 when none.
+    pub precision: BTreeMap<String, f64>,
+    /// LOCALIZED answers more than (5 m, 20 deg) off: the confident wrong poses.
+    pub localized_wrong: usize,
+    /// Out-of-map queries (`--negatives`), when given.
+    pub negatives: Option<NegativesReport>,
+    /// Calibration of `confidence` against "within (1 m, 10 deg)" over every answer with a pose
+    /// estimate (in-map and out-of-map).
+    pub calibration: CalibrationReport,
+    /// Precision and recall as the LOCALIZED threshold on the confidence varies.
+    pub precision_recall: Vec<CurvePoint>,
+    /// The LOCALIZED threshold the localiser used (NaN when unknown, e.g. remote).
+    pub min_confidence: f64,
+}
+
+/// How a localiser answered queries from places the map does not cover.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct NegativesReport {
+    /// Out-of-map queries sent.
+    pub queries: usize,
+    /// Of which answered LOCALIZED (every one is a false positive).
+    pub localized: usize,
+    /// `localized / queries`.
+    pub false_positive_rate: f64,
+}
+
+/// Expected calibration error and the reliability bins.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct CalibrationReport {
+    /// Expected calibration error (10 equal-width bins).
+    pub ece: f64,
+    /// Answers scored.
+    pub answers: usize,
+    /// The bins.
+    pub bins: Vec<crate::calibration::Bin>,
+}
+
+/// One point of the precision/recall curve.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct CurvePoint {
+    /// Threshold on the confidence.
+    pub threshold: f64,
+    /// In-map queries whose estimate would be LOCALIZED at this threshold, over all in-map queries.
+    pub localized_share: f64,
+    /// Share of those within (1 m, 10 deg).
+    pub precision_1m_10deg: f64,
+    /// In-map queries LOCALIZED within (1 m, 10 deg), over all in-map queries.
+    pub recall_1m_10deg: f64,
+    /// In-map queries LOCALIZED within (0.25 m, 2 deg), over all in-map queries.
+    pub recall_0_25m_2deg: f64,
+    /// Out-of-map queries that would be LOCALIZED, over all out-of-map queries.
+    pub false_positive_rate: f64,
 }
 
 /// Share of a grid of query pixels that reappear in `db` at a consistent depth: the ground-truth
@@ -179,6 +241,12 @@ pub struct EvalOptions {
     pub max_queries: usize,
     /// Preset name for the report.
     pub preset: String,
+    /// Scenes the map does not cover: their queries are sent too, and every LOCALIZED answer is false.
+    pub negatives: Vec<SceneEntry>,
+    /// Evaluate at most this many negative queries, evenly spaced (0 = all).
+    pub max_negatives: usize,
+    /// The localiser's LOCALIZED threshold, for the report (else the one answers report, else NaN).
+    pub min_confidence: Option<f64>,
 }
 
 /// Localise every query of `scenes` with `localize` and score the answers.
@@ -218,6 +286,9 @@ pub fn run(
     let mut sums = StageTimes::default();
     let mut rr = RetrievalRecall::default();
     let mut db_depths: BTreeMap<usize, Vec<DepthMap>> = BTreeMap::new();
+    // (confidence, error of the best estimate, localized) per in-map query.
+    let mut scored: Vec<Scored> = Vec::new();
+    let mut reported_threshold = None;
     let t0 = Instant::now();
     for (n, &(pi, qi)) in picked.iter().enumerate() {
         let (entry, reader) = &readers[pi];
@@ -259,6 +330,12 @@ pub fn run(
             localized += 1;
         }
         errors.push(a.pose.map(|p| pose_error(&p, &gt, opts.legacy)));
+        reported_threshold = a.threshold.or(reported_threshold);
+        scored.push((
+            a.confidence,
+            a.estimate.or(a.pose).map(|p| pose_error(&p, &gt, false)),
+            a.status == Some(Status::Localized),
+        ));
         let same_point = |id: &String| {
             db_pose
                 .get(id)
@@ -283,10 +360,50 @@ pub fn run(
         sums.retrieval += a.times.retrieval;
         sums.matching += a.times.matching;
         sums.registration += a.times.registration;
+        sums.verification += a.times.verification;
         sums.total += a.times.total;
         progress(n + 1, picked.len());
     }
     let wall = t0.elapsed().as_secs_f64();
+    // Out-of-map queries: nothing they return can be right.
+    let mut negatives: Vec<(f64, bool)> = Vec::new();
+    if !opts.negatives.is_empty() {
+        let mut all = Vec::new();
+        for s in &opts.negatives {
+            for p in &s.points {
+                let r = p.open()?;
+                for qi in 0..r.count(Role::Query) {
+                    all.push((p.clone(), qi));
+                }
+            }
+        }
+        let step = if opts.max_negatives == 0 || opts.max_negatives >= all.len() {
+            1.0
+        } else {
+            all.len() as f64 / opts.max_negatives as f64
+        };
+        let count = (all.len() as f64 / step).round() as usize;
+        let mut open: Option<(std::path::PathBuf, pntr_dataset::PointReader)> = None;
+        for i in 0..count.min(all.len()) {
+            let (p, qi) = &all[(i as f64 * step) as usize];
+            if open.as_ref().is_none_or(|o| o.0 != p.path) {
+                open = Some((p.path.clone(), p.open()?));
+            }
+            let v = open.as_ref().expect("opened").1.view(Role::Query, *qi)?;
+            let q = Query {
+                rgb: v.rgb,
+                depth: v.depth,
+                intrinsics: k,
+            };
+            match localize(&q) {
+                Ok(a) => negatives.push((a.confidence, a.status == Some(Status::Localized))),
+                Err(e) => {
+                    tracing::warn!("negative query {}: {e}", p.query_id(*qi));
+                    negatives.push((0.0, false));
+                }
+            }
+        }
+    }
     let nq = picked.len().max(1) as f64;
     for x in [
         &mut rr.point_at_1,
@@ -303,6 +420,7 @@ pub fn run(
         ("retrieval", sums.retrieval),
         ("matching", sums.matching),
         ("registration", sums.registration),
+        ("verification", sums.verification),
         ("total", sums.total),
     ]
     .into_iter()
@@ -323,7 +441,96 @@ pub fn run(
         retrieval: rr,
         failed_requests: failed,
         preset: opts.preset.clone(),
+        precision: precision(&errors),
+        localized_wrong: errors
+            .iter()
+            .flatten()
+            .filter(|e| !(e.0 <= 5.0 && e.1 <= 20.0))
+            .count(),
+        negatives: (!opts.negatives.is_empty()).then(|| NegativesReport {
+            queries: negatives.len(),
+            localized: negatives.iter().filter(|n| n.1).count(),
+            false_positive_rate: negatives.iter().filter(|n| n.1).count() as f64
+                / negatives.len().max(1) as f64,
+        }),
+        calibration: {
+            let labelled: Vec<(f64, bool)> = scored
+                .iter()
+                .filter(|s| s.1.is_some())
+                .map(|s| (s.0, s.1.is_some_and(|e| e.0 <= 1.0 && e.1 <= 10.0)))
+                .chain(negatives.iter().filter(|n| n.0 > 0.0).map(|n| (n.0, false)))
+                .collect();
+            let (ece, bins) = crate::calibration::ece(&labelled, 10);
+            CalibrationReport {
+                ece,
+                answers: labelled.len(),
+                bins,
+            }
+        },
+        precision_recall: curve(
+            &scored,
+            &negatives,
+            opts.min_confidence.or(reported_threshold),
+        ),
+        min_confidence: opts
+            .min_confidence
+            .or(reported_threshold)
+            .unwrap_or(f64::NAN),
     })
+}
+
+/// Share of LOCALIZED answers (`Some` errors) within (1 m, 10 deg) and (5 m, 20 deg).
+pub fn precision(errors: &[Option<(f64, f64)>]) -> BTreeMap<String, f64> {
+    let ok: Vec<&(f64, f64)> = errors.iter().flatten().collect();
+    let share = |m: f64, d: f64| {
+        if ok.is_empty() {
+            1.0
+        } else {
+            ok.iter().filter(|e| e.0 <= m && e.1 <= d).count() as f64 / ok.len() as f64
+        }
+    };
+    BTreeMap::from([
+        ("1m_10deg".to_string(), share(1.0, 10.0)),
+        ("5m_20deg".to_string(), share(5.0, 20.0)),
+    ])
+}
+
+/// One in-map answer for the curve: confidence, error of the best estimate, LOCALIZED.
+type Scored = (f64, Option<(f64, f64)>, bool);
+
+fn curve(scored: &[Scored], negatives: &[(f64, bool)], used: Option<f64>) -> Vec<CurvePoint> {
+    let mut thresholds: Vec<f64> = (0..20).map(|i| i as f64 * 0.05).collect();
+    thresholds.extend([0.97, 0.99]);
+    thresholds.extend(used);
+    thresholds.sort_by(f64::total_cmp);
+    thresholds.dedup();
+    let n = scored.len().max(1) as f64;
+    thresholds
+        .into_iter()
+        .map(|t| {
+            let kept: Vec<&(f64, f64)> = scored
+                .iter()
+                .filter(|s| s.0 >= t && s.0 > 0.0)
+                .filter_map(|s| s.1.as_ref())
+                .collect();
+            let right = kept.iter().filter(|e| e.0 <= 1.0 && e.1 <= 10.0).count();
+            let fine = kept.iter().filter(|e| e.0 <= 0.25 && e.1 <= 2.0).count();
+            CurvePoint {
+                threshold: t,
+                localized_share: kept.len() as f64 / n,
+                precision_1m_10deg: if kept.is_empty() {
+                    1.0
+                } else {
+                    right as f64 / kept.len() as f64
+                },
+                recall_1m_10deg: right as f64 / n,
+                recall_0_25m_2deg: fine as f64 / n,
+                false_positive_rate: negatives.iter().filter(|x| x.0 >= t && x.0 > 0.0).count()
+                    as f64
+                    / negatives.len().max(1) as f64,
+            }
+        })
+        .collect()
 }
 
 /// The recall rows as a text table (for the CLI).
@@ -352,12 +559,27 @@ pub fn table(report: &EvalReport) -> String {
         "retrieval: right Point @1 {:.3} @5 {:.3}; best-overlap view @1 {:.3} @5 {:.3}; after re-ranking: Point {:.3}, view {:.3}\n",
         r.point_at_1, r.point_at_5, r.view_at_1, r.view_at_5, r.reranked_point_at_1, r.reranked_view_at_1
     );
+    s += &format!(
+        "precision of LOCALIZED answers: (1m, 10deg) {:.4} (5m, 20deg) {:.4}; {} LOCALIZED more than 5 m / 20 deg off\n",
+        report.precision["1m_10deg"], report.precision["5m_20deg"], report.localized_wrong
+    );
+    if let Some(n) = &report.negatives {
+        s += &format!(
+            "out-of-map queries: {} sent, {} LOCALIZED (false-positive rate {:.4})\n",
+            n.queries, n.localized, n.false_positive_rate
+        );
+    }
+    s += &format!(
+        "confidence: expected calibration error {:.3} over {} answers; LOCALIZED threshold {:.2}\n",
+        report.calibration.ece, report.calibration.answers, report.min_confidence
+    );
     s += "mean ms per query:";
     for k in [
         "extraction",
         "retrieval",
         "matching",
         "registration",
+        "verification",
         "total",
     ] {
         s += &format!(" {k} {:.1}", report.stage_ms[k]);

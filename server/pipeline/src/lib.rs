@@ -7,15 +7,19 @@
 //! - [`preset`]: named combinations of stages (`fast`, `accurate`, `classical`, ICP variants).
 //! - [`map`]: building a map from HPointLoc-layout data; [`mapfile`]: the versioned, checksummed,
 //!   atomically written file.
-//! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, compose.
+//! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
+//! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
+//!   [`calibration`]: the fitted model that turns them into the probability of a right pose.
 //! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
 //!   separate, labelled mode).
 
+pub mod calibration;
 pub mod eval;
 pub mod map;
 pub mod mapfile;
 pub mod pipeline;
 pub mod preset;
+pub mod verify;
 
 use std::path::PathBuf;
 

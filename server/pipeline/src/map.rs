@@ -20,6 +20,7 @@ use pntr_retrieval::onnx_global::OnnxGlobal;
 use serde::{Deserialize, Serialize};
 
 use crate::preset::Preset;
+use crate::verify::Thumb;
 use crate::PipelineError;
 
 /// One database image of the map.
@@ -49,6 +50,8 @@ pub struct MapImage {
     pub instances: Vec<u32>,
     /// (width, height) of the image.
     pub image_size: (u32, u32),
+    /// Reduced depth and grey for verification ([`crate::verify::Thumb`], about 12 KiB).
+    pub thumb: Thumb,
 }
 
 impl MapImage {
@@ -77,6 +80,7 @@ impl MapImage {
             + self.keypoints.len() * (8 + 4 + 12 + 4)
             + self.descriptors.len() * 2
             + self.binary.len() * 32
+            + self.thumb.heap_bytes()
     }
 }
 
@@ -304,6 +308,7 @@ pub fn build(
                 points,
                 instances,
                 image_size: f.image_size,
+                thumb: Thumb::new(&v.rgb, &v.depth, &k),
             });
             done += 1;
             progress(done, total);

@@ -5,7 +5,9 @@
 //! "PNTRMAP\0"  u32 format version
 //! section*     [u8; 4] tag, u64 payload length, payload, u64 FNV-1a of the payload
 //!   HEAD  the MapHeader as JSON (preset, model identities, intrinsics, scenes)
-//!   IMGS  u64 image count, then per image: u64 record length, record
+//!   IMGS  u64 image count, then per image: u64 record length, record (pose, keypoints, descriptors,
+//!         3D points, instances, and since version 2 the verification thumbnail: u32 width, u32 height,
+//!         f64 fx fy cx cy, u16 depth in mm, u8 grey)
 //!   RETR  the retrieval stage (codebook or vocabulary, and the faiss index or BoW vectors)
 //!   END!  empty: a file without it was cut short
 //! ```
@@ -25,11 +27,12 @@ use pntr_retrieval::global::Retriever;
 use pntr_retrieval::onnx_global::OnnxGlobal;
 
 use crate::map::{Map, MapHeader, MapImage};
+use crate::verify::Thumb;
 use crate::PipelineError;
 
 const MAGIC: &[u8; 8] = b"PNTRMAP\0";
 /// The map format version this build writes and reads.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 
 fn io(path: &Path) -> impl Fn(std::io::Error) -> PipelineError + '_ {
     move |e| PipelineError::Io {
@@ -96,6 +99,21 @@ fn encode_image(im: &MapImage, w: &mut Writer) {
     for i in &im.instances {
         w.u32(*i);
     }
+    let t = &im.thumb;
+    w.u32(t.width);
+    w.u32(t.height);
+    for v in [
+        t.intrinsics.fx,
+        t.intrinsics.fy,
+        t.intrinsics.cx,
+        t.intrinsics.cy,
+    ] {
+        w.f64(v);
+    }
+    for d in &t.depth_mm {
+        w.raw(&d.to_le_bytes());
+    }
+    w.raw(&t.gray);
 }
 
 fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
@@ -167,6 +185,7 @@ fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
         .map(|_| r.u32())
         .collect::<Result<Vec<_>, _>>()
         .map_err(e)?;
+    let thumb = decode_thumb(&mut r).map_err(|m| format!("{what} ({id}): thumbnail: {m}"))?;
     r.finish().map_err(e)?;
     if keypoints.iter().flatten().any(|x: &f32| !x.is_finite()) {
         return Err(format!("{what} ({id}): a keypoint is not finite"));
@@ -184,6 +203,44 @@ fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
         points,
         instances,
         image_size,
+        thumb,
+    })
+}
+
+fn decode_thumb(r: &mut Reader) -> Result<Thumb, String> {
+    let e = |x: pntr_core::bytes::BytesError| x.to_string();
+    let (width, height) = (r.u32().map_err(e)?, r.u32().map_err(e)?);
+    let mut k = [0f64; 4];
+    for x in &mut k {
+        *x = r.f64().map_err(e)?;
+    }
+    if width == 0 || height == 0 || width > 1024 || height > 1024 {
+        return Err(format!("size {width}x{height} (1..1024 a side)"));
+    }
+    if !(k.iter().all(|v| v.is_finite()) && k[0] > 0.0 && k[1] > 0.0) {
+        return Err(format!("intrinsics {k:?}"));
+    }
+    let n = (width * height) as usize;
+    let depth_mm = r
+        .take(n * 2)
+        .map_err(e)?
+        .chunks_exact(2)
+        .map(|c| u16::from_le_bytes([c[0], c[1]]))
+        .collect();
+    let gray = r.take(n).map_err(e)?.to_vec();
+    Ok(Thumb {
+        width,
+        height,
+        intrinsics: pntr_core::Intrinsics {
+            fx: k[0],
+            fy: k[1],
+            cx: k[2],
+            cy: k[3],
+            width,
+            height,
+        },
+        depth_mm,
+        gray,
     })
 }
 

@@ -4,8 +4,10 @@
 //! the candidates by a cheap geometric check: mutual nearest neighbours on the descriptors already in
 //! hand, back-projected and registered, scored by inliers) -> run the configured matcher on the best
 //! candidate(s) -> back-project matched keypoints with both depths (a pair is kept only when both
-//! sides have valid depth, so the lists stay aligned) -> register -> keep the candidate with the most
-//! inliers -> `world_from_query = world_from_db * db_from_query`.
+//! sides have valid depth, so the lists stay aligned) -> register -> verify the best registrations
+//! densely ([`crate::verify`]) and turn the evidence into a calibrated probability
+//! ([`crate::calibration`]); the most probable pose wins and is LOCALIZED only above the threshold ->
+//! `world_from_query = world_from_db * db_from_query`, with its covariance from the inlier residuals.
 //!
 //! Poses: the map stores `world_from_camera` with the dataset's camera axes (Habitat for HPointLoc);
 //! back-projection and registration work in OpenCV axes; the answer is converted back, so it is in the
@@ -19,6 +21,7 @@ use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics, RgbImage};
 use pntr_features::config::FeatureStage;
 use pntr_features::mnn::Mnn;
 use pntr_features::{Features, Matcher};
+use pntr_registration::covariance::{point_to_point_covariance, rotate_covariance};
 use pntr_registration::icp::{icp_matched, IcpParams};
 use pntr_registration::pnp::{pnp_ransac, PnpParams};
 use pntr_registration::teaser::{solve, TeaserParams};
@@ -26,9 +29,18 @@ use pntr_registration::Rigid;
 use pntr_retrieval::index::Hit;
 use serde::Serialize;
 
+use crate::calibration::{choose, Calibration};
 use crate::map::{keypoint_points, Map};
 use crate::preset::{Preset, Solver};
+use crate::verify::{dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb};
 use crate::PipelineError;
+
+/// Registered candidates verified per query (the most inliers first).
+pub const VERIFY_CANDIDATES: usize = 5;
+/// Map views besides the matched one that the dense check looks into.
+pub const MAX_NEARBY_VIEWS: usize = 12;
+/// Floor of the point noise in the covariance, metres (depth quantisation and keypoint jitter).
+pub const COVARIANCE_MIN_SIGMA_M: f64 = 0.01;
 
 /// One RGB-D query.
 #[derive(Debug, Clone)]
@@ -45,9 +57,9 @@ pub struct Query {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "SCREAMING_SNAKE_CASE")]
 pub enum Status {
-    /// A pose passed the checks.
+    /// A pose passed registration and verification.
     Localized,
-    /// No candidate gave a valid registration with enough inliers.
+    /// No pose passed: no valid registration, too few inliers, or verification below the threshold.
     NotLocalized,
 }
 
@@ -62,6 +74,8 @@ pub struct StageTimes {
     pub matching: f64,
     /// Back-projection and registration.
     pub registration: f64,
+    /// Verification: dense checks of the best poses and the calibrated confidence.
+    pub verification: f64,
     /// The whole localisation.
     pub total: f64,
 }
@@ -75,8 +89,20 @@ pub struct Localization {
     pub reason: Option<String>,
     /// `world_from_camera` of the query (map frame, map camera axes); `None` unless localized.
     pub pose: Option<Isometry3<f64>>,
-    /// Heuristic confidence in 0..1: inlier ratio times a saturating inlier count (not calibrated).
+    /// The best pose found, even when verification rejected it (for evaluation and diagnostics).
+    pub estimate: Option<Isometry3<f64>>,
+    /// Calibrated confidence in 0..1 that `estimate` is within (1 m, 10 deg) of the truth: its
+    /// candidate's probability times the chance that its strongest disagreeing rival is wrong
+    /// ([`crate::calibration::choose`]); LOCALIZED needs at least the pipeline's threshold. 0 without
+    /// an estimate.
     pub confidence: f64,
+    /// What verification measured about `estimate`.
+    pub evidence: Option<Evidence>,
+    /// 6x6 covariance of `estimate`, row-major, order x, y, z, rotation about x, y, z in the map frame
+    /// (metres², radians²; the ROS `PoseWithCovariance` convention), from the inlier residuals.
+    pub covariance: Option<Box<[f64; 36]>>,
+    /// Every candidate pose verification scored, in the order scored (the best is `estimate`).
+    pub verified: Vec<Verified>,
     /// Registration inliers of the chosen candidate.
     pub inliers: usize,
     /// Matched pairs with valid depth given to registration.
@@ -89,6 +115,21 @@ pub struct Localization {
     pub times: StageTimes,
 }
 
+/// A candidate pose that verification scored.
+#[derive(Debug, Clone)]
+pub struct Verified {
+    /// Map index of the database image it was registered against.
+    pub image: usize,
+    /// `world_from_camera` (map frame, map camera axes).
+    pub pose: Isometry3<f64>,
+    /// What verification measured.
+    pub evidence: Evidence,
+    /// Its calibrated probability of being right (before its rivals are weighed).
+    pub confidence: f64,
+    /// Map indices of the verified candidates whose pose disagrees with it (0.5 m, 10 deg).
+    pub rivals: Vec<usize>,
+}
+
 /// Registration of one candidate.
 #[derive(Debug, Clone)]
 struct Candidate {
@@ -98,6 +139,10 @@ struct Candidate {
     inliers: usize,
     pairs: usize,
     reason: Option<String>,
+    /// Inlier pairs: query points (OpenCV query frame), database points, query pixels.
+    inlier_src: Vec<Vector3<f64>>,
+    inlier_dst: Vec<Vector3<f64>>,
+    inlier_px: Vec<[f32; 2]>,
 }
 
 /// A map with the feature stage and solvers that run on it. Cheap to share: `localize` takes `&self`
@@ -116,6 +161,8 @@ pub struct Pipeline {
     /// PnP settings.
     pub pnp: PnpParams,
     cheap: Mnn,
+    calibration: Arc<Calibration>,
+    min_confidence: f64,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -146,6 +193,7 @@ impl Pipeline {
                 preset.extractor
             )));
         }
+        let calibration = Arc::new(Calibration::embedded());
         Ok(Self {
             map,
             stage,
@@ -160,7 +208,26 @@ impl Pipeline {
             },
             preset,
             cheap: Mnn::default(),
+            min_confidence: calibration.threshold,
+            calibration,
         })
+    }
+
+    /// Use `calibration` for confidence and LOCALIZED when the probability is at least `min_confidence`
+    /// (the calibration's own recommended threshold when `None`).
+    pub fn with_calibration(
+        mut self,
+        calibration: Arc<Calibration>,
+        min_confidence: Option<f64>,
+    ) -> Self {
+        self.min_confidence = min_confidence.unwrap_or(calibration.threshold);
+        self.calibration = calibration;
+        self
+    }
+
+    /// The LOCALIZED threshold on the calibrated confidence.
+    pub fn min_confidence(&self) -> f64 {
+        self.min_confidence
     }
 
     /// Localise one query.
@@ -177,16 +244,15 @@ impl Pipeline {
         let (q_pts, _) = keypoint_points(&q.intrinsics, &q.depth, None, &fq.keypoints);
         let q_pts: Vec<Option<Vector3<f64>>> = q_pts
             .iter()
-            .map(|p| {
-                p[0].is_finite()
-                    .then(|| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-            })
+            .map(|p| p[0].is_finite().then(|| vec3(*p)))
             .collect();
 
         let matcher_is_cheap = self.preset.matcher == "mnn";
         let mut finalists: Vec<(usize, usize)> =
             hits.iter().enumerate().map(|(r, h)| (h.id, r)).collect();
         let mut done: Vec<Candidate> = Vec::new();
+        // Every registration seen (cheap pass and final), for the candidates' consensus.
+        let mut pool: Vec<(usize, Isometry3<f64>, usize)> = Vec::new();
         if self.preset.rerank && hits.len() > 1 {
             let mut scored = Vec::with_capacity(hits.len());
             for &(id, rank) in &finalists {
@@ -194,10 +260,15 @@ impl Pipeline {
                 scored.push(c);
             }
             scored.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
-            scored.truncate(self.preset.final_candidates);
+            pool.extend(
+                scored
+                    .iter()
+                    .filter_map(|c| Some((c.image, self.world_from_query(c)?, c.inliers))),
+            );
             if matcher_is_cheap {
                 done = scored;
             } else {
+                scored.truncate(self.preset.final_candidates);
                 finalists = scored.iter().map(|c| (c.image, c.rank)).collect();
             }
         }
@@ -212,60 +283,236 @@ impl Pipeline {
                     self.stage.matcher.as_ref(),
                     &mut times,
                 )?;
+                if let Some(w) = self.world_from_query(&c) {
+                    pool.retain(|p| p.0 != c.image);
+                    pool.push((c.image, w, c.inliers));
+                }
                 done.push(c);
             }
         }
-        let best = done
+        // Verification: dense checks of the best registrations; the calibrated probability chooses.
+        let tv = Instant::now();
+        let mut valid: Vec<Candidate> = done
             .into_iter()
             .filter(|c| c.db_from_query.is_some())
-            .max_by(|a, b| a.inliers.cmp(&b.inliers).then(b.rank.cmp(&a.rank)));
+            .collect();
+        valid.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
+        let fewest = valid.last().map(|c| c.inliers);
+        valid.retain(|c| c.inliers >= self.preset.min_inliers);
+        valid.truncate(VERIFY_CANDIDATES);
+        let thumb = (!valid.is_empty()).then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
+        let thumb_ref = thumb.as_ref();
+        let mut scored: Vec<(Candidate, Evidence, Isometry3<f64>)> = valid
+            .into_iter()
+            .map(|c| {
+                let e = self.evidence(
+                    &c,
+                    thumb_ref.expect("made when candidates exist"),
+                    &pool,
+                    &hits,
+                    q,
+                );
+                let w = self.world_from_query(&c).expect("valid");
+                (c, e, w)
+            })
+            .collect();
+        // Ambiguity: the best rival that verifies well with a pose that disagrees (a symmetric room, a
+        // repeated piece of furniture) lowers the confidence of each.
+        let rivals: Vec<f64> = scored
+            .iter()
+            .map(|(_, _, w)| {
+                scored
+                    .iter()
+                    .filter(|(_, _, o)| !poses_agree(o, w, 0.5, 10.0))
+                    .map(|(_, e, _)| e.views_agree)
+                    .fold(0.0, f64::max)
+            })
+            .collect();
+        for ((_, e, _), r) in scored.iter_mut().zip(rivals) {
+            e.rival_agree = r;
+        }
+        let probabilities: Vec<f64> = scored
+            .iter()
+            .map(|(_, e, _)| self.calibration.probability(e))
+            .collect();
+        let rivals: Vec<Vec<usize>> = scored
+            .iter()
+            .map(|(_, _, w)| {
+                (0..scored.len())
+                    .filter(|&j| !poses_agree(&scored[j].2, w, 0.5, 10.0))
+                    .collect()
+            })
+            .collect();
+        let chosen = choose(&probabilities, &rivals);
+        let verified: Vec<Verified> = scored
+            .iter()
+            .zip(&probabilities)
+            .zip(&rivals)
+            .map(|(((c, e, w), &p), r)| Verified {
+                image: c.image,
+                pose: convert_axes(w, CameraAxes::OpenCv, CameraAxes::Habitat),
+                evidence: *e,
+                confidence: p,
+                rivals: r.iter().map(|&j| scored[j].0.image).collect(),
+            })
+            .collect();
+        let best = chosen.map(|(i, conf)| {
+            let (c, e, _) = scored.swap_remove(i);
+            (c, e, conf)
+        });
+        times.verification = tv.elapsed().as_secs_f64();
         times.total = t0.elapsed().as_secs_f64();
         let top = hits.first().map(|h| h.id);
-        Ok(match best {
-            Some(c) if c.inliers >= self.preset.min_inliers => {
-                let db = &self.map.images[c.image];
-                let world_from_db = convert_axes(
-                    &db.world_from_camera,
-                    CameraAxes::Habitat,
-                    CameraAxes::OpenCv,
-                );
-                let world_from_query = world_from_db * c.db_from_query.expect("filtered");
-                let ratio = c.inliers as f64 / c.pairs.max(1) as f64;
-                Localization {
-                    status: Status::Localized,
-                    reason: None,
-                    pose: Some(convert_axes(
-                        &world_from_query,
-                        CameraAxes::OpenCv,
-                        CameraAxes::Habitat,
-                    )),
-                    confidence: ratio * (1.0 - (-(c.inliers as f64) / 20.0).exp()),
-                    inliers: c.inliers,
-                    correspondences: c.pairs,
-                    image: Some(c.image),
-                    retrieved: hits,
-                    times,
-                }
-            }
-            other => Localization {
+        let Some((c, evidence, p)) = best else {
+            return Ok(Localization {
                 status: Status::NotLocalized,
-                reason: Some(match &other {
-                    Some(c) => format!(
-                        "{} inliers, fewer than {}",
-                        c.inliers, self.preset.min_inliers
+                reason: Some(match fewest {
+                    Some(n) => format!(
+                        "registration: {n} inliers at best, fewer than {}",
+                        self.preset.min_inliers
                     ),
                     None if hits.is_empty() => "the map is empty".into(),
-                    None => "no candidate gave a valid registration".into(),
+                    None => "registration: no candidate gave a valid registration".into(),
                 }),
                 pose: None,
+                estimate: None,
                 confidence: 0.0,
-                inliers: other.as_ref().map_or(0, |c| c.inliers),
-                correspondences: other.as_ref().map_or(0, |c| c.pairs),
+                evidence: None,
+                covariance: None,
+                verified,
+                inliers: 0,
+                correspondences: 0,
                 image: top,
                 retrieved: hits,
                 times,
+            });
+        };
+        let world_from_query = self
+            .world_from_query(&c)
+            .expect("verified candidates are valid");
+        let estimate = convert_axes(&world_from_query, CameraAxes::OpenCv, CameraAxes::Habitat);
+        let covariance = self.covariance(&c).map(Box::new);
+        let localized = p >= self.min_confidence;
+        Ok(Localization {
+            status: if localized {
+                Status::Localized
+            } else {
+                Status::NotLocalized
             },
+            reason: (!localized).then(|| {
+                format!(
+                    "verification: confidence {p:.2} below the threshold {:.2} ({})",
+                    self.min_confidence,
+                    evidence.summary()
+                )
+            }),
+            pose: localized.then_some(estimate),
+            estimate: Some(estimate),
+            confidence: p,
+            evidence: Some(evidence),
+            covariance,
+            verified,
+            inliers: c.inliers,
+            correspondences: c.pairs,
+            image: Some(c.image),
+            retrieved: hits,
+            times,
         })
+    }
+
+    /// `world_from_query` of a registered candidate, OpenCV camera axes.
+    fn world_from_query(&self, c: &Candidate) -> Option<Isometry3<f64>> {
+        let db = &self.map.images[c.image];
+        let world_from_db = convert_axes(
+            &db.world_from_camera,
+            CameraAxes::Habitat,
+            CameraAxes::OpenCv,
+        );
+        Some(world_from_db * c.db_from_query?)
+    }
+
+    /// What the dense checks, the inliers and the other candidates say about candidate `c`.
+    fn evidence(
+        &self,
+        c: &Candidate,
+        thumb: &Thumb,
+        pool: &[(usize, Isometry3<f64>, usize)],
+        hits: &[Hit],
+        q: &Query,
+    ) -> Evidence {
+        let db = &self.map.images[c.image];
+        let db_from_query = c.db_from_query.expect("valid");
+        let world_from_query = self.world_from_query(c).expect("valid");
+        // Nearby views: the matched image's Point and the other retrieved images of its scene.
+        let mut views: Vec<usize> = self
+            .map
+            .images
+            .iter()
+            .enumerate()
+            .filter(|(_, im)| im.scene == db.scene && im.point == db.point)
+            .map(|(i, _)| i)
+            .collect();
+        for h in hits {
+            if self.map.images[h.id].scene == db.scene && !views.contains(&h.id) {
+                views.push(h.id);
+            }
+        }
+        views.retain(|&i| i != c.image);
+        views.truncate(MAX_NEARBY_VIEWS);
+        let nearby: Vec<(&Thumb, Isometry3<f64>)> = views
+            .iter()
+            .map(|&i| {
+                let im = &self.map.images[i];
+                let world_from_view = convert_axes(
+                    &im.world_from_camera,
+                    CameraAxes::Habitat,
+                    CameraAxes::OpenCv,
+                );
+                (&im.thumb, world_from_view.inverse() * world_from_query)
+            })
+            .collect();
+        let mut e = dense_evidence(thumb, &db.thumb, &db_from_query, &nearby);
+        e.log_inliers = (1.0 + c.inliers as f64).ln();
+        e.inlier_ratio = c.inliers as f64 / c.pairs.max(1) as f64;
+        e.inlier_coverage = grid_coverage(&c.inlier_px, q.rgb.width, q.rgb.height, 4);
+        let others: Vec<&(usize, Isometry3<f64>, usize)> =
+            pool.iter().filter(|p| p.0 != c.image).collect();
+        let agreeing = others
+            .iter()
+            .filter(|o| poses_agree(&o.1, &world_from_query, 0.5, 10.0))
+            .count();
+        e.consensus = agreeing as f64 / others.len().max(1) as f64;
+        e.rival_inliers = others
+            .iter()
+            .filter(|o| !poses_agree(&o.1, &world_from_query, 0.5, 10.0))
+            .map(|o| o.2 as f64 / c.inliers.max(1) as f64)
+            .fold(0.0, f64::max)
+            .min(2.0);
+        e
+    }
+
+    /// The 6x6 covariance of the answer in the map frame (ROS order), row-major.
+    fn covariance(&self, c: &Candidate) -> Option<[f64; 36]> {
+        let db = &self.map.images[c.image];
+        let world_from_db = convert_axes(
+            &db.world_from_camera,
+            CameraAxes::Habitat,
+            CameraAxes::OpenCv,
+        );
+        let local = point_to_point_covariance(
+            &c.inlier_src,
+            &c.inlier_dst,
+            &Rigid::from_isometry(&c.db_from_query?),
+            COVARIANCE_MIN_SIGMA_M,
+        )?;
+        let world = rotate_covariance(&local, &world_from_db.rotation.to_rotation_matrix());
+        let mut out = [0.0; 36];
+        for r in 0..6 {
+            for k in 0..6 {
+                out[r * 6 + k] = world[(r, k)];
+            }
+        }
+        Some(out)
     }
 
     /// Match the query against map image `id` and register.
@@ -292,15 +539,19 @@ impl Pipeline {
             inliers: 0,
             pairs: 0,
             reason: None,
+            inlier_src: Vec::new(),
+            inlier_dst: Vec::new(),
+            inlier_px: Vec::new(),
         };
         match self.preset.solver {
             Solver::Pnp => {
-                let (mut pts, mut px) = (Vec::new(), Vec::new());
+                let (mut pts, mut px, mut qa) = (Vec::new(), Vec::new(), Vec::new());
                 for &(a, b) in &m.pairs {
                     if let Some(p) = db.point(b as usize) {
                         let k = fq.keypoints[a as usize];
                         pts.push(p);
                         px.push(Point2::new(k[0] as f64, k[1] as f64));
+                        qa.push(a as usize);
                     }
                 }
                 c.pairs = pts.len();
@@ -308,32 +559,42 @@ impl Pipeline {
                 if r.valid {
                     c.db_from_query = Some(r.camera_from_points.to_isometry().inverse());
                     c.inliers = r.inliers.len();
+                    for &i in &r.inliers {
+                        c.inlier_px.push(fq.keypoints[qa[i]]);
+                        if let Some(s) = q_pts[qa[i]] {
+                            c.inlier_src.push(s);
+                            c.inlier_dst.push(pts[i]);
+                        }
+                    }
                 } else {
                     c.reason = r.reason;
                 }
             }
             Solver::Teaser | Solver::Icp => {
-                let (mut src, mut dst) = (Vec::new(), Vec::new());
+                let (mut src, mut dst, mut qa) = (Vec::new(), Vec::new(), Vec::new());
                 for &(a, b) in &m.pairs {
                     if let (Some(s), Some(d)) = (q_pts[a as usize], db.point(b as usize)) {
                         src.push(s);
                         dst.push(d);
+                        qa.push(a as usize);
                     }
                 }
                 c.pairs = src.len();
-                if self.preset.solver == Solver::Teaser {
+                let (transform, inliers) = if self.preset.solver == Solver::Teaser {
                     let r = solve(&src, &dst, &self.teaser);
-                    if r.valid {
-                        c.db_from_query = Some(Rigid::to_isometry(&r.transform));
-                        c.inliers = r.inliers.len();
-                    } else {
-                        c.reason = r.reason;
-                    }
+                    c.reason = r.reason;
+                    (r.valid.then_some(r.transform), r.inliers)
                 } else {
                     let r = icp_matched(&src, &dst, Rigid::identity(), &self.icp);
-                    if r.valid {
-                        c.db_from_query = Some(Rigid::to_isometry(&r.transform));
-                        c.inliers = r.inliers.len();
+                    (r.valid.then_some(r.transform), r.inliers)
+                };
+                if let Some(t) = transform {
+                    c.db_from_query = Some(Rigid::to_isometry(&t));
+                    c.inliers = inliers.len();
+                    for &i in &inliers {
+                        c.inlier_src.push(src[i]);
+                        c.inlier_dst.push(dst[i]);
+                        c.inlier_px.push(fq.keypoints[qa[i]]);
                     }
                 }
             }

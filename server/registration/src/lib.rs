@@ -10,10 +10,12 @@
 //!   a k-d tree), from identity or a prior.
 //! - [`pnp`]: 2D-3D PnP with RANSAC over a six-point DLT and a Levenberg-Marquardt refinement of the
 //!   reprojection error (the family the HPointLoc paper calls g2o).
+//! - [`covariance`]: the 6x6 pose covariance of a 3D-3D registration from its inlier residuals.
 //!
 //! Convention everywhere: find `R`, `t` with `dst = R * src + t` (so the result is `dst_from_src`).
 
 pub mod clique;
+pub mod covariance;
 pub mod icp;
 mod kabsch;
 mod kdtree;

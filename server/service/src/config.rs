@@ -120,6 +120,14 @@ pub struct Args {
     /// TLS private key (PEM); needs --tls-cert.
     #[arg(long, env = "PNTR_TLS_KEY")]
     pub tls_key: Option<PathBuf>,
+    /// Confidence calibration file from `pntr calibrate` [default: the one shipped in models/,
+    /// embedded in the binary].
+    #[arg(long, env = "PNTR_CALIBRATION")]
+    pub calibration: Option<PathBuf>,
+    /// LOCALIZED threshold on the calibrated confidence, 0..1 (higher: fewer wrong poses, more
+    /// NOT_LOCALIZED) [default: the calibration's own, chosen for precision].
+    #[arg(long, env = "PNTR_MIN_CONFIDENCE")]
+    pub min_confidence: Option<f64>,
 }
 
 /// `cpu`, `cuda` or `cuda:N`.
@@ -158,6 +166,8 @@ struct FileSettings {
     token_file: Option<PathBuf>,
     tls_cert: Option<PathBuf>,
     tls_key: Option<PathBuf>,
+    calibration: Option<PathBuf>,
+    min_confidence: Option<f64>,
 }
 
 impl FileSettings {
@@ -185,6 +195,7 @@ impl FileSettings {
             &mut s.token_file,
             &mut s.tls_cert,
             &mut s.tls_key,
+            &mut s.calibration,
         ]
         .into_iter()
         .flatten()
@@ -230,6 +241,10 @@ pub struct Settings {
     pub token: Option<String>,
     /// TLS certificate chain and key (PEM files).
     pub tls: Option<(PathBuf, PathBuf)>,
+    /// Confidence calibration file (`None`: the embedded default).
+    pub calibration: Option<PathBuf>,
+    /// LOCALIZED threshold on the confidence (`None`: the calibration's own).
+    pub min_confidence: Option<f64>,
 }
 
 impl std::fmt::Debug for Settings {
@@ -255,6 +270,8 @@ impl std::fmt::Debug for Settings {
             .field("keepalive_timeout", &self.keepalive_timeout)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
             .field("tls", &self.tls)
+            .field("calibration", &self.calibration)
+            .field("min_confidence", &self.min_confidence)
             .finish()
     }
 }
@@ -306,6 +323,8 @@ impl Settings {
             keepalive_timeout: Duration::from_secs_f64(DEFAULT_KEEPALIVE_TIMEOUT_S),
             token: None,
             tls: None,
+            calibration: None,
+            min_confidence: None,
         }
     }
 
@@ -406,6 +425,8 @@ impl Settings {
             )?,
             token,
             tls,
+            calibration: args.calibration.or(file.calibration),
+            min_confidence: args.min_confidence.or(file.min_confidence),
         };
         s.validate()?;
         Ok(s)
@@ -464,6 +485,15 @@ impl Settings {
                 "--ort-threads must be 1 to 64, not {}",
                 self.ort_threads
             ));
+        }
+        if let Some(c) = self.min_confidence {
+            if !(0.0..=1.0).contains(&c) {
+                return bad(format!("--min-confidence must be between 0 and 1, not {c}"));
+            }
+        }
+        if let Some(p) = &self.calibration {
+            pntr_pipeline::calibration::Calibration::load(p)
+                .or_else(|e| bad(format!("--calibration: {e}")))?;
         }
         if let Some(t) = &self.token {
             // Checked without echoing the value.

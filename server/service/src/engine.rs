@@ -68,7 +68,7 @@ pub enum Outcome {
     /// The pipeline ran.
     Done {
         /// Its result.
-        result: Result<Localization, PipelineError>,
+        result: Result<Box<Localization>, PipelineError>,
         /// Time spent waiting in the queue.
         queued: Duration,
     },
@@ -101,6 +101,8 @@ pub struct Engine {
     pub workers: usize,
     /// Queue capacity.
     pub queue: usize,
+    /// The LOCALIZED threshold on the calibrated confidence.
+    pub min_confidence: f64,
     tx: Mutex<Option<SyncSender<Job>>>,
     queued: Arc<AtomicUsize>,
     busy: Arc<AtomicUsize>,
@@ -165,6 +167,18 @@ impl Engine {
                 points,
             });
         }
+        let calibration = Arc::new(match &s.calibration {
+            Some(p) => {
+                pntr_pipeline::calibration::Calibration::load(p).map_err(|e| e.to_string())?
+            }
+            None => pntr_pipeline::calibration::Calibration::embedded(),
+        });
+        let min_confidence = s.min_confidence.unwrap_or(calibration.threshold);
+        tracing::info!(
+            calibration = %s.calibration.as_ref().map_or("embedded".into(), |p| p.display().to_string()),
+            min_confidence,
+            "confidence calibration"
+        );
         // One set of pipelines per worker; maps built with the same preset share the worker's stage.
         let mut per_worker: Vec<Vec<Pipeline>> = Vec::with_capacity(s.workers);
         for w in 0..s.workers {
@@ -199,7 +213,8 @@ impl Engine {
                     }
                 };
                 let p = Pipeline::new(m.map.clone(), stage, preset)
-                    .map_err(|e| format!("map `{}`: {e}", m.id))?;
+                    .map_err(|e| format!("map `{}`: {e}", m.id))?
+                    .with_calibration(calibration.clone(), Some(min_confidence));
                 pipelines.push(p);
             }
             tracing::debug!(worker = w, "pipelines ready");
@@ -223,6 +238,7 @@ impl Engine {
             maps,
             workers: s.workers,
             queue: s.queue,
+            min_confidence,
             tx: Mutex::new(Some(tx)),
             queued,
             busy,
@@ -364,7 +380,7 @@ fn worker(
 }
 
 /// Seconds per stage of one localized frame, in the order the response lists them.
-pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f64); 6] {
+pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f64); 7] {
     let t = &loc.times;
     [
         ("queue", queued.as_secs_f64()),
@@ -372,6 +388,7 @@ pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f6
         ("retrieval", t.retrieval),
         ("matching", t.matching),
         ("registration", t.registration),
+        ("verification", t.verification),
         ("total", t.total),
     ]
 }
@@ -404,7 +421,10 @@ fn run(
     }
     Some(
         match std::panic::catch_unwind(AssertUnwindSafe(|| pipeline.localize(query))) {
-            Ok(result) => Outcome::Done { result, queued },
+            Ok(result) => Outcome::Done {
+                result: result.map(Box::new),
+                queued,
+            },
             Err(p) => {
                 let message = p
                     .downcast_ref::<&str>()

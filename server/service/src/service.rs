@@ -383,6 +383,12 @@ impl LocalizerService {
                 .collect(),
             matched_point: matched.map_or(0, |im| im.point),
             request_id: String::new(),
+            covariance: if localized {
+                loc.covariance.map(|c| c.to_vec()).unwrap_or_default()
+            } else {
+                Vec::new()
+            },
+            min_confidence: engine.min_confidence,
         })
     }
 }

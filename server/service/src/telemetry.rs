@@ -15,7 +15,8 @@ use hyper::body::Bytes;
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
 use tokio::net::TcpListener;
 
-/// Histogram of seconds per stage (`stage` = queue, extraction, retrieval, matching, registration, total).
+/// Histogram of seconds per stage (`stage` = queue, extraction, retrieval, matching, registration, verification,
+/// total).
 pub const STAGE_DURATION: &str = "pntr_stage_duration_seconds";
 /// Counter of finished requests (`status` = LOCALIZED, NOT_LOCALIZED or ERROR; `code` = gRPC code).
 pub const REQUESTS_TOTAL: &str = "pntr_requests_total";

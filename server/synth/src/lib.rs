@@ -12,6 +12,7 @@
 //! casts each view. Points render in parallel (rayon), each into its own file; everything is a pure
 //! function of the seed, so a dataset is reproducible bit for bit.
 
+pub mod effects;
 pub mod protocol;
 pub mod render;
 pub mod scene;

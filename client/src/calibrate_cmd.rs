@@ -1,0 +1,309 @@
+//! `pntr calibrate`: fit the confidence calibration on a user's own data.
+//!
+//! Every in-map query of `--dataset` is localised twice, as rendered and with robot camera effects,
+//! and every out-of-map query of `--negatives` once; each candidate pose that verification scores
+//! becomes one labelled sample (right = within (1 m, 10 deg) of the ground truth; anything from the
+//! negatives is wrong). A logistic model is fitted on them ([`pntr_pipeline::calibration::fit`]) and
+//! written atomically with its checksum; the threshold is the lowest that keeps the fitting set's
+//! precision at `--target-precision`.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use pntr_core::Intrinsics;
+use pntr_dataset::{DatasetIndex, Role, SceneEntry};
+use pntr_pipeline::calibration::{self, Calibration, QuerySamples};
+use pntr_pipeline::eval::pose_error;
+use pntr_pipeline::pipeline::{Pipeline, Query};
+use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
+use pntr_pipeline::verify::EVIDENCE_NAMES;
+use pntr_synth::effects::RobotEffects;
+
+use crate::map_cmd;
+
+/// Arguments of `pntr calibrate`.
+#[derive(clap::Args, Debug)]
+pub struct CalibrateArgs {
+    /// Dataset whose scenes the map covers (in-map queries with ground truth).
+    #[arg(long)]
+    pub dataset: PathBuf,
+    /// Only this scene of --dataset.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Dataset of places the map does not cover (out-of-map queries).
+    #[arg(long)]
+    pub negatives: PathBuf,
+    /// Write the calibration here (JSON; written to a temporary name, then renamed).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// A map of --dataset from `pntr build-db`; without it the map is built first.
+    #[arg(long)]
+    pub db: Option<PathBuf>,
+    /// Preset (default: the map's own, or the default preset when building).
+    #[arg(long)]
+    pub preset: Option<String>,
+    /// In-map queries used, evenly spaced (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub queries: usize,
+    /// Out-of-map queries used, evenly spaced (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub negative_queries: usize,
+    /// Do not add the robot-effects copy of each in-map query.
+    #[arg(long)]
+    pub no_effects: bool,
+    /// Precision (within 1 m, 10 deg) the recommended threshold must reach on the fitting set.
+    #[arg(long, default_value_t = 0.995)]
+    pub target_precision: f64,
+    /// L2 penalty on the standardised weights.
+    #[arg(long, default_value_t = 1.0)]
+    pub l2: f64,
+    /// Also write every labelled sample here, one JSON object a line (`{"query", "effects", "image",
+    /// "chosen", "error_m", "error_deg", "confidence", "right", "negative", "evidence": {...}}`), to
+    /// study or refit elsewhere.
+    #[arg(long)]
+    pub samples: Option<PathBuf>,
+    /// Calibration used while collecting (it picks among candidates and fills `confidence` in
+    /// --samples; the fit itself does not depend on it) [default: the embedded one].
+    #[arg(long)]
+    pub calibration: Option<PathBuf>,
+    /// Folder of the ONNX models.
+    #[arg(long, default_value = "models")]
+    pub models: PathBuf,
+    /// Threads for ONNX Runtime.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+}
+
+/// Every query (Point file, index) of `scenes`, evenly thinned to `max` (0 = all).
+fn queries_of(
+    scenes: &[&SceneEntry],
+    max: usize,
+) -> Result<Vec<(pntr_dataset::PointEntry, usize)>> {
+    let mut all = Vec::new();
+    for s in scenes {
+        for p in &s.points {
+            let n = p.open()?.count(Role::Query);
+            all.extend((0..n).map(|q| (p.clone(), q)));
+        }
+    }
+    if max == 0 || max >= all.len() {
+        return Ok(all);
+    }
+    let step = all.len() as f64 / max as f64;
+    Ok((0..max)
+        .map(|i| all[(i as f64 * step) as usize].clone())
+        .collect())
+}
+
+/// Localise every query of `list` (with `effects` when given) and label every verified candidate:
+/// right when within (1 m, 10 deg) of the query's ground truth (`negative`: never).
+fn collect(
+    pipeline: &Pipeline,
+    list: &[(pntr_dataset::PointEntry, usize)],
+    effects: Option<&RobotEffects>,
+    negative: bool,
+    what: &str,
+    out: &mut Vec<QuerySamples>,
+    notes: &mut Vec<serde_json::Value>,
+) -> Result<()> {
+    let k = Intrinsics::hpointloc();
+    let pb = indicatif::ProgressBar::new(list.len() as u64);
+    pb.set_message(what.to_string());
+    pb.set_style(
+        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} (eta {eta})")
+            .expect("valid template"),
+    );
+    let mut open: Option<(PathBuf, pntr_dataset::PointReader)> = None;
+    for (i, (p, qi)) in list.iter().enumerate() {
+        if open.as_ref().is_none_or(|o| o.0 != p.path) {
+            open = Some((p.path.clone(), p.open()?));
+        }
+        let v = open.as_ref().expect("opened").1.view(Role::Query, *qi)?;
+        let mut q = Query {
+            rgb: v.rgb,
+            depth: v.depth,
+            intrinsics: k,
+        };
+        if let Some(fx) = effects {
+            fx.apply(&mut q.rgb, &mut q.depth, i as u64 + 1);
+        }
+        let l = match pipeline.localize(&q) {
+            Ok(l) => l,
+            Err(e) => {
+                tracing::warn!("query {}: {e}", p.query_id(*qi));
+                continue;
+            }
+        };
+        let mut group = QuerySamples::default();
+        for c in &l.verified {
+            group.rivals.push(
+                c.rivals
+                    .iter()
+                    .filter_map(|r| l.verified.iter().position(|o| o.image == *r))
+                    .collect(),
+            );
+        }
+        for c in &l.verified {
+            let (dt, dr) = pose_error(&c.pose, &v.world_from_camera, false);
+            group
+                .candidates
+                .push((c.evidence, !negative && dt <= 1.0 && dr <= 10.0));
+            notes.push(serde_json::json!({
+                "query": p.query_id(*qi),
+                "effects": effects.is_some(),
+                "image": pipeline.map.images[c.image].id,
+                "chosen": l.image == Some(c.image),
+                "error_m": dt,
+                "error_deg": dr,
+                "confidence": c.confidence,
+                "answer_confidence": l.confidence,
+                "rivals": c.rivals.iter().map(|&r| pipeline.map.images[r].id.clone()).collect::<Vec<_>>(),
+            }));
+        }
+        if !group.candidates.is_empty() {
+            out.push(group);
+        }
+        pb.set_position(i as u64 + 1);
+    }
+    pb.finish_and_clear();
+    Ok(())
+}
+
+/// Today's date (UTC) as YYYY-MM-DD.
+fn today() -> String {
+    let days = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs() / 86_400)
+        .unwrap_or(0) as i64;
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + (m <= 2) as i64;
+    format!("{y:04}-{m:02}-{d:02}")
+}
+
+/// `pntr calibrate`.
+pub fn run(args: &CalibrateArgs) -> Result<()> {
+    let index = DatasetIndex::open(&args.dataset)?;
+    let (map_id, scenes) = map_cmd::select_scenes(&index, args.scene.as_deref())?;
+    let neg_index = DatasetIndex::open(&args.negatives)
+        .with_context(|| format!("--negatives {}", args.negatives.display()))?;
+    let neg_scenes: Vec<&SceneEntry> = neg_index.scenes.iter().collect();
+    let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
+    if same(&args.dataset, &args.negatives) {
+        anyhow::bail!(
+            "--negatives {} is --dataset itself: negatives must be places the map does not cover",
+            args.negatives.display()
+        );
+    }
+    let map = match &args.db {
+        Some(p) => map_cmd::load_map(p, args.threads)
+            .with_context(|| format!("loading {}", p.display()))?,
+        None => {
+            let preset = Preset::named(args.preset.as_deref().unwrap_or(DEFAULT_PRESET))?;
+            map_cmd::build_map(&map_id, &scenes, &preset, &args.models, args.threads)?
+        }
+    };
+    let preset = match &args.preset {
+        Some(name) => Preset::named(name)?,
+        None => map.header.preset.clone(),
+    };
+    let stage = map_cmd::feature_stage(&preset, &args.models, args.threads)?;
+    let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?
+        .with_calibration(map_cmd::calibration(args.calibration.as_deref())?, None);
+    let (mut samples, mut notes) = (Vec::new(), Vec::new());
+    let inmap = queries_of(&scenes, args.queries)?;
+    collect(
+        &pipeline,
+        &inmap,
+        None,
+        false,
+        "in-map queries",
+        &mut samples,
+        &mut notes,
+    )?;
+    if !args.no_effects {
+        let fx = RobotEffects::default();
+        collect(
+            &pipeline,
+            &inmap,
+            Some(&fx),
+            false,
+            "in-map queries, robot effects",
+            &mut samples,
+            &mut notes,
+        )?;
+    }
+    let n_inmap = samples.len();
+    let neg = queries_of(&neg_scenes, args.negative_queries)?;
+    collect(
+        &pipeline,
+        &neg,
+        None,
+        true,
+        "out-of-map queries",
+        &mut samples,
+        &mut notes,
+    )?;
+    if let Some(path) = &args.samples {
+        let mut text = String::new();
+        let flat = samples
+            .iter()
+            .enumerate()
+            .flat_map(|(g, q)| q.candidates.iter().map(move |c| (g, c)));
+        for (i, (g, (e, right))) in flat.enumerate() {
+            let mut line = notes[i].clone();
+            line["right"] = serde_json::json!(right);
+            line["negative"] = serde_json::json!(g >= n_inmap);
+            line["evidence"] = serde_json::json!(e);
+            text += &format!("{line}\n");
+        }
+        map_cmd::write_text(path, &text)?;
+    }
+    let mut c = calibration::fit(&samples, args.l2, args.target_precision, &preset.name)?;
+    c.fitted_on.datasets = vec![
+        format!(
+            "in-map {} ({} queries)",
+            args.dataset.display(),
+            inmap.len()
+        ),
+        format!(
+            "out-of-map {} ({} queries)",
+            args.negatives.display(),
+            neg.len()
+        ),
+    ];
+    c.fitted_on.date = today();
+    c.save(&args.out)?;
+    // Read it back: what was written is what the server will load.
+    let c: Calibration = Calibration::load(&args.out)?;
+    let summary = serde_json::json!({
+        "out": args.out,
+        "samples": c.fitted_on.samples,
+        "positives": c.fitted_on.positives,
+        "threshold": c.threshold,
+        "ece": c.fitted_on.ece,
+        "precision_at_threshold": c.fitted_on.precision_at_threshold,
+        "recall_at_threshold": c.fitted_on.recall_at_threshold,
+        "weights": EVIDENCE_NAMES.iter().zip(&c.weights).map(|(n, w)| (n.to_string(), serde_json::json!(*w))).collect::<serde_json::Map<String, serde_json::Value>>(),
+    });
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn today_is_a_date() {
+        let d = super::today();
+        assert_eq!(d.len(), 10);
+        assert!(d.starts_with("20"));
+    }
+}

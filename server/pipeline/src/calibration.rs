@@ -1,0 +1,493 @@
+//! Calibrated confidence: the probability that a pose is within (1 m, 10 deg) of the truth, from the
+//! verification [`Evidence`], by logistic regression (Platt-style) fitted on labelled answers.
+//!
+//! The file (`models/calibration.json`, embedded in the binaries as the default) is JSON:
+//! `{"format": "pntr-calibration", "version": 1, "features": [names], "mean": [..], "scale": [..],
+//! "weights": [..], "bias": b, "threshold": t, "preset": "...", "fitted_on": {...}, "checksum": "..."}`.
+//! `checksum` is FNV-1a (hex) of the canonical JSON of every other field; a file whose checksum, format,
+//! version or feature names differ is refused, so a hand-edited or truncated calibration never
+//! silently changes what LOCALIZED means. `pntr calibrate` refits it on a user's data.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use crate::verify::{Evidence, EVIDENCE_NAMES};
+use crate::PipelineError;
+
+/// The `format` value of a calibration file.
+pub const FORMAT: &str = "pntr-calibration";
+/// The calibration file version this build reads and writes.
+pub const VERSION: u32 = 1;
+/// The calibration shipped with the models (`models/calibration.json`), embedded at build time.
+pub const EMBEDDED: &str = include_str!("../../../models/calibration.json");
+
+/// What a calibration was fitted on.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FitInfo {
+    /// Labelled candidate poses used.
+    pub samples: usize,
+    /// Of which positives (within 1 m, 10 deg).
+    pub positives: usize,
+    /// Queries they came from (in-map, with robot effects, and out-of-map).
+    #[serde(default)]
+    pub queries: usize,
+    /// Datasets (in-map and negatives) the samples came from.
+    pub datasets: Vec<String>,
+    /// Expected calibration error of the queries' answers on the fitting set (10 bins).
+    pub ece: f64,
+    /// Precision at (1 m, 10 deg) of the queries' answers at or above the threshold, fitting set.
+    pub precision_at_threshold: f64,
+    /// Share of the queries answered right that stay LOCALIZED at the threshold, on the fitting set.
+    pub recall_at_threshold: f64,
+    /// When it was fitted (RFC 3339 date), free text.
+    pub date: String,
+}
+
+/// A fitted logistic model over [`Evidence`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Calibration {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Always [`VERSION`].
+    pub version: u32,
+    /// Feature names, [`EVIDENCE_NAMES`].
+    pub features: Vec<String>,
+    /// Per-feature mean used for standardisation.
+    pub mean: Vec<f64>,
+    /// Per-feature scale (standard deviation) used for standardisation.
+    pub scale: Vec<f64>,
+    /// Weights of the standardised features.
+    pub weights: Vec<f64>,
+    /// Intercept.
+    pub bias: f64,
+    /// Recommended LOCALIZED threshold on the probability (chosen for precision when fitted).
+    pub threshold: f64,
+    /// Preset whose answers it was fitted on.
+    pub preset: String,
+    /// Provenance.
+    pub fitted_on: FitInfo,
+    /// FNV-1a of the other fields (see the module docs).
+    #[serde(default)]
+    pub checksum: String,
+}
+
+fn bad(path: &Path, m: impl std::fmt::Display) -> PipelineError {
+    PipelineError::Io {
+        path: path.to_path_buf(),
+        message: format!("calibration: {m}"),
+    }
+}
+
+impl Calibration {
+    /// The embedded default.
+    pub fn embedded() -> Self {
+        Self::parse(EMBEDDED, Path::new("<embedded models/calibration.json>"))
+            .expect("the embedded calibration is valid (checked by a test)")
+    }
+
+    /// The checksum of every field but `checksum`.
+    pub fn compute_checksum(&self) -> String {
+        let mut c = self.clone();
+        c.checksum.clear();
+        let bytes = serde_json::to_vec(&c).expect("plain data serialises");
+        format!("{:016x}", pntr_core::bytes::fnv1a(&bytes))
+    }
+
+    /// Parse and check a calibration (`path` names it in errors).
+    pub fn parse(text: &str, path: &Path) -> Result<Self, PipelineError> {
+        let c: Calibration = serde_json::from_str(text).map_err(|e| bad(path, e))?;
+        if c.format != FORMAT {
+            return Err(bad(path, format!("format `{}`, want `{FORMAT}`", c.format)));
+        }
+        if c.version != VERSION {
+            return Err(bad(
+                path,
+                format!("version {}; this build reads version {VERSION}", c.version),
+            ));
+        }
+        if c.checksum != c.compute_checksum() {
+            return Err(bad(
+                path,
+                "checksum mismatch (the file was changed or damaged; refit with `pntr calibrate`)",
+            ));
+        }
+        let n = EVIDENCE_NAMES.len();
+        if c.features != EVIDENCE_NAMES {
+            return Err(bad(
+                path,
+                format!(
+                    "features {:?}; this build computes {:?}",
+                    c.features, EVIDENCE_NAMES
+                ),
+            ));
+        }
+        if c.mean.len() != n || c.scale.len() != n || c.weights.len() != n {
+            return Err(bad(
+                path,
+                format!("mean, scale and weights need {n} values"),
+            ));
+        }
+        let finite = c
+            .mean
+            .iter()
+            .chain(&c.scale)
+            .chain(&c.weights)
+            .chain([&c.bias, &c.threshold])
+            .all(|v| v.is_finite());
+        if !finite || c.scale.iter().any(|&s| s <= 0.0) || !(0.0..=1.0).contains(&c.threshold) {
+            return Err(bad(
+                path,
+                "values must be finite, scales positive, threshold in 0..1",
+            ));
+        }
+        Ok(c)
+    }
+
+    /// Read and check a calibration file.
+    pub fn load(path: &Path) -> Result<Self, PipelineError> {
+        let text = std::fs::read_to_string(path).map_err(|e| bad(path, e))?;
+        Self::parse(&text, path)
+    }
+
+    /// Write atomically (temporary name, fsync, rename), with the checksum filled in.
+    pub fn save(&self, path: &Path) -> Result<(), PipelineError> {
+        let mut c = self.clone();
+        c.checksum = c.compute_checksum();
+        let text = serde_json::to_string_pretty(&c).map_err(|e| bad(path, e))? + "\n";
+        let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
+        let write = || -> std::io::Result<()> {
+            use std::io::Write;
+            let mut f = std::fs::File::create(&tmp)?;
+            f.write_all(text.as_bytes())?;
+            f.sync_all()?;
+            std::fs::rename(&tmp, path)
+        };
+        write().map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            bad(path, e)
+        })
+    }
+
+    /// Probability in 0..1 that the pose with this evidence is within (1 m, 10 deg).
+    pub fn probability(&self, e: &Evidence) -> f64 {
+        let x = model_inputs(e);
+        let z = self.bias
+            + x.iter()
+                .zip(&self.mean)
+                .zip(&self.scale)
+                .zip(&self.weights)
+                .map(|(((v, m), s), w)| w * (v - m) / s)
+                .sum::<f64>();
+        sigmoid(z)
+    }
+}
+
+/// The model's inputs: the evidence with shares on a logit scale (so 0.95 and 0.99 agreement differ
+/// as much as they matter), violation shares on a log scale and correlations through atanh (Fisher's
+/// z); counts stay as they are.
+pub fn model_inputs(e: &Evidence) -> [f64; N_FEATURES] {
+    const EPS: f64 = 0.02;
+    let logit = |a: f64| {
+        let a = a.clamp(0.0, 1.0);
+        ((a + EPS) / (1.0 - a + EPS)).ln()
+    };
+    let log = |a: f64| (a.clamp(0.0, 1.0) + EPS).ln();
+    let z = |r: f64| r.clamp(-0.99, 0.99).atanh();
+    let v = e.values();
+    std::array::from_fn(|j| match EVIDENCE_NAMES[j] {
+        "depth_agree" | "views_agree" | "overlap" | "inlier_coverage" | "inlier_ratio" => {
+            logit(v[j])
+        }
+        "free_space_violation" | "views_violation" => log(v[j]),
+        "gray_correlation" | "views_gray" => z(v[j]),
+        _ => v[j],
+    })
+}
+
+/// Number of model inputs.
+pub const N_FEATURES: usize = EVIDENCE_NAMES.len();
+
+/// The verified candidates of one query, for fitting: each candidate's evidence and label, and for
+/// each the indices of the candidates whose pose disagrees with it (its rivals).
+#[derive(Debug, Clone, Default)]
+pub struct QuerySamples {
+    /// (evidence, right within (1 m, 10 deg)) per candidate.
+    pub candidates: Vec<(Evidence, bool)>,
+    /// `rivals[i]`: candidates whose pose disagrees with candidate i (0.5 m, 10 deg).
+    pub rivals: Vec<Vec<usize>>,
+}
+
+/// The answer's confidence from each candidate's probability: `p_i * (1 - max rival p_j)`, the
+/// chance that candidate i is right and its strongest disagreeing rival is not (they cannot both be
+/// right). Returns (index of the most confident candidate, its confidence).
+pub fn choose(probabilities: &[f64], rivals: &[Vec<usize>]) -> Option<(usize, f64)> {
+    (0..probabilities.len())
+        .map(|i| {
+            let rival = rivals
+                .get(i)
+                .into_iter()
+                .flatten()
+                .map(|&j| probabilities[j])
+                .fold(0.0, f64::max);
+            (i, probabilities[i] * (1.0 - rival))
+        })
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+fn sigmoid(z: f64) -> f64 {
+    1.0 / (1.0 + (-z).exp())
+}
+
+/// Fit a logistic model to every candidate of `queries` (evidence, right within (1 m, 10 deg)) by
+/// Newton's method with an L2 penalty `l2` on the standardised weights; the threshold is the smallest
+/// answer confidence ([`choose`]) at which the queries' answers reach `target_precision` (never below
+/// 0.5). Out-of-map queries are queries whose candidates are all wrong.
+pub fn fit(
+    queries: &[QuerySamples],
+    l2: f64,
+    target_precision: f64,
+    preset: &str,
+) -> Result<Calibration, PipelineError> {
+    let samples: Vec<(Evidence, bool)> = queries
+        .iter()
+        .flat_map(|q| q.candidates.iter().copied())
+        .collect();
+    let n = EVIDENCE_NAMES.len();
+    let pos = samples.iter().filter(|s| s.1).count();
+    if pos < 5 || samples.len() - pos < 5 {
+        return Err(PipelineError::Config(format!(
+            "calibration needs at least 5 right and 5 wrong answers; got {pos} right of {}",
+            samples.len()
+        )));
+    }
+    let xs: Vec<[f64; N_FEATURES]> = samples.iter().map(|s| model_inputs(&s.0)).collect();
+    let m = samples.len() as f64;
+    let mut mean = vec![0.0; n];
+    let mut scale = vec![0.0; n];
+    for x in &xs {
+        for j in 0..n {
+            mean[j] += x[j] / m;
+        }
+    }
+    for x in &xs {
+        for j in 0..n {
+            scale[j] += (x[j] - mean[j]).powi(2) / m;
+        }
+    }
+    for s in &mut scale {
+        *s = s.sqrt().max(1e-6);
+    }
+    let z: Vec<Vec<f64>> = xs
+        .iter()
+        .map(|x| {
+            let mut v: Vec<f64> = (0..n).map(|j| (x[j] - mean[j]) / scale[j]).collect();
+            v.push(1.0);
+            v
+        })
+        .collect();
+    let y: Vec<f64> = samples.iter().map(|s| s.1 as u8 as f64).collect();
+    let d = n + 1;
+    let mut w = nalgebra::DVector::<f64>::zeros(d);
+    for _ in 0..50 {
+        let mut g = nalgebra::DVector::<f64>::zeros(d);
+        let mut h = nalgebra::DMatrix::<f64>::zeros(d, d);
+        for (zi, &yi) in z.iter().zip(&y) {
+            let zi = nalgebra::DVector::from_column_slice(zi);
+            let p = sigmoid(w.dot(&zi));
+            g += &zi * (p - yi);
+            h += &zi * zi.transpose() * (p * (1.0 - p)).max(1e-9);
+        }
+        for j in 0..n {
+            g[j] += l2 * w[j];
+            h[(j, j)] += l2;
+        }
+        let Some(step) = h.lu().solve(&g) else { break };
+        w -= &step;
+        if step.norm() < 1e-9 {
+            break;
+        }
+    }
+    let mut c = Calibration {
+        format: FORMAT.into(),
+        version: VERSION,
+        features: EVIDENCE_NAMES.iter().map(|s| s.to_string()).collect(),
+        mean,
+        scale,
+        weights: w.as_slice()[..n].to_vec(),
+        bias: w[n],
+        threshold: 0.5,
+        preset: preset.into(),
+        fitted_on: FitInfo::default(),
+        checksum: String::new(),
+    };
+    let probs: Vec<(f64, bool)> = queries
+        .iter()
+        .filter_map(|q| {
+            let p: Vec<f64> = q.candidates.iter().map(|s| c.probability(&s.0)).collect();
+            let (i, conf) = choose(&p, &q.rivals)?;
+            Some((conf, q.candidates[i].1))
+        })
+        .collect();
+    let pos = probs.iter().filter(|p| p.1).count();
+    c.threshold = threshold_for_precision(&probs, target_precision).max(0.5);
+    let kept: Vec<&(f64, bool)> = probs.iter().filter(|p| p.0 >= c.threshold).collect();
+    c.fitted_on = FitInfo {
+        samples: samples.len(),
+        positives: samples.iter().filter(|s| s.1).count(),
+        queries: queries.len(),
+        ece: ece(&probs, 10).0,
+        precision_at_threshold: kept.iter().filter(|p| p.1).count() as f64
+            / kept.len().max(1) as f64,
+        recall_at_threshold: kept.iter().filter(|p| p.1).count() as f64 / pos.max(1) as f64,
+        ..FitInfo::default()
+    };
+    Ok(c)
+}
+
+/// The smallest threshold at which the answers kept (probability >= threshold) reach `target`
+/// precision, scanning from the top; 1.0 when no threshold does.
+pub fn threshold_for_precision(probs: &[(f64, bool)], target: f64) -> f64 {
+    let mut sorted: Vec<(f64, bool)> = probs.to_vec();
+    sorted.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let (mut tp, mut best) = (0usize, 1.0);
+    for (i, &(p, right)) in sorted.iter().enumerate() {
+        tp += right as usize;
+        let next_differs = sorted.get(i + 1).is_none_or(|n| n.0 < p);
+        if next_differs && tp as f64 / (i + 1) as f64 >= target {
+            best = p;
+        }
+    }
+    best
+}
+
+/// One bin of a reliability diagram.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Bin {
+    /// Lower edge of the bin's probability range.
+    pub lo: f64,
+    /// Upper edge.
+    pub hi: f64,
+    /// Answers in the bin.
+    pub count: usize,
+    /// Their mean predicted probability.
+    pub mean_confidence: f64,
+    /// The share of them that were right.
+    pub accuracy: f64,
+}
+
+/// Expected calibration error over `bins` equal-width bins (the count-weighted mean gap between
+/// predicted probability and observed accuracy; Naeini et al., 2015), and the bins.
+pub fn ece(probs: &[(f64, bool)], bins: usize) -> (f64, Vec<Bin>) {
+    let mut out: Vec<Bin> = (0..bins)
+        .map(|i| Bin {
+            lo: i as f64 / bins as f64,
+            hi: (i + 1) as f64 / bins as f64,
+            ..Bin::default()
+        })
+        .collect();
+    for &(p, right) in probs {
+        let b = ((p * bins as f64) as usize).min(bins - 1);
+        out[b].count += 1;
+        out[b].mean_confidence += p;
+        out[b].accuracy += right as u8 as f64;
+    }
+    let mut e = 0.0;
+    for b in &mut out {
+        if b.count > 0 {
+            b.mean_confidence /= b.count as f64;
+            b.accuracy /= b.count as f64;
+            e += b.count as f64 * (b.mean_confidence - b.accuracy).abs();
+        }
+    }
+    (e / probs.len().max(1) as f64, out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn embedded_calibration_is_valid() {
+        let c = Calibration::embedded();
+        assert!(c.threshold >= 0.5);
+        assert_eq!(c.features.len(), EVIDENCE_NAMES.len());
+    }
+
+    #[test]
+    fn ece_of_a_perfect_and_a_wrong_model() {
+        let perfect: Vec<(f64, bool)> = (0..100)
+            .map(|i| (0.0 + (i % 2) as f64, i % 2 == 1))
+            .collect();
+        assert!(ece(&perfect, 10).0 < 1e-12);
+        let wrong: Vec<(f64, bool)> = (0..100).map(|i| (0.95, i < 50)).collect();
+        assert!((ece(&wrong, 10).0 - 0.45).abs() < 1e-9);
+    }
+
+    #[test]
+    fn fit_saves_loads_and_refuses_damage() {
+        // Right answers agree densely; wrong ones do not (with overlap, so the fit is not separable).
+        let queries: Vec<QuerySamples> = (0..400)
+            .map(|i| {
+                let right = i % 3 != 0;
+                let x = (i % 17) as f64 / 17.0;
+                let e = Evidence {
+                    depth_agree: if right { 0.6 + 0.4 * x } else { 0.9 * x },
+                    views_agree: if right { 0.7 + 0.3 * x } else { x },
+                    log_inliers: if right { 3.0 + x } else { 2.5 + x },
+                    ..Evidence::default()
+                };
+                QuerySamples {
+                    candidates: vec![(e, right)],
+                    rivals: vec![vec![]],
+                }
+            })
+            .collect();
+        let c = fit(&queries, 1.0, 0.99, "xfeat-mnn").unwrap();
+        let good = Evidence {
+            depth_agree: 0.98,
+            views_agree: 0.98,
+            log_inliers: 4.0,
+            ..Evidence::default()
+        };
+        let bad = Evidence {
+            depth_agree: 0.2,
+            views_agree: 0.2,
+            log_inliers: 2.6,
+            ..Evidence::default()
+        };
+        assert!(c.probability(&good) > 0.9 && c.probability(&bad) < 0.1);
+        assert!(c.fitted_on.precision_at_threshold >= 0.99);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cal.json");
+        c.save(&path).unwrap();
+        let back = Calibration::load(&path).unwrap();
+        assert_eq!(back.weights, c.weights);
+        assert_eq!(back.probability(&good), c.probability(&good));
+        let text = std::fs::read_to_string(&path).unwrap();
+        let damaged = text.replacen("\"threshold\": 0.", "\"threshold\": 0.9", 1);
+        assert_ne!(damaged, text);
+        std::fs::write(&path, damaged).unwrap();
+        let e = Calibration::load(&path).unwrap_err().to_string();
+        assert!(e.contains("cal.json") && e.contains("checksum"), "{e}");
+        std::fs::write(&path, &text[..text.len() / 3]).unwrap();
+        assert!(Calibration::load(&path).is_err());
+        // Rivals: a strong disagreeing rival lowers the answer's confidence.
+        let (i, conf) = choose(&[0.9, 0.8], &[vec![1], vec![0]]).unwrap();
+        assert_eq!(i, 0);
+        assert!((conf - 0.9 * 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn threshold_reaches_the_target_precision() {
+        let probs = vec![
+            (0.99, true),
+            (0.9, true),
+            (0.8, false),
+            (0.7, true),
+            (0.2, false),
+        ];
+        assert_eq!(threshold_for_precision(&probs, 1.0), 0.9);
+        assert_eq!(threshold_for_precision(&probs, 0.75), 0.7);
+    }
+}
