@@ -59,8 +59,9 @@ pub struct CalibrateArgs {
     #[arg(long, default_value_t = 1.0)]
     pub l2: f64,
     /// Also write every labelled sample here, one JSON object a line (`{"query", "effects", "image",
-    /// "chosen", "error_m", "error_deg", "confidence", "right", "negative", "evidence": {...}}`), to
-    /// study or refit elsewhere.
+    /// "chosen", "error_m", "error_deg", "confidence" (the candidate's own probability),
+    /// "answer_confidence" (the query's answer), "rivals", "right", "negative", "evidence": {...}}`),
+    /// to study the checks.
     #[arg(long)]
     pub samples: Option<PathBuf>,
     /// Calibration used while collecting (it picks among candidates and fills `confidence` in
@@ -191,6 +192,32 @@ fn today() -> String {
 
 /// `pntr calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
+    if !(args.target_precision > 0.0 && args.target_precision <= 1.0) {
+        anyhow::bail!(
+            "--target-precision must be in (0, 1], not {}",
+            args.target_precision
+        );
+    }
+    if !(args.l2.is_finite() && args.l2 >= 0.0) {
+        anyhow::bail!("--l2 must be a finite number >= 0, not {}", args.l2);
+    }
+    for (flag, p) in [
+        ("--out", Some(&args.out)),
+        ("--samples", args.samples.as_ref()),
+    ] {
+        if let Some(dir) = p
+            .and_then(|p| p.parent())
+            .filter(|d| !d.as_os_str().is_empty())
+        {
+            if !dir.is_dir() {
+                anyhow::bail!(
+                    "{flag} {}: the folder {} does not exist",
+                    p.expect("some").display(),
+                    dir.display()
+                );
+            }
+        }
+    }
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = map_cmd::select_scenes(&index, args.scene.as_deref())?;
     let neg_index = DatasetIndex::open(&args.negatives)

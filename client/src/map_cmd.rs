@@ -442,6 +442,11 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     };
     let stage = feature_stage(&preset, &args.models, args.threads)?;
     let fx = effects(&args.effects)?;
+    if let Some(c) = args.min_confidence {
+        if !(0.0..=1.0).contains(&c) {
+            anyhow::bail!("--min-confidence must be between 0 and 1, not {c}");
+        }
+    }
     let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?.with_calibration(
         calibration(args.calibration.as_deref())?,
         args.min_confidence,

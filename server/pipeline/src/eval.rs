@@ -146,7 +146,7 @@ pub struct EvalReport {
     pub failed_requests: usize,
     /// The preset, when known.
     pub preset: String,
-    /// Share of LOCALIZED answers within each threshold (`1m_10deg`, `5m_20deg`); 1 when none.
+    /// Share of LOCALIZED answers within each threshold (`1m_10deg`, `5m_20deg`); NaN (null) when none.
     pub precision: BTreeMap<String, f64>,
     /// LOCALIZED answers more than (5 m, 20 deg) off: the confident wrong poses.
     pub localized_wrong: usize,
@@ -479,12 +479,13 @@ pub fn run(
     })
 }
 
-/// Share of LOCALIZED answers (`Some` errors) within (1 m, 10 deg) and (5 m, 20 deg).
+/// Share of LOCALIZED answers (`Some` errors) within (1 m, 10 deg) and (5 m, 20 deg); NaN (null in
+/// JSON) when nothing was LOCALIZED.
 pub fn precision(errors: &[Option<(f64, f64)>]) -> BTreeMap<String, f64> {
     let ok: Vec<&(f64, f64)> = errors.iter().flatten().collect();
     let share = |m: f64, d: f64| {
         if ok.is_empty() {
-            1.0
+            f64::NAN
         } else {
             ok.iter().filter(|e| e.0 <= m && e.1 <= d).count() as f64 / ok.len() as f64
         }

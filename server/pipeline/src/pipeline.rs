@@ -220,6 +220,15 @@ impl Pipeline {
         calibration: Arc<Calibration>,
         min_confidence: Option<f64>,
     ) -> Self {
+        // A calibration fitted for another preset still loads: its probabilities then describe
+        // another pipeline's evidence (refit it with `pntr calibrate --preset`).
+        if calibration.preset != self.preset.name {
+            tracing::warn!(
+                calibration_preset = %calibration.preset,
+                preset = %self.preset.name,
+                "the confidence calibration was fitted for another preset; refit it with `pntr calibrate` for calibrated confidences"
+            );
+        }
         self.min_confidence = min_confidence.unwrap_or(calibration.threshold);
         self.calibration = calibration;
         self

@@ -7,7 +7,8 @@
 //!
 //! The checks run on small images ([`Thumb`], about 32 px of focal length: 64 x 64 for HPointLoc's
 //! camera) kept in the map for every database image (u16 millimetres and 8-bit grey, 12 KiB an image),
-//! so they cost a fraction of a millisecond and stay within the memory budget. They produce an
+//! so verifying five candidates against their nearby views costs about a tenth of a query's time
+//! (BENCHMARKS.md) and stays within the memory budget. They produce an
 //! [`Evidence`] vector per candidate pose; [`crate::calibration`] turns it into the probability that the
 //! pose is within (1 m, 10 deg) of the truth.
 //!
@@ -22,6 +23,8 @@ use serde::Serialize;
 
 /// Focal length, in thumbnail pixels, that every thumbnail is reduced to (whatever the camera).
 pub const THUMB_FOCAL_PX: f64 = 32.0;
+/// Largest thumbnail side, pixels (bounds the dense checks' cost for any declared camera).
+pub const MAX_THUMB_SIDE: u32 = 256;
 
 /// A reduced RGB-D image for dense checks: block medians of depth and block means of grey.
 #[derive(Debug, Clone, PartialEq)]
@@ -43,8 +46,17 @@ impl Thumb {
     /// nearest to [`THUMB_FOCAL_PX`] (4 for HPointLoc's f = 128). Depth: the median of the block's
     /// valid pixels (invalid when fewer than half are valid), so edges keep one surface instead of a
     /// blend; grey: the block mean.
+    /// The block size is clamped so that the thumbnail is at most [`MAX_THUMB_SIDE`] a side and the
+    /// block no larger than the image, whatever focal length a caller declares.
     pub fn new(rgb: &RgbImage, depth: &DepthMap, k: &Intrinsics) -> Self {
-        let s = ((k.fx.min(k.fy) / THUMB_FOCAL_PX).round() as u32).max(1);
+        let side = rgb.width.max(rgb.height).max(1);
+        let by_focal = (k.fx.min(k.fy) / THUMB_FOCAL_PX).round();
+        let by_focal = if by_focal.is_finite() {
+            by_focal.clamp(1.0, side as f64) as u32
+        } else {
+            1
+        };
+        let s = by_focal.max(side.div_ceil(MAX_THUMB_SIDE));
         let (w, h) = ((rgb.width / s).max(1), (rgb.height / s).max(1));
         let half = (s as f64 - 1.0) / 2.0;
         let intrinsics = Intrinsics {
@@ -57,7 +69,7 @@ impl Thumb {
         };
         let mut depth_mm = vec![0u16; (w * h) as usize];
         let mut gray = vec![0u8; (w * h) as usize];
-        let mut block = Vec::with_capacity((s * s) as usize);
+        let mut block = Vec::new();
         let stride = rgb.width as usize;
         for r in 0..h {
             for c in 0..w {
