@@ -69,7 +69,7 @@ pub struct EvalArgs {
     /// CA certificate (PEM) for a TLS --remote.
     #[arg(long)]
     pub tls_ca: Option<PathBuf>,
-    /// Preset (default: the map's own, or `fast` when building).
+    /// Preset (default: the map's own, or the default preset `xfeat-mnn` when building).
     #[arg(long)]
     pub preset: Option<String>,
     /// Reproduce the published evaluation's folded, convention-mismatched angle (labelled in the output).
@@ -392,6 +392,11 @@ pub fn serve_and_evaluate(
 pub fn eval(args: &EvalArgs) -> Result<()> {
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+    if args.remote.is_some()
+        && (args.effects != "none" || args.calibration.is_some() || args.min_confidence.is_some())
+    {
+        anyhow::bail!("--effects, --calibration and --min-confidence work in process only (the server applies its own calibration and threshold)");
+    }
     if let Some(addr) = &args.remote {
         let mut remote = crate::remote::Remote::connect(&crate::remote::ConnectArgs {
             addr: addr.clone(),
@@ -400,9 +405,6 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             tls_ca: args.tls_ca.clone(),
             tls_domain: None,
         })?;
-        if args.effects != "none" || args.calibration.is_some() || args.min_confidence.is_some() {
-            anyhow::bail!("--effects, --calibration and --min-confidence work in process only (the server applies its own calibration and threshold)");
-        }
         let opts = EvalOptions {
             legacy: args.legacy_metric,
             max_queries: args.queries,

@@ -203,4 +203,28 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     );
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("truncated.json"));
+
+    // Options that only make sense in process are refused before any connection is tried, and the
+    // threshold is held to 0..1 as the server holds it.
+    let out = pntr(&[
+        "eval",
+        "--dataset",
+        map_root.to_str().unwrap(),
+        "--remote",
+        "127.0.0.1:1",
+        "--effects",
+        "robot",
+        "--json",
+        x.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("in process only"));
+    let out = eval(
+        &map_root,
+        &db,
+        models,
+        &["--min-confidence", "2", "--json", x.to_str().unwrap()],
+    );
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("between 0 and 1"));
 }
