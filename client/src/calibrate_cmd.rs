@@ -12,9 +12,9 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use pntr_core::Intrinsics;
-use pntr_dataset::{DatasetIndex, Role, SceneEntry};
+use pntr_dataset::{DatasetIndex, SceneEntry};
 use pntr_pipeline::calibration::{self, Calibration, QuerySamples};
-use pntr_pipeline::eval::pose_error;
+use pntr_pipeline::eval::{pose_error, query_list, QueryViews};
 use pntr_pipeline::pipeline::{Pipeline, Query};
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
 use pntr_pipeline::verify::EVIDENCE_NAMES;
@@ -76,27 +76,6 @@ pub struct CalibrateArgs {
     pub threads: usize,
 }
 
-/// Every query (Point file, index) of `scenes`, evenly thinned to `max` (0 = all).
-fn queries_of(
-    scenes: &[&SceneEntry],
-    max: usize,
-) -> Result<Vec<(pntr_dataset::PointEntry, usize)>> {
-    let mut all = Vec::new();
-    for s in scenes {
-        for p in &s.points {
-            let n = p.open()?.count(Role::Query);
-            all.extend((0..n).map(|q| (p.clone(), q)));
-        }
-    }
-    if max == 0 || max >= all.len() {
-        return Ok(all);
-    }
-    let step = all.len() as f64 / max as f64;
-    Ok((0..max)
-        .map(|i| all[(i as f64 * step) as usize].clone())
-        .collect())
-}
-
 /// Localise every query of `list` (with `effects` when given) and label every verified candidate:
 /// right when within (1 m, 10 deg) of the query's ground truth (`negative`: never).
 fn collect(
@@ -115,12 +94,9 @@ fn collect(
         indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} (eta {eta})")
             .expect("valid template"),
     );
-    let mut open: Option<(PathBuf, pntr_dataset::PointReader)> = None;
+    let mut views = QueryViews::default();
     for (i, (p, qi)) in list.iter().enumerate() {
-        if open.as_ref().is_none_or(|o| o.0 != p.path) {
-            open = Some((p.path.clone(), p.open()?));
-        }
-        let v = open.as_ref().expect("opened").1.view(Role::Query, *qi)?;
+        let v = views.view(p, *qi)?;
         let mut q = Query {
             rgb: v.rgb,
             depth: v.depth,
@@ -246,7 +222,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?
         .with_calibration(map_cmd::calibration(args.calibration.as_deref())?, None);
     let (mut samples, mut notes) = (Vec::new(), Vec::new());
-    let inmap = queries_of(&scenes, args.queries)?;
+    let inmap = query_list(scenes.iter().copied(), args.queries)?;
     collect(
         &pipeline,
         &inmap,
@@ -269,7 +245,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         )?;
     }
     let n_inmap = samples.len();
-    let neg = queries_of(&neg_scenes, args.negative_queries)?;
+    let neg = query_list(neg_scenes.iter().copied(), args.negative_queries)?;
     collect(
         &pipeline,
         &neg,

@@ -299,10 +299,7 @@ pub fn evaluate_in_process(
 
 /// Write `value` as pretty JSON to `path` atomically.
 pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
-    let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
-    std::fs::write(&tmp, serde_json::to_vec_pretty(value)?)
-        .with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    write_text(path, &serde_json::to_string_pretty(value)?)
 }
 
 /// Write `text` to `path` atomically.

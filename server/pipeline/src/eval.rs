@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Point3};
 use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics};
-use pntr_dataset::{Role, SceneEntry};
+use pntr_dataset::{PointEntry, Role, SceneEntry};
 use serde::Serialize;
 
 use crate::pipeline::{Query, StageTimes, Status};
@@ -273,14 +273,7 @@ pub fn run(
             readers.push((p.clone(), r));
         }
     }
-    let picked: Vec<(usize, usize)> = if opts.max_queries == 0 || opts.max_queries >= all.len() {
-        all
-    } else {
-        let step = all.len() as f64 / opts.max_queries as f64;
-        (0..opts.max_queries)
-            .map(|i| all[(i as f64 * step) as usize])
-            .collect()
-    };
+    let picked = evenly_spaced(all, opts.max_queries);
     let (mut errors, mut retrieval_errors) = (Vec::new(), Vec::new());
     let (mut localized, mut failed) = (0, 0);
     let mut sums = StageTimes::default();
@@ -368,28 +361,9 @@ pub fn run(
     // Out-of-map queries: nothing they return can be right.
     let mut negatives: Vec<(f64, bool)> = Vec::new();
     if !opts.negatives.is_empty() {
-        let mut all = Vec::new();
-        for s in &opts.negatives {
-            for p in &s.points {
-                let r = p.open()?;
-                for qi in 0..r.count(Role::Query) {
-                    all.push((p.clone(), qi));
-                }
-            }
-        }
-        let step = if opts.max_negatives == 0 || opts.max_negatives >= all.len() {
-            1.0
-        } else {
-            all.len() as f64 / opts.max_negatives as f64
-        };
-        let count = (all.len() as f64 / step).round() as usize;
-        let mut open: Option<(std::path::PathBuf, pntr_dataset::PointReader)> = None;
-        for i in 0..count.min(all.len()) {
-            let (p, qi) = &all[(i as f64 * step) as usize];
-            if open.as_ref().is_none_or(|o| o.0 != p.path) {
-                open = Some((p.path.clone(), p.open()?));
-            }
-            let v = open.as_ref().expect("opened").1.view(Role::Query, *qi)?;
+        let mut views = QueryViews::default();
+        for (p, qi) in &query_list(&opts.negatives, opts.max_negatives)? {
+            let v = views.view(p, *qi)?;
             let q = Query {
                 rgb: v.rgb,
                 depth: v.depth,
@@ -477,6 +451,55 @@ pub fn run(
             .or(reported_threshold)
             .unwrap_or(f64::NAN),
     })
+}
+
+/// At most `max` items of `all`, evenly spaced (all of them when `max` is 0 or not smaller).
+pub fn evenly_spaced<T>(all: Vec<T>, max: usize) -> Vec<T> {
+    if max == 0 || max >= all.len() {
+        return all;
+    }
+    let step = all.len() as f64 / max as f64;
+    let mut keep = (0..max).map(|i| (i as f64 * step) as usize).peekable();
+    all.into_iter()
+        .enumerate()
+        .filter_map(|(i, x)| (keep.next_if_eq(&i).is_some()).then_some(x))
+        .collect()
+}
+
+/// Every query (Point file, query index) of `scenes`, evenly thinned to `max` (0 = all).
+pub fn query_list<'a>(
+    scenes: impl IntoIterator<Item = &'a SceneEntry>,
+    max: usize,
+) -> Result<Vec<(PointEntry, usize)>, PipelineError> {
+    let mut all = Vec::new();
+    for s in scenes {
+        for p in &s.points {
+            let n = p.open()?.count(Role::Query);
+            all.extend((0..n).map(|q| (p.clone(), q)));
+        }
+    }
+    Ok(evenly_spaced(all, max))
+}
+
+/// Reads query views of a [`query_list`] in order, keeping the current Point file open.
+#[derive(Default)]
+pub struct QueryViews {
+    open: Option<(std::path::PathBuf, pntr_dataset::PointReader)>,
+}
+
+impl QueryViews {
+    /// Query `qi` of Point file `p`.
+    pub fn view(&mut self, p: &PointEntry, qi: usize) -> Result<pntr_dataset::View, PipelineError> {
+        if self.open.as_ref().is_none_or(|o| o.0 != p.path) {
+            self.open = Some((p.path.clone(), p.open()?));
+        }
+        Ok(self
+            .open
+            .as_ref()
+            .expect("opened")
+            .1
+            .view(Role::Query, qi)?)
+    }
 }
 
 /// Share of LOCALIZED answers (`Some` errors) within (1 m, 10 deg) and (5 m, 20 deg); NaN (null in

@@ -13,6 +13,7 @@
 //! back-projection and registration work in OpenCV axes; the answer is converted back, so it is in the
 //! same frame and axes as the map's own poses.
 
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -163,6 +164,8 @@ pub struct Pipeline {
     cheap: Mnn,
     calibration: Arc<Calibration>,
     min_confidence: f64,
+    /// Map indices of the images of each (scene, Point), for the nearby views of verification.
+    point_views: HashMap<(u32, u32), Vec<usize>>,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -194,6 +197,10 @@ impl Pipeline {
             )));
         }
         let calibration = Arc::new(Calibration::embedded());
+        let mut point_views: HashMap<(u32, u32), Vec<usize>> = HashMap::new();
+        for (i, im) in map.images.iter().enumerate() {
+            point_views.entry((im.scene, im.point)).or_default().push(i);
+        }
         Ok(Self {
             map,
             stage,
@@ -210,6 +217,7 @@ impl Pipeline {
             cheap: Mnn::default(),
             min_confidence: calibration.threshold,
             calibration,
+            point_views,
         })
     }
 
@@ -454,13 +462,10 @@ impl Pipeline {
         let world_from_query = self.world_from_query(c).expect("valid");
         // Nearby views: the matched image's Point and the other retrieved images of its scene.
         let mut views: Vec<usize> = self
-            .map
-            .images
-            .iter()
-            .enumerate()
-            .filter(|(_, im)| im.scene == db.scene && im.point == db.point)
-            .map(|(i, _)| i)
-            .collect();
+            .point_views
+            .get(&(db.scene, db.point))
+            .cloned()
+            .unwrap_or_default();
         for h in hits {
             if self.map.images[h.id].scene == db.scene && !views.contains(&h.id) {
                 views.push(h.id);

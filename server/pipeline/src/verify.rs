@@ -71,6 +71,7 @@ impl Thumb {
         let mut gray = vec![0u8; (w * h) as usize];
         let mut block = Vec::new();
         let stride = rgb.width as usize;
+        let luminance = rgb.to_gray();
         for r in 0..h {
             for c in 0..w {
                 block.clear();
@@ -79,8 +80,7 @@ impl Thumb {
                 for y in r * s..((r + 1) * s).min(rgb.height) {
                     for x in c * s..((c + 1) * s).min(rgb.width) {
                         let i = y as usize * stride + x as usize;
-                        let p = &rgb.data[i * 3..i * 3 + 3];
-                        sum += 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32;
+                        sum += luminance[i];
                         n += 1;
                         let d = depth.data.get(i).copied().unwrap_or(0.0);
                         if d.is_finite() && d > 0.0 {
