@@ -161,6 +161,7 @@ fn localize_requests_never_panic_the_decoder() {
         cy: 7.5,
         width: 24,
         height: 16,
+        distortion: [0.0; 5],
     };
     let seeds: Vec<Vec<u8>> = vec![
         wire::raw_request(&rgb, &depth, Some(&k)).encode_to_vec(),
@@ -257,6 +258,7 @@ fn small_point(path: &Path, gzip: Option<u8>) -> Vec<u8> {
         },
         semantic: labels
             .then(|| pntr_core::LabelMap::new(w, h, (0..w * h).map(|i| i % 3).collect()).unwrap()),
+        intrinsics: pntr_dataset::default_camera(w, h),
     };
     let record = pntr_dataset::PointRecord {
         db: vec![view(1, true), view(2, true)],

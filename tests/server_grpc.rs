@@ -408,6 +408,7 @@ fn localizes_reports_and_refuses_bad_input() {
                         fy: 128.0,
                         cx: 127.5,
                         cy: 127.5,
+                        distortion: Vec::new(),
                     })
                 }),
                 Code::InvalidArgument,
@@ -421,6 +422,7 @@ fn localizes_reports_and_refuses_bad_input() {
                         fy: -128.0,
                         cx: 127.5,
                         cy: 127.5,
+                        distortion: Vec::new(),
                     })
                 }),
                 Code::InvalidArgument,
@@ -434,6 +436,7 @@ fn localizes_reports_and_refuses_bad_input() {
                         fy: 128.0,
                         cx: 127.5,
                         cy: 127.5,
+                        distortion: Vec::new(),
                     })
                 }),
                 Code::InvalidArgument,

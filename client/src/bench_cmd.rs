@@ -190,11 +190,11 @@ fn load_frames(
         let (p, q) = &all[(i as f64 * step) as usize];
         let v = p.open()?.view(Role::Query, *q)?;
         out.push((
-            wire::raw_request(&v.rgb, &v.depth, None),
+            wire::raw_request(&v.rgb, &v.depth, Some(&v.intrinsics)),
             pntr_pipeline::pipeline::Query {
                 rgb: v.rgb,
                 depth: v.depth,
-                intrinsics: pntr_core::Intrinsics::hpointloc(),
+                intrinsics: v.intrinsics,
             },
         ));
     }

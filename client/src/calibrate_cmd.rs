@@ -11,7 +11,6 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use pntr_core::Intrinsics;
 use pntr_dataset::{DatasetIndex, SceneEntry};
 use pntr_pipeline::calibration::{self, Calibration, QuerySamples};
 use pntr_pipeline::eval::{pose_error, query_list, QueryViews};
@@ -87,7 +86,6 @@ fn collect(
     out: &mut Vec<QuerySamples>,
     notes: &mut Vec<serde_json::Value>,
 ) -> Result<()> {
-    let k = Intrinsics::hpointloc();
     let pb = indicatif::ProgressBar::new(list.len() as u64);
     pb.set_message(what.to_string());
     pb.set_style(
@@ -100,7 +98,7 @@ fn collect(
         let mut q = Query {
             rgb: v.rgb,
             depth: v.depth,
-            intrinsics: k,
+            intrinsics: v.intrinsics,
         };
         if let Some(fx) = effects {
             fx.apply(&mut q.rgb, &mut q.depth, i as u64 + 1);

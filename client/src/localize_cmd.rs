@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use pntr_dataset::{DatasetIndex, Role};
 use pntr_pipeline::eval::pose_error;
-use pntr_service::decode::{decode_jpeg, decode_png16, decode_png_rgb, Limits};
+use pntr_service::decode::{decode_jpeg, decode_png16, decode_png_rgb, upright_size, Limits};
 use pntr_service::proto::{self, LocalizeResponse};
 use pntr_service::wire;
 use serde_json::json;
@@ -25,9 +25,16 @@ pub struct LocalizeArgs {
     /// (`.f32`, the size of the colour image).
     #[arg(long, requires = "rgb")]
     pub depth: Option<PathBuf>,
-    /// Camera intrinsics `fx,fy,cx,cy` in pixels (default: the HPointLoc camera, 256x256 only).
-    #[arg(long, value_delimiter = ',', num_args = 4)]
-    pub intrinsics: Option<Vec<f64>>,
+    /// Camera intrinsics `fx,fy,cx,cy` in pixels, optionally followed by lens distortion
+    /// `k1,k2,p1,p2[,k3]` (OpenCV / ROS plumb_bob). Default: the HPointLoc camera (256x256 frames
+    /// only), or the dataset's camera with `--dataset`. Spaces work as separators too.
+    #[arg(
+        long,
+        value_name = "FX,FY,CX,CY[,K1,K2,P1,P2,K3]",
+        num_args = 1..=9,
+        allow_hyphen_values = true
+    )]
+    pub intrinsics: Option<Vec<String>>,
     /// Dataset root, to send one of its query frames (with the ground truth printed beside the answer).
     #[arg(long, requires_all = ["scene", "query"])]
     pub dataset: Option<PathBuf>,
@@ -46,6 +53,39 @@ const LIMITS: Limits = Limits {
     max_width: 16384,
     max_height: 16384,
 };
+
+/// Parse `--intrinsics`: 4 numbers (fx, fy, cx, cy), 8 (with k1, k2, p1, p2) or 9 (with k3),
+/// separated by commas and/or spaces.
+pub fn parse_intrinsics(words: &[String]) -> Result<proto::Intrinsics> {
+    let mut v = Vec::new();
+    for w in words {
+        for item in w.split([',', ' ']).filter(|s| !s.is_empty()) {
+            let x: f64 = item.parse().with_context(|| {
+                format!("--intrinsics: `{item}` is not a number (expected fx,fy,cx,cy[,k1,k2,p1,p2,k3])")
+            })?;
+            if !x.is_finite() {
+                bail!("--intrinsics: `{item}` is not finite");
+            }
+            v.push(x);
+        }
+    }
+    if !matches!(v.len(), 4 | 8 | 9) {
+        bail!(
+            "--intrinsics takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,p1,p2[,k3] (4, 8 or 9 numbers), got {}",
+            v.len()
+        );
+    }
+    if v[0] <= 0.0 || v[1] <= 0.0 {
+        bail!("--intrinsics: focal lengths fx = {} and fy = {} must be positive", v[0], v[1]);
+    }
+    Ok(proto::Intrinsics {
+        fx: v[0],
+        fy: v[1],
+        cx: v[2],
+        cy: v[3],
+        distortion: v[4..].to_vec(),
+    })
+}
 
 fn read(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).with_context(|| format!("reading {}", path.display()))
@@ -66,8 +106,10 @@ fn request_from_files(rgb: &Path, depth: &Path) -> Result<proto::LocalizeRequest
             (w, h, proto::ImageEncoding::Png)
         }
         "jpg" | "jpeg" => {
-            let (w, h, _) = decode_jpeg(&bytes, &LIMITS)
+            let (w, h, _, orientation) = decode_jpeg(&bytes, &LIMITS)
                 .map_err(|s| anyhow::anyhow!("{}: {}", rgb.display(), s.message()))?;
+            // The server applies the EXIF orientation; the depth must match the upright size.
+            let (w, h) = upright_size(w, h, orientation);
             (w, h, proto::ImageEncoding::Jpeg)
         }
         other => bail!(
@@ -99,8 +141,9 @@ fn request_from_files(rgb: &Path, depth: &Path) -> Result<proto::LocalizeRequest
     };
     Ok(proto::LocalizeRequest {
         rgb: Some(proto::Image {
-            width: w,
-            height: h,
+            // Taken from the file (a JPEG's declared size is before its EXIF rotation).
+            width: 0,
+            height: 0,
             encoding: encoding as i32,
             data: bytes,
         }),
@@ -204,19 +247,14 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
                 bail!("scene {} has fewer than {} queries", scene.name, k + 1);
             };
             (
-                wire::raw_request(&v.rgb, &v.depth, None),
+                wire::raw_request(&v.rgb, &v.depth, Some(&v.intrinsics)),
                 Some((id, v.world_from_camera)),
             )
         }
         _ => bail!("give --rgb and --depth, or --dataset, --scene and --query"),
     };
     if let Some(k) = &args.intrinsics {
-        req.intrinsics = Some(proto::Intrinsics {
-            fx: k[0],
-            fy: k[1],
-            cx: k[2],
-            cy: k[3],
-        });
+        req.intrinsics = Some(parse_intrinsics(k)?);
     }
     let mut remote = Remote::connect(&args.connect)?;
     let r = remote

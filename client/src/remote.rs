@@ -159,6 +159,7 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
             "matching" => times.matching = s,
             "registration" => times.registration = s,
             "verification" => times.verification = s,
+            "resampling" => times.resampling = s,
             "total" => times.total = s,
             _ => {}
         }

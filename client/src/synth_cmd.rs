@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
+use pntr_core::Intrinsics;
 use pntr_dataset::{DatasetIndex, Role, WriteOptions};
 use pntr_synth::{Summary, SynthConfig};
 
@@ -41,6 +42,77 @@ pub struct SynthArgs {
     /// Print the summary as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Database camera size `WxH` (default 256x256, HPointLoc's). Stored in the extra field
+    /// `camera_base` when it is not HPointLoc's camera.
+    #[arg(long, value_name = "WxH")]
+    pub camera: Option<String>,
+    /// Query camera size `WxH` (default: the database camera), stored in the extra field `camera`:
+    /// renders a robot's camera against a map made with another.
+    #[arg(long, value_name = "WxH")]
+    pub query_camera: Option<String>,
+    /// Horizontal field of view in degrees of the cameras named by `--camera` and `--query-camera`
+    /// (default 90, HPointLoc's). With only `--query-camera` it sets the queries' field of view and
+    /// the database keeps HPointLoc's camera.
+    #[arg(long, value_name = "DEG")]
+    pub hfov: Option<f64>,
+    /// Horizontal field of view of the query camera in degrees, when it differs from `--hfov`.
+    #[arg(long, value_name = "DEG")]
+    pub query_hfov: Option<f64>,
+    /// Lens distortion of the query camera, `k1,k2,p1,p2,k3` (OpenCV / ROS plumb_bob).
+    #[arg(long, value_name = "K1,K2,P1,P2,K3", value_delimiter = ',', num_args = 5)]
+    pub query_distortion: Option<Vec<f64>>,
+}
+
+/// Parse a camera size `WxH` (`--camera`, `--query-camera`).
+fn parse_size(flag: &str, s: &str) -> Result<(u32, u32)> {
+    let parsed = s
+        .split_once(['x', 'X'])
+        .and_then(|(w, h)| Some((w.trim().parse::<u32>().ok()?, h.trim().parse::<u32>().ok()?)));
+    match parsed {
+        Some((w, h)) if (8..=4096).contains(&w) && (8..=4096).contains(&h) => Ok((w, h)),
+        _ => bail!("--{flag} {s:?}: expected WIDTHxHEIGHT in pixels, each 8..4096 (e.g. 640x480)"),
+    }
+}
+
+/// The database and query cameras `synth` renders with.
+fn cameras(args: &SynthArgs) -> Result<(Intrinsics, Intrinsics)> {
+    let fov = |flag: &str, v: f64| -> Result<f64> {
+        if !(v.is_finite() && (10.0..=170.0).contains(&v)) {
+            bail!("--{flag} {v}: the horizontal field of view must be within 10..170 degrees");
+        }
+        Ok(v)
+    };
+    let hfov = args.hfov.map(|v| fov("hfov", v)).transpose()?;
+    // `--hfov` applies to the cameras named; with none named, to both.
+    let db = if args.camera.is_some() || args.query_camera.is_none() {
+        let (w, h) = match &args.camera {
+            Some(s) => parse_size("camera", s)?,
+            None => (256, 256),
+        };
+        Intrinsics::from_fov(w, h, hfov.unwrap_or(90.0))
+    } else {
+        Intrinsics::hpointloc()
+    };
+    let query_hfov = match args.query_hfov {
+        Some(v) => Some(fov("query-hfov", v)?),
+        None if args.query_camera.is_some() => hfov,
+        None => None,
+    };
+    let mut query = match (&args.query_camera, query_hfov) {
+        (Some(s), v) => {
+            let (w, h) = parse_size("query-camera", s)?;
+            Intrinsics::from_fov(w, h, v.unwrap_or(90.0))
+        }
+        (None, Some(v)) => Intrinsics::from_fov(db.width, db.height, v),
+        (None, None) => db,
+    };
+    if let Some(d) = &args.query_distortion {
+        query.distortion.copy_from_slice(d);
+        query
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--query-distortion: {e}"))?;
+    }
+    Ok((db, query))
 }
 
 fn config(args: &SynthArgs) -> Result<SynthConfig> {
@@ -57,7 +129,10 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
         Some(dir) => pntr_synth::load_textures(dir)?,
         None => Vec::new(),
     };
+    let (db_camera, query_camera) = cameras(args)?;
     Ok(SynthConfig {
+        db_camera,
+        query_camera,
         scenes: args.scenes,
         points_per_scene: args.points_per_scene,
         queries_per_point: args.queries_per_point,

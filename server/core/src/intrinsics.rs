@@ -1,4 +1,5 @@
-//! Pinhole intrinsics in the OpenCV pixel convention (pixel (col, row) has its centre at (col, row)).
+//! Pinhole intrinsics in the OpenCV pixel convention (pixel (col, row) has its centre at (col, row)),
+//! with optional lens distortion in the OpenCV / ROS `plumb_bob` model (k1, k2, p1, p2, k3).
 
 use nalgebra::{Point2, Point3};
 
@@ -17,7 +18,14 @@ pub struct Intrinsics {
     pub width: u32,
     /// Image height, pixels.
     pub height: u32,
+    /// Lens distortion `[k1, k2, p1, p2, k3]` (OpenCV / ROS `plumb_bob`); all zero for an ideal
+    /// pinhole. Maps written before distortion existed read as zero.
+    #[serde(default)]
+    pub distortion: [f64; 5],
 }
+
+/// Largest |coefficient| accepted for distortion: beyond it the model folds over inside the image.
+pub const MAX_DISTORTION_COEFFICIENT: f64 = 10.0;
 
 /// Intrinsics that cannot describe a camera.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -36,6 +44,17 @@ impl Intrinsics {
             cy: (height as f64 - 1.0) / 2.0,
             width,
             height,
+            distortion: [0.0; 5],
+        }
+    }
+
+    /// A camera of `width` x `height` with the given horizontal and vertical fields of view (square
+    /// pixels only when they agree with the aspect ratio), principal point at the image centre.
+    pub fn from_fov_hv(width: u32, height: u32, hfov_deg: f64, vfov_deg: f64) -> Self {
+        let fy = (height as f64 / 2.0) / (vfov_deg.to_radians() / 2.0).tan();
+        Self {
+            fy,
+            ..Self::from_fov(width, height, hfov_deg)
         }
     }
 
@@ -58,11 +77,27 @@ impl Intrinsics {
         }
     }
 
-    /// Check that the values describe a camera: finite, positive focal lengths, non-zero size.
+    /// Whether any distortion coefficient is non-zero.
+    pub fn is_distorted(&self) -> bool {
+        self.distortion.iter().any(|&d| d != 0.0)
+    }
+
+    /// Check that the values describe a camera: finite, positive focal lengths, non-zero size, the
+    /// principal point inside the image, distortion coefficients of at most
+    /// [`MAX_DISTORTION_COEFFICIENT`] in magnitude.
     pub fn validate(&self) -> Result<(), IntrinsicsError> {
         let vals = [self.fx, self.fy, self.cx, self.cy];
-        if vals.iter().any(|v| !v.is_finite()) {
+        if vals.iter().chain(&self.distortion).any(|v| !v.is_finite()) {
             return Err(IntrinsicsError(format!("non-finite value in {self:?}")));
+        }
+        if let Some(d) = self
+            .distortion
+            .iter()
+            .find(|d| d.abs() > MAX_DISTORTION_COEFFICIENT)
+        {
+            return Err(IntrinsicsError(format!(
+                "distortion coefficient {d} is beyond +-{MAX_DISTORTION_COEFFICIENT}: not a plumb_bob lens"
+            )));
         }
         if self.fx <= 0.0 || self.fy <= 0.0 {
             return Err(IntrinsicsError(format!(
@@ -73,7 +108,61 @@ impl Intrinsics {
         if self.width == 0 || self.height == 0 {
             return Err(IntrinsicsError("image size must be non-zero".into()));
         }
+        let (w, h) = (self.width as f64, self.height as f64);
+        if !(-0.5..=w - 0.5).contains(&self.cx) || !(-0.5..=h - 0.5).contains(&self.cy) {
+            return Err(IntrinsicsError(format!(
+                "principal point ({}, {}) lies outside the {}x{} image (cx must be in -0.5..{}, cy in -0.5..{})",
+                self.cx,
+                self.cy,
+                self.width,
+                self.height,
+                w - 0.5,
+                h - 0.5
+            )));
+        }
         Ok(())
+    }
+
+    /// Apply the lens distortion to normalised image coordinates (x/z, y/z): where an ideal ray lands
+    /// on the sensor, in normalised coordinates. Identity without distortion.
+    pub fn distort_normalized(&self, x: f64, y: f64) -> (f64, f64) {
+        let [k1, k2, p1, p2, k3] = self.distortion;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        (
+            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+        )
+    }
+
+    /// Invert [`Intrinsics::distort_normalized`] by fixed-point iteration (the method OpenCV's
+    /// `undistortPoints` uses), refined until the residual is below 1e-12 or 50 steps.
+    pub fn undistort_normalized(&self, xd: f64, yd: f64) -> (f64, f64) {
+        if !self.is_distorted() {
+            return (xd, yd);
+        }
+        let [k1, k2, p1, p2, k3] = self.distortion;
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..50 {
+            let r2 = x * x + y * y;
+            let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+            let dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+            let dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+            let (nx, ny) = ((xd - dx) / radial, (yd - dy) / radial);
+            let done = (nx - x).abs() + (ny - y).abs() < 1e-12;
+            (x, y) = (nx, ny);
+            if done {
+                break;
+            }
+        }
+        (x, y)
+    }
+
+    /// The pixel (u, v) of this (possibly distorted) camera that sees the ray through normalised
+    /// coordinates (x/z, y/z).
+    pub fn pixel_of_ray(&self, x: f64, y: f64) -> (f64, f64) {
+        let (xd, yd) = self.distort_normalized(x, y);
+        (self.fx * xd + self.cx, self.fy * yd + self.cy)
     }
 
     /// Back-project pixel (u, v) with planar depth `z_m` to a point in the OpenCV camera frame.
@@ -132,7 +221,36 @@ mod tests {
     }
 
     #[test]
+    fn distortion_round_trips_and_matches_the_analytic_model() {
+        let mut k = Intrinsics::from_fov(640, 480, 69.0);
+        k.distortion = [-0.28, 0.07, 0.001, -0.0005, 0.0];
+        // Analytic case: a pure radial k1 moves (0.3, 0) to 0.3 * (1 + k1 * 0.09).
+        let mut radial = k;
+        radial.distortion = [-0.2, 0.0, 0.0, 0.0, 0.0];
+        let (xd, yd) = radial.distort_normalized(0.3, 0.0);
+        assert!((xd - 0.3 * (1.0 - 0.2 * 0.09)).abs() < 1e-15 && yd == 0.0);
+        // Tangential p1 alone shifts y by p1 * (r^2 + 2 y^2) and x by 2 p1 x y.
+        radial.distortion = [0.0, 0.0, 0.01, 0.0, 0.0];
+        let (xd, yd) = radial.distort_normalized(0.2, 0.1);
+        assert!((xd - (0.2 + 2.0 * 0.01 * 0.02)).abs() < 1e-15);
+        assert!((yd - (0.1 + 0.01 * (0.05 + 0.02))).abs() < 1e-15);
+        for &(x, y) in &[(0.0, 0.0), (0.4, -0.3), (-0.55, 0.41), (0.1, 0.2)] {
+            let (xd, yd) = k.distort_normalized(x, y);
+            let (ux, uy) = k.undistort_normalized(xd, yd);
+            assert!((ux - x).abs() < 1e-9 && (uy - y).abs() < 1e-9, "{x} {y}");
+        }
+        assert!(k.is_distorted() && !Intrinsics::hpointloc().is_distorted());
+        k.validate().unwrap();
+        k.distortion[0] = 50.0;
+        assert!(k.validate().is_err());
+    }
+
+    #[test]
     fn bad_intrinsics_are_refused() {
+        let mut k = Intrinsics::hpointloc();
+        k.cx = 900.0;
+        let e = k.validate().unwrap_err().0;
+        assert!(e.contains("principal point") && e.contains("256x256"), "{e}");
         let mut k = Intrinsics::hpointloc();
         k.fx = f64::NAN;
         assert!(k.validate().is_err());

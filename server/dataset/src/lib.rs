@@ -2,7 +2,11 @@
 //!
 //! Layout (see `shared/docs/hpointloc.md`): `<root>/HPointLoc_dataset/<scene>/<scene>_point<N>.hdf5`,
 //! one file per Point, holding the Point's database views (`rgb_base`, `depth_base`, `semantic_base`,
-//! `gps_base`, `quat_base`) and its queries (`rgb`, `depth`, `gps`, `quat`).
+//! `gps_base`, `quat_base`) and its queries (`rgb`, `depth`, `gps`, `quat`). HPointLoc has no camera
+//! field; pntr stores a camera other than HPointLoc's in the extra fields `camera_base` and `camera`
+//! (float64 `[fx, fy, cx, cy]` or `[fx, fy, cx, cy, k1, k2, p1, p2, k3]`), which readers of the real
+//! dataset ignore; without them a role has HPointLoc's 90-degree camera at its image size. The two
+//! roles may have different image sizes.
 //!
 //! Why it is built this way:
 //! - The reader validates every field's presence, dtype and shape when a file is opened, and names the
@@ -34,7 +38,7 @@ pub use reader::{PointReader, MAX_IMAGE_SIDE, MAX_VIEWS};
 pub use writer::{write_point, WriteOptions};
 
 use nalgebra::Isometry3;
-use pntr_core::{DepthMap, LabelMap, RgbImage};
+use pntr_core::{DepthMap, Intrinsics, LabelMap, RgbImage};
 
 /// Whether a view is one of a Point's database images or one of its queries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -66,6 +70,14 @@ pub struct View {
     pub depth: DepthMap,
     /// Per-pixel instance ids, where the file has them (database views only in HPointLoc).
     pub semantic: Option<LabelMap>,
+    /// The camera that took it (the `camera` / `camera_base` field, else HPointLoc's 90-degree one).
+    pub intrinsics: Intrinsics,
+}
+
+/// The camera a role has when its file has no camera field: HPointLoc's 90-degree horizontal field
+/// of view at the role's image size (exactly `Intrinsics::hpointloc()` for 256x256).
+pub fn default_camera(width: u32, height: u32) -> Intrinsics {
+    Intrinsics::from_fov(width, height, 90.0)
 }
 
 /// Everything one Point file holds.

@@ -6,7 +6,7 @@ use hdf5::dataset::Layout;
 use hdf5::types::{FloatSize, IntSize, TypeDescriptor};
 use nalgebra::Isometry3;
 use ndarray::{s, Array2, ArrayD};
-use pntr_core::{pose_from_hpointloc, DepthMap, LabelMap, RgbImage};
+use pntr_core::{pose_from_hpointloc, DepthMap, Intrinsics, LabelMap, RgbImage};
 
 use crate::last_words::h5;
 use crate::{DatasetError, PointRecord, Role, View};
@@ -34,6 +34,9 @@ enum Expect {
 #[derive(Debug, Clone)]
 struct RoleInfo {
     count: usize,
+    width: u32,
+    height: u32,
+    camera: Intrinsics,
     has_semantic: bool,
     depth_has_channel: bool,
     semantic_has_channel: bool,
@@ -45,8 +48,6 @@ struct RoleInfo {
 pub struct PointReader {
     path: PathBuf,
     file: hdf5::File,
-    width: u32,
-    height: u32,
     db: RoleInfo,
     query: RoleInfo,
 }
@@ -55,8 +56,8 @@ impl std::fmt::Debug for PointReader {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("PointReader")
             .field("path", &self.path)
-            .field("width", &self.width)
-            .field("height", &self.height)
+            .field("db_size", &(self.db.width, self.db.height))
+            .field("query_size", &(self.query.width, self.query.height))
             .field("db", &self.db.count)
             .field("queries", &self.query.count)
             .finish()
@@ -84,15 +85,11 @@ impl PointReader {
                 message: e.to_string(),
             }
         })?;
-        let mut size: Option<(usize, usize)> = None;
-        let db = Self::validate_role(path, &file, Role::Database, &mut size)?;
-        let query = Self::validate_role(path, &file, Role::Query, &mut size)?;
-        let (h, w) = size.expect("validate_role sets the size");
+        let db = Self::validate_role(path, &file, Role::Database)?;
+        let query = Self::validate_role(path, &file, Role::Query)?;
         Ok(Self {
             path: path.to_path_buf(),
             file,
-            width: w as u32,
-            height: h as u32,
             db,
             query,
         })
@@ -225,12 +222,7 @@ impl PointReader {
         Ok(())
     }
 
-    fn validate_role(
-        path: &Path,
-        file: &hdf5::File,
-        role: Role,
-        size: &mut Option<(usize, usize)>,
-    ) -> Result<RoleInfo, DatasetError> {
+    fn validate_role(path: &Path, file: &hdf5::File, role: Role) -> Result<RoleInfo, DatasetError> {
         let f_rgb = role.field("rgb");
         let f_depth = role.field("depth");
         let f_sem = role.field("semantic");
@@ -257,16 +249,6 @@ impl PointReader {
                      {MAX_IMAGE_SIDE} pixels a side): the file is damaged or not HPointLoc"
                 ),
             ));
-        }
-        match size {
-            Some((sh, sw)) if (*sh, *sw) != (h, w) => {
-                return Err(DatasetError::field(
-                    path,
-                    &f_rgb,
-                    format!("image size {h}x{w} differs from the other role's {sh}x{sw}"),
-                ))
-            }
-            _ => *size = Some((h, w)),
         }
 
         let depth = Self::dataset(path, file, &f_depth)?;
@@ -317,13 +299,57 @@ impl PointReader {
             })?;
             world_from_camera.push(pose);
         }
+        let camera = Self::read_camera(path, file, role, w as u32, h as u32)?;
         Ok(RoleInfo {
             count: n,
+            width: w as u32,
+            height: h as u32,
+            camera,
             has_semantic,
             depth_has_channel,
             semantic_has_channel,
             world_from_camera,
         })
+    }
+
+    /// The role's camera field, checked, or HPointLoc's 90-degree camera at the role's size.
+    fn read_camera(
+        path: &Path,
+        file: &hdf5::File,
+        role: Role,
+        w: u32,
+        h: u32,
+    ) -> Result<Intrinsics, DatasetError> {
+        let field = role.field("camera");
+        let Ok(ds) = h5(path, &field, || file.dataset(&field)) else {
+            return Ok(crate::default_camera(w, h));
+        };
+        Self::check_dtype(path, &ds, &field, Expect::Float)?;
+        let shape = ds.shape();
+        if shape != [4] && shape != [9] {
+            return Err(DatasetError::field(
+                path,
+                &field,
+                format!("shape {shape:?}, expected (4,) [fx, fy, cx, cy] or (9,) with k1 k2 p1 p2 k3"),
+            ));
+        }
+        let v = h5(path, &field, || ds.read_raw::<f64>()).map_err(h5err(path, &field))?;
+        let mut distortion = [0.0; 5];
+        if v.len() == 9 {
+            distortion.copy_from_slice(&v[4..]);
+        }
+        let k = Intrinsics {
+            fx: v[0],
+            fy: v[1],
+            cx: v[2],
+            cy: v[3],
+            width: w,
+            height: h,
+            distortion,
+        };
+        k.validate()
+            .map_err(|e| DatasetError::field(path, &field, e.to_string()))?;
+        Ok(k)
     }
 
     fn read_table(
@@ -351,14 +377,24 @@ impl PointReader {
         &self.path
     }
 
-    /// Image width in pixels.
+    /// Database image width in pixels.
     pub fn width(&self) -> u32 {
-        self.width
+        self.db.width
     }
 
-    /// Image height in pixels.
+    /// Database image height in pixels.
     pub fn height(&self) -> u32 {
-        self.height
+        self.db.height
+    }
+
+    /// (width, height) of the images of `role`.
+    pub fn size(&self, role: Role) -> (u32, u32) {
+        (self.info(role).width, self.info(role).height)
+    }
+
+    /// The camera of the images of `role`.
+    pub fn camera(&self, role: Role) -> Intrinsics {
+        self.info(role).camera
     }
 
     fn info(&self, role: Role) -> &RoleInfo {
@@ -399,7 +435,7 @@ impl PointReader {
                 format!("view {i} requested, the file has {}", info.count),
             ));
         }
-        let (w, h) = (self.width, self.height);
+        let (w, h) = (info.width, info.height);
         let f_rgb = role.field("rgb");
         let rgb = RgbImage::new(w, h, self.read_frame::<u8>(&f_rgb, i)?)
             .map_err(|e| DatasetError::field(&self.path, &f_rgb, e.to_string()))?;
@@ -423,6 +459,7 @@ impl PointReader {
             rgb,
             depth,
             semantic,
+            intrinsics: info.camera,
         })
     }
 

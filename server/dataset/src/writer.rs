@@ -40,26 +40,30 @@ pub fn write_point(
     record: &PointRecord,
     opts: &WriteOptions,
 ) -> Result<(), DatasetError> {
-    let all: Vec<&View> = record.db.iter().chain(record.queries.iter()).collect();
-    let (w, h) = match all.first() {
-        Some(v) => (v.rgb.width, v.rgb.height),
-        None => {
-            return Err(DatasetError::Layout {
-                path: path.to_path_buf(),
-                problem: "a Point needs at least one view".into(),
-            })
-        }
-    };
-    if let Some(v) = all.iter().find(|v| {
-        (v.rgb.width, v.rgb.height) != (w, h) || (v.depth.width, v.depth.height) != (w, h)
-    }) {
+    if record.db.is_empty() && record.queries.is_empty() {
         return Err(DatasetError::Layout {
             path: path.to_path_buf(),
-            problem: format!(
-                "all views must be {w}x{h}; found rgb {}x{} depth {}x{}",
-                v.rgb.width, v.rgb.height, v.depth.width, v.depth.height
-            ),
+            problem: "a Point needs at least one view".into(),
         });
+    }
+    for (role, views) in [("database", &record.db), ("query", &record.queries)] {
+        let Some(first) = views.first() else {
+            continue;
+        };
+        let (w, h) = (first.rgb.width, first.rgb.height);
+        if let Some(v) = views.iter().find(|v| {
+            (v.rgb.width, v.rgb.height) != (w, h)
+                || (v.depth.width, v.depth.height) != (w, h)
+                || v.intrinsics != first.intrinsics
+        }) {
+            return Err(DatasetError::Layout {
+                path: path.to_path_buf(),
+                problem: format!(
+                    "all {role} views must be {w}x{h} with one camera; found rgb {}x{} depth {}x{} camera {:?}",
+                    v.rgb.width, v.rgb.height, v.depth.width, v.depth.height, v.intrinsics
+                ),
+            });
+        }
     }
     let dir = path.parent().unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).map_err(|source| DatasetError::Io {
@@ -67,7 +71,7 @@ pub fn write_point(
         source,
     })?;
     let tmp = tmp_name(path);
-    let result = write_file(&tmp, record, w as usize, h as usize, opts);
+    let result = write_file(&tmp, record, opts);
     if let Err(e) = result {
         let _ = std::fs::remove_file(&tmp);
         return Err(e);
@@ -87,19 +91,30 @@ fn tmp_name(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
-fn write_file(
-    tmp: &Path,
-    record: &PointRecord,
-    w: usize,
-    h: usize,
-    opts: &WriteOptions,
-) -> Result<(), DatasetError> {
+fn write_file(tmp: &Path, record: &PointRecord, opts: &WriteOptions) -> Result<(), DatasetError> {
     let file = hdf5::File::create(tmp).map_err(|e| DatasetError::Open {
         path: tmp.to_path_buf(),
         message: e.to_string(),
     })?;
+    // A role without views takes the other role's size (HDF5 needs a shape even for zero frames).
+    let any = record.db.first().or(record.queries.first()).expect("checked");
     for (role, views) in [(Role::Database, &record.db), (Role::Query, &record.queries)] {
+        let v = views.first().unwrap_or(any);
+        let (w, h) = (v.rgb.width as usize, v.rgb.height as usize);
         write_role(&file, tmp, role, views, w, h, opts)?;
+        // HPointLoc's own camera is implied by the layout; any other is written for pntr's readers.
+        if v.intrinsics != crate::default_camera(v.rgb.width, v.rgb.height) {
+            let k = &v.intrinsics;
+            let mut row = vec![k.fx, k.fy, k.cx, k.cy];
+            if k.is_distorted() {
+                row.extend_from_slice(&k.distortion);
+            }
+            let f = role.field("camera");
+            file.new_dataset_builder()
+                .with_data(row.as_slice())
+                .create(f.as_str())
+                .map_err(h5(tmp, &f))?;
+        }
     }
     if let Some(table) = &record.instance_categories {
         file.new_dataset_builder()

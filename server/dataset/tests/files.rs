@@ -36,6 +36,7 @@ fn view(seed: u32, with_labels: bool) -> View {
         depth: DepthMap::from_metres(W, H, depth).unwrap(),
         semantic: with_labels
             .then(|| LabelMap::new(W, H, (0..n as u32).map(|i| i % 5 + seed).collect()).unwrap()),
+        intrinsics: pntr_dataset::default_camera(W, H),
     }
 }
 

@@ -201,25 +201,28 @@ pub struct CurvePoint {
 }
 
 /// Share of a grid of query pixels that reappear in `db` at a consistent depth: the ground-truth
-/// overlap used to name the best database view of a query.
+/// overlap used to name the best database view of a query. `cameras` are the query's and the
+/// database view's (distortion is ignored: a grid sample, not a measurement).
 pub fn overlap(
-    k: &Intrinsics,
+    cameras: (&Intrinsics, &Intrinsics),
     q_pose: &Isometry3<f64>,
     q_depth: &DepthMap,
     db_pose: &Isometry3<f64>,
     db_depth: &DepthMap,
 ) -> f64 {
+    let (kq, kd) = cameras;
     let world_from_q = convert_axes(q_pose, CameraAxes::Habitat, CameraAxes::OpenCv);
     let db_from_world = convert_axes(db_pose, CameraAxes::Habitat, CameraAxes::OpenCv).inverse();
     let (mut seen, mut valid) = (0usize, 0usize);
-    let step = 16;
+    // About 16x16 samples whatever the query's resolution.
+    let step = (q_depth.width.max(q_depth.height) / 16).max(1);
     for r in (step / 2..q_depth.height).step_by(step as usize) {
         for c in (step / 2..q_depth.width).step_by(step as usize) {
             let Some(z) = q_depth.get(c, r) else { continue };
             valid += 1;
             let p: Point3<f64> =
-                db_from_world * (world_from_q * k.backproject(c as f64, r as f64, z as f64));
-            if let Some(px) = k.project(&p) {
+                db_from_world * (world_from_q * kq.backproject(c as f64, r as f64, z as f64));
+            if let Some(px) = kd.project(&p) {
                 let (uc, vr) = (px.x.round(), px.y.round());
                 if uc >= 0.0 && vr >= 0.0 {
                     if let Some(d) = db_depth.get(uc as u32, vr as u32) {
@@ -256,7 +259,6 @@ pub fn run(
     localize: &mut dyn FnMut(&Query) -> Result<Answer, PipelineError>,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<EvalReport, PipelineError> {
-    let k = Intrinsics::hpointloc();
     // Every database pose by id, for the retrieval-only row.
     let mut db_pose: BTreeMap<String, (Isometry3<f64>, String, u32)> = BTreeMap::new();
     let mut all = Vec::new();
@@ -301,7 +303,13 @@ pub fn run(
             .map(|(j, d)| {
                 (
                     j,
-                    overlap(&k, &gt, &v.depth, &reader.poses(Role::Database)[j], d),
+                    overlap(
+                        (&v.intrinsics, &reader.camera(Role::Database)),
+                        &gt,
+                        &v.depth,
+                        &reader.poses(Role::Database)[j],
+                        d,
+                    ),
                 )
             })
             .max_by(|a, b| a.1.total_cmp(&b.1))
@@ -309,7 +317,7 @@ pub fn run(
         let q = Query {
             rgb: v.rgb,
             depth: v.depth,
-            intrinsics: k,
+            intrinsics: v.intrinsics,
         };
         let a = match localize(&q) {
             Ok(a) => a,
@@ -349,6 +357,7 @@ pub fn run(
             rr.reranked_view_at_1 += (chosen == Some(b)) as usize as f64;
             rr.view_at_5 += a.retrieved.iter().take(5).any(|x| x == b) as usize as f64;
         }
+        sums.resampling += a.times.resampling;
         sums.extraction += a.times.extraction;
         sums.retrieval += a.times.retrieval;
         sums.matching += a.times.matching;
@@ -367,7 +376,7 @@ pub fn run(
             let q = Query {
                 rgb: v.rgb,
                 depth: v.depth,
-                intrinsics: k,
+                intrinsics: v.intrinsics,
             };
             match localize(&q) {
                 Ok(a) => negatives.push((a.confidence, a.status == Some(Status::Localized))),
@@ -390,6 +399,7 @@ pub fn run(
         *x /= nq;
     }
     let stage_ms = [
+        ("resampling", sums.resampling),
         ("extraction", sums.extraction),
         ("retrieval", sums.retrieval),
         ("matching", sums.matching),
@@ -599,6 +609,7 @@ pub fn table(report: &EvalReport) -> String {
     );
     s += "mean ms per query:";
     for k in [
+        "resampling",
         "extraction",
         "retrieval",
         "matching",

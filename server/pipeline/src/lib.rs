@@ -7,6 +7,8 @@
 //! - [`preset`]: named combinations of stages (`fast`, `accurate`, `classical`, ICP variants).
 //! - [`map`]: building a map from HPointLoc-layout data; [`mapfile`]: the versioned, checksummed,
 //!   atomically written file.
+//! - [`camera`]: any query camera brought to the map's pixel scale (resampling, undistortion), with
+//!   keypoints traced back to the query's own depth.
 //! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
 //! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
 //!   [`calibration`]: the fitted model that turns them into the probability of a right pose.
@@ -14,6 +16,7 @@
 //!   separate, labelled mode).
 
 pub mod calibration;
+pub mod camera;
 pub mod eval;
 pub mod map;
 pub mod mapfile;

@@ -50,6 +50,8 @@ pub struct MapImage {
     pub instances: Vec<u32>,
     /// (width, height) of the image.
     pub image_size: (u32, u32),
+    /// The camera that took it (its keypoints and points are in its pixels and frame).
+    pub camera: Intrinsics,
     /// Reduced depth and grey for verification ([`crate::verify::Thumb`], about 12 KiB).
     pub thumb: Thumb,
 }
@@ -106,7 +108,7 @@ pub struct MapHeader {
     pub preset: Preset,
     /// Models whose output is stored in the map.
     pub models: Vec<ModelIdentity>,
-    /// Intrinsics of the database images.
+    /// Camera of the first database image; each image records its own ([`MapImage::camera`]).
     pub intrinsics: Intrinsics,
     /// Camera axes of stored poses (`habitat` for HPointLoc data).
     pub camera_axes: String,
@@ -141,6 +143,21 @@ impl Map {
             .iter()
             .map(|i| i.heap_bytes() + dense)
             .sum::<usize>()
+    }
+
+    /// The focal length queries are resampled to, pixels: the median over the images' cameras of
+    /// `sqrt(fx * fy)` (the header's camera for an empty map).
+    pub fn focal_px(&self) -> f64 {
+        let mut f: Vec<f64> = self
+            .images
+            .iter()
+            .map(|im| (im.camera.fx * im.camera.fy).sqrt())
+            .collect();
+        if f.is_empty() {
+            return (self.header.intrinsics.fx * self.header.intrinsics.fy).sqrt();
+        }
+        f.sort_by(f64::total_cmp);
+        f[f.len() / 2]
     }
 
     /// Name of the scene of image `i`.
@@ -253,7 +270,7 @@ pub fn build(
 ) -> Result<Map, PipelineError> {
     preset.validate()?;
     let t0 = Instant::now();
-    let k = Intrinsics::hpointloc();
+    let mut header_camera: Option<Intrinsics> = None;
     let global_model = match &preset.global_model {
         Some(p) if preset.global == "onnx" => Some(
             OnnxGlobal::load(p, &Default::default(), None, None)
@@ -286,6 +303,8 @@ pub fn build(
             .unwrap_or(0) as u32;
         for j in 0..reader.count(Role::Database) {
             let v = reader.view(Role::Database, j)?;
+            let k = v.intrinsics;
+            header_camera.get_or_insert(k);
             let f = stage.extractor.extract(&v.rgb)?;
             if let Some(m) = &global_model {
                 onnx_desc.push(Descriptor::Dense(
@@ -308,6 +327,7 @@ pub fn build(
                 points,
                 instances,
                 image_size: f.image_size,
+                camera: k,
                 thumb: Thumb::new(&v.rgb, &v.depth, &k),
             });
             done += 1;
@@ -332,7 +352,7 @@ pub fn build(
             map_id: map_id.to_string(),
             preset: preset.clone(),
             models: model_identities(preset, models_dir)?,
-            intrinsics: k,
+            intrinsics: header_camera.unwrap_or_else(Intrinsics::hpointloc),
             camera_axes: "habitat".into(),
             scenes: scene_names,
             built_by: format!("pntr {}", env!("CARGO_PKG_VERSION")),

@@ -7,7 +7,8 @@
 //!   HEAD  the MapHeader as JSON (preset, model identities, intrinsics, scenes)
 //!   IMGS  u64 image count, then per image: u64 record length, record (pose, keypoints, descriptors,
 //!         3D points, instances, and since version 2 the verification thumbnail: u32 width, u32 height,
-//!         f64 fx fy cx cy, u16 depth in mm, u8 grey)
+//!         f64 fx fy cx cy, u16 depth in mm, u8 grey), and since version 3 the image's camera: f64 fx fy
+//!         cx cy, f64 k1 k2 p1 p2 k3, u32 width, u32 height (version 2 images take the header's camera)
 //!   RETR  the retrieval stage (codebook or vocabulary, and the faiss index or BoW vectors)
 //!   END!  empty: a file without it was cut short
 //! ```
@@ -31,8 +32,10 @@ use crate::verify::Thumb;
 use crate::PipelineError;
 
 const MAGIC: &[u8; 8] = b"PNTRMAP\0";
-/// The map format version this build writes and reads.
-pub const FORMAT_VERSION: u32 = 2;
+/// The map format version this build writes.
+pub const FORMAT_VERSION: u32 = 3;
+/// The oldest map format version this build reads (version 2 lacks per-image cameras).
+pub const OLDEST_READABLE_VERSION: u32 = 2;
 
 fn io(path: &Path) -> impl Fn(std::io::Error) -> PipelineError + '_ {
     move |e| PipelineError::Io {
@@ -114,9 +117,20 @@ fn encode_image(im: &MapImage, w: &mut Writer) {
         w.raw(&d.to_le_bytes());
     }
     w.raw(&t.gray);
+    let k = &im.camera;
+    for v in [k.fx, k.fy, k.cx, k.cy].iter().chain(&k.distortion) {
+        w.f64(*v);
+    }
+    w.u32(k.width);
+    w.u32(k.height);
 }
 
-fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
+fn decode_image(
+    bytes: &[u8],
+    index: usize,
+    version: u32,
+    header_camera: &pntr_core::Intrinsics,
+) -> Result<MapImage, String> {
     let what = format!("image record {index}");
     let mut r = Reader::new(bytes, &what);
     let e = |x: pntr_core::bytes::BytesError| x.to_string();
@@ -186,6 +200,11 @@ fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
         .collect::<Result<Vec<_>, _>>()
         .map_err(e)?;
     let thumb = decode_thumb(&mut r).map_err(|m| format!("{what} ({id}): thumbnail: {m}"))?;
+    let camera = if version >= 3 {
+        decode_camera(&mut r).map_err(|m| format!("{what} ({id}): camera: {m}"))?
+    } else {
+        *header_camera
+    };
     r.finish().map_err(e)?;
     if keypoints.iter().flatten().any(|x: &f32| !x.is_finite()) {
         return Err(format!("{what} ({id}): a keypoint is not finite"));
@@ -203,8 +222,28 @@ fn decode_image(bytes: &[u8], index: usize) -> Result<MapImage, String> {
         points,
         instances,
         image_size,
+        camera,
         thumb,
     })
+}
+
+fn decode_camera(r: &mut Reader) -> Result<pntr_core::Intrinsics, String> {
+    let e = |x: pntr_core::bytes::BytesError| x.to_string();
+    let mut v = [0f64; 9];
+    for x in &mut v {
+        *x = r.f64().map_err(e)?;
+    }
+    let k = pntr_core::Intrinsics {
+        fx: v[0],
+        fy: v[1],
+        cx: v[2],
+        cy: v[3],
+        distortion: [v[4], v[5], v[6], v[7], v[8]],
+        width: r.u32().map_err(e)?,
+        height: r.u32().map_err(e)?,
+    };
+    k.validate().map_err(|x| x.to_string())?;
+    Ok(k)
 }
 
 fn decode_thumb(r: &mut Reader) -> Result<Thumb, String> {
@@ -238,6 +277,7 @@ fn decode_thumb(r: &mut Reader) -> Result<Thumb, String> {
             cy: k[3],
             width,
             height,
+            distortion: [0.0; 5],
         },
         depth_mm,
         gray,
@@ -312,7 +352,8 @@ pub fn read_header(path: &Path) -> Result<MapHeader, PipelineError> {
     parse_header(&payload, path)
 }
 
-fn check_magic(r: &mut impl Read, path: &Path) -> Result<(), PipelineError> {
+/// Check the magic and return the format version.
+fn check_magic(r: &mut impl Read, path: &Path) -> Result<u32, PipelineError> {
     let mut m = [0u8; 12];
     r.read_exact(&mut m)
         .map_err(|_| bad(path, "too short to be a pntr map".into()))?;
@@ -320,13 +361,13 @@ fn check_magic(r: &mut impl Read, path: &Path) -> Result<(), PipelineError> {
         return Err(bad(path, "not a pntr map file (bad magic)".into()));
     }
     let v = u32::from_le_bytes(m[8..12].try_into().expect("4 bytes"));
-    if v != FORMAT_VERSION {
+    if !(OLDEST_READABLE_VERSION..=FORMAT_VERSION).contains(&v) {
         return Err(bad(
             path,
-            format!("map format version {v}; this build reads version {FORMAT_VERSION} (rebuild the map with `pntr build-db`)"),
+            format!("map format version {v}; this build reads versions {OLDEST_READABLE_VERSION} to {FORMAT_VERSION} (rebuild the map with `pntr build-db`)"),
         ));
     }
-    Ok(())
+    Ok(v)
 }
 
 fn section_head(r: &mut impl Read, path: &Path) -> Result<([u8; 4], u64), PipelineError> {
@@ -413,7 +454,7 @@ pub fn load(
     onnx: impl FnOnce(usize) -> Result<OnnxGlobal, pntr_retrieval::RetrievalError>,
 ) -> Result<Map, PipelineError> {
     let mut r = BufReader::with_capacity(1 << 20, File::open(path).map_err(io(path))?);
-    check_magic(&mut r, path)?;
+    let version = check_magic(&mut r, path)?;
     let (tag, head) = small_section(&mut r, path)?;
     expect(&tag, b"HEAD", path)?;
     let header = parse_header(&head, path)?;
@@ -463,7 +504,10 @@ pub fn load(
             ));
         }
         next(&mut r, &mut buf, n as usize)?;
-        images.push(decode_image(&buf, i).map_err(|m| bad(path, format!("section IMGS: {m}")))?);
+        images.push(
+            decode_image(&buf, i, version, &header.intrinsics)
+                .map_err(|m| bad(path, format!("section IMGS: {m}")))?,
+        );
     }
     if read != len {
         return Err(bad(

@@ -31,7 +31,8 @@ use pntr_retrieval::index::Hit;
 use serde::Serialize;
 
 use crate::calibration::{choose, Calibration};
-use crate::map::{keypoint_points, Map};
+use crate::camera::to_map_scale;
+use crate::map::Map;
 use crate::preset::{Preset, Solver};
 use crate::verify::{dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb};
 use crate::PipelineError;
@@ -67,6 +68,9 @@ pub enum Status {
 /// Seconds spent in each stage of one query.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct StageTimes {
+    /// Bringing a query from another camera to the map's pixel scale ([`crate::camera`]); 0 when
+    /// the query already has the map's focal length and no distortion.
+    pub resampling: f64,
     /// Feature extraction of the query.
     pub extraction: f64,
     /// Global descriptor and index search.
@@ -166,6 +170,8 @@ pub struct Pipeline {
     min_confidence: f64,
     /// Map indices of the images of each (scene, Point), for the nearby views of verification.
     point_views: HashMap<(u32, u32), Vec<usize>>,
+    /// The focal length queries are resampled to: the median of the map images' cameras, pixels.
+    map_focal_px: f64,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -201,6 +207,7 @@ impl Pipeline {
         for (i, im) in map.images.iter().enumerate() {
             point_views.entry((im.scene, im.point)).or_default().push(i);
         }
+        let map_focal_px = map.focal_px();
         Ok(Self {
             map,
             stage,
@@ -218,6 +225,7 @@ impl Pipeline {
             min_confidence: calibration.threshold,
             calibration,
             point_views,
+            map_focal_px,
         })
     }
 
@@ -242,6 +250,11 @@ impl Pipeline {
         self
     }
 
+    /// The focal length, pixels, that queries from other cameras are resampled to.
+    pub fn map_focal_px(&self) -> f64 {
+        self.map_focal_px
+    }
+
     /// The LOCALIZED threshold on the calibrated confidence.
     pub fn min_confidence(&self) -> f64 {
         self.min_confidence
@@ -252,14 +265,20 @@ impl Pipeline {
         let t0 = Instant::now();
         check_query(q)?;
         let mut times = StageTimes::default();
+        // Another camera's query is brought to the map's pixel scale; from here on `q` is the
+        // resampled query and only the keypoints' depths come from the frame as sent.
+        let resampled = to_map_scale(q, self.map_focal_px);
+        let q: &Query = &resampled.query;
+        let tr = Instant::now();
+        times.resampling = (tr - t0).as_secs_f64();
         let fq = self.stage.extractor.extract(&q.rgb)?;
         let t1 = Instant::now();
-        times.extraction = (t1 - t0).as_secs_f64();
+        times.extraction = (t1 - tr).as_secs_f64();
         let desc = self.map.retriever.describer.describe(&q.rgb, &fq)?;
         let hits = self.map.retriever.search(&desc, self.preset.candidates)?;
         times.retrieval = t1.elapsed().as_secs_f64();
-        let (q_pts, _) = keypoint_points(&q.intrinsics, &q.depth, None, &fq.keypoints);
-        let q_pts: Vec<Option<Vector3<f64>>> = q_pts
+        let q_pts: Vec<Option<Vector3<f64>>> = resampled
+            .keypoint_points(&fq.keypoints)
             .iter()
             .map(|p| p[0].is_finite().then(|| vec3(*p)))
             .collect();

@@ -66,6 +66,7 @@ impl Thumb {
             cy: (k.cy - half) / s as f64,
             width: w,
             height: h,
+            distortion: [0.0; 5],
         };
         let mut depth_mm = vec![0u16; (w * h) as usize];
         let mut gray = vec![0u8; (w * h) as usize];

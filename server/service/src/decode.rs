@@ -8,8 +8,15 @@
 //! Missing depth is data, not an error: 0, negative, NaN and infinite pixels (ROS sends NaN,
 //! RealSense 0) become 0, the pipeline's "no depth here"; only a frame with no valid pixel at all is
 //! refused.
+//!
+//! Integration mistakes get an error that names them: depth in the wrong unit (a median valid depth
+//! outside [`MIN_MEDIAN_DEPTH_M`] .. [`MAX_MEDIAN_DEPTH_M`]), a principal point outside the image (with
+//! a hint when swapping the axes would fit: a rotated image sent with the unrotated camera), and a
+//! depth image that does not match the colour image after its JPEG EXIF orientation is applied.
 
 use std::io::Cursor;
+
+use image::metadata::Orientation;
 
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 use pntr_pipeline::pipeline::Query;
@@ -25,6 +32,13 @@ pub struct Limits {
     /// Largest height.
     pub max_height: u32,
 }
+
+/// Smallest plausible median of a frame's valid depths, metres: below it the values are in a larger
+/// unit than declared (metres stored in a millimetre image).
+pub const MIN_MEDIAN_DEPTH_M: f32 = 0.05;
+/// Largest plausible median of a frame's valid depths, metres: above it the values are in a smaller
+/// unit than declared (millimetres sent as FLOAT32_METERS).
+pub const MAX_MEDIAN_DEPTH_M: f32 = 50.0;
 
 fn invalid<T>(m: impl Into<String>) -> Result<T, Status> {
     Err(Status::invalid_argument(m.into()))
@@ -53,23 +67,83 @@ pub fn query(req: &proto::LocalizeRequest, limits: &Limits) -> Result<Query, Sta
     let Some(depth) = &req.depth else {
         return invalid("depth is missing");
     };
-    let rgb = decode_rgb(rgb, limits)?;
+    let (rgb, orientation) = decode_rgb(rgb, limits)?;
+    let depth_encoding = depth.encoding;
     let depth = decode_depth(depth, limits)?;
     if (rgb.width, rgb.height) != (depth.width, depth.height) {
+        if let Some((o, (w, h))) = orientation {
+            return invalid(format!(
+                "rgb is {w}x{h} as encoded and {}x{} after its EXIF orientation {} ({o:?}), but depth is {}x{}: depth must match the upright image",
+                rgb.width,
+                rgb.height,
+                o.to_exif(),
+                depth.width,
+                depth.height
+            ));
+        }
         return invalid(format!(
             "rgb is {}x{} but depth is {}x{}: they must be the same size, pixel-aligned",
             rgb.width, rgb.height, depth.width, depth.height
         ));
     }
     let intrinsics = intrinsics(req.intrinsics.as_ref(), rgb.width, rgb.height)?;
-    if !depth.data.iter().any(|&d| d > 0.0) {
-        return invalid("depth has no valid pixel (every value is 0, negative, NaN or infinite)");
-    }
+    check_depth_unit(&depth, depth_encoding)?;
     Ok(Query {
         rgb,
         depth,
         intrinsics,
     })
+}
+
+/// Refuse a depth image whose values are implausible for its declared unit, naming the unit they look
+/// like; also refuse one without a valid pixel.
+fn check_depth_unit(depth: &DepthMap, encoding: i32) -> Result<(), Status> {
+    // A strided sample of at most ~64k valid pixels is plenty for a median.
+    let stride = (depth.data.len() / 65_536).max(1);
+    let mut valid: Vec<f32> = depth
+        .data
+        .iter()
+        .step_by(stride)
+        .copied()
+        .filter(|&d| d > 0.0)
+        .collect();
+    if valid.is_empty() && !depth.data.iter().any(|&d| d > 0.0) {
+        return invalid("depth has no valid pixel (every value is 0, negative, NaN or infinite)");
+    }
+    if valid.is_empty() {
+        return Ok(());
+    }
+    let mid = valid.len() / 2;
+    let (_, &mut median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
+    let meters = encoding == proto::DepthEncoding::Float32Meters as i32;
+    let declared = if meters {
+        "FLOAT32_METERS"
+    } else if encoding == proto::DepthEncoding::Uint16Millimeters as i32 {
+        "UINT16_MILLIMETERS"
+    } else {
+        "PNG16_MILLIMETERS"
+    };
+    if median > MAX_MEDIAN_DEPTH_M {
+        let hint = if meters {
+            "these look like millimetres: send UINT16_MILLIMETERS, or divide by 1000"
+        } else {
+            "these look like a unit finer than millimetres (e.g. 0.1 mm): convert to millimetres"
+        };
+        return invalid(format!(
+            "depth ({declared}) has a median valid depth of {median:.1} m, beyond the plausible {MAX_MEDIAN_DEPTH_M} m: {hint}"
+        ));
+    }
+    if median < MIN_MEDIAN_DEPTH_M {
+        let hint = if meters {
+            "these look like a unit larger than metres, or normalised or inverse depth: send metres"
+        } else {
+            "these look like metres stored in a millimetre image: multiply by 1000, or send FLOAT32_METERS"
+        };
+        return invalid(format!(
+            "depth ({declared}) has a median valid depth of {median:.4} m, below the plausible {MIN_MEDIAN_DEPTH_M} m: {hint}"
+        ));
+    }
+    Ok(())
 }
 
 fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsics, Status> {
@@ -93,14 +167,40 @@ fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsic
             k.cx, k.cy
         ));
     }
-    Ok(Intrinsics {
+    let mut distortion = [0.0; 5];
+    match k.distortion.len() {
+        0 => {}
+        4 | 5 => distortion[..k.distortion.len()].copy_from_slice(&k.distortion),
+        n => {
+            return invalid(format!(
+                "intrinsics.distortion has {n} values: give [k1, k2, p1, p2, k3] (plumb_bob, ROS CameraInfo.d), [k1, k2, p1, p2], or none"
+            ))
+        }
+    }
+    let out = Intrinsics {
         fx: k.fx,
         fy: k.fy,
         cx: k.cx,
         cy: k.cy,
         width: w,
         height: h,
-    })
+        distortion,
+    };
+    if let Err(e) = out.validate() {
+        // A rotated image sent with the camera of the unrotated one: the swapped axes would fit.
+        let swapped = Intrinsics {
+            cx: k.cy,
+            cy: k.cx,
+            ..out
+        };
+        let hint = if out.cx != out.cy && swapped.validate().is_ok() {
+            " (cx and cy would fit the image with its axes swapped: was the image rotated without rotating the intrinsics?)"
+        } else {
+            ""
+        };
+        return invalid(format!("intrinsics: {}{hint}", e.0));
+    }
+    Ok(out)
 }
 
 /// Expected byte count of a raw `w` x `h` image with `bpp` bytes per pixel, checked against `len`.
@@ -124,8 +224,13 @@ fn declared(what: &str, (dw, dh): (u32, u32), (w, h): (u32, u32)) -> Result<(), 
     Ok(())
 }
 
-fn decode_rgb(im: &proto::Image, limits: &Limits) -> Result<RgbImage, Status> {
+/// The colour image, upright; with the EXIF orientation applied and the encoded size, when a JPEG
+/// had one other than "no transform".
+type Oriented = (RgbImage, Option<(Orientation, (u32, u32))>);
+
+fn decode_rgb(im: &proto::Image, limits: &Limits) -> Result<Oriented, Status> {
     use proto::ImageEncoding as E;
+    let mut orientation = None;
     let (w, h, data) = match E::try_from(im.encoding) {
         Ok(E::RawRgb8) => {
             limits.check("rgb", im.width, im.height)?;
@@ -138,8 +243,21 @@ fn decode_rgb(im: &proto::Image, limits: &Limits) -> Result<RgbImage, Status> {
             (w, h, data)
         }
         Ok(E::Jpeg) => {
-            let (w, h, data) = decode_jpeg(&im.data, limits)?;
+            let (w, h, data, o) = decode_jpeg(&im.data, limits)?;
             declared("rgb", (im.width, im.height), (w, h))?;
+            if o != Orientation::NoTransforms {
+                let buf = image::RgbImage::from_raw(w, h, data).ok_or_else(|| {
+                    Status::invalid_argument("rgb: JPEG decoded to the wrong size")
+                })?;
+                let mut img = image::DynamicImage::ImageRgb8(buf);
+                img.apply_orientation(o);
+                let img = img.into_rgb8();
+                orientation = Some((o, (w, h)));
+                let (ow, oh) = img.dimensions();
+                return RgbImage::new(ow, oh, img.into_raw())
+                    .map(|r| (r, orientation))
+                    .or_else(|e| invalid(format!("rgb: {e}")));
+            }
             (w, h, data)
         }
         Ok(E::Unspecified) => {
@@ -152,7 +270,9 @@ fn decode_rgb(im: &proto::Image, limits: &Limits) -> Result<RgbImage, Status> {
             ))
         }
     };
-    RgbImage::new(w, h, data).or_else(|e| invalid(format!("rgb: {e}")))
+    RgbImage::new(w, h, data)
+        .map(|r| (r, orientation))
+        .or_else(|e| invalid(format!("rgb: {e}")))
 }
 
 fn sanitize(d: f32) -> f32 {
@@ -294,8 +414,21 @@ pub fn decode_png16(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<f32>)
     Ok((w, h, v))
 }
 
-/// Decode a JPEG to RGB8: (width, height, pixels).
-pub fn decode_jpeg(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), Status> {
+/// The size of a `w` x `h` image once `o` is applied (the quarter turns swap the axes).
+pub fn upright_size(w: u32, h: u32, o: Orientation) -> (u32, u32) {
+    use Orientation as O;
+    match o {
+        O::Rotate90 | O::Rotate270 | O::Rotate90FlipH | O::Rotate270FlipH => (h, w),
+        O::NoTransforms | O::Rotate180 | O::FlipHorizontal | O::FlipVertical => (w, h),
+    }
+}
+
+/// Decode a JPEG to RGB8: (width, height, pixels as encoded, EXIF orientation). The orientation is
+/// read with the `image` crate's EXIF parser (`NoTransforms` without EXIF or with an invalid tag).
+pub fn decode_jpeg(
+    data: &[u8],
+    limits: &Limits,
+) -> Result<(u32, u32, Vec<u8>, Orientation), Status> {
     use zune_jpeg::zune_core::bytestream::ZCursor;
     use zune_jpeg::zune_core::colorspace::ColorSpace;
     use zune_jpeg::zune_core::options::DecoderOptions;
@@ -313,6 +446,10 @@ pub fn decode_jpeg(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), 
     let px = dec
         .decode()
         .or_else(|e| invalid(format!("rgb: JPEG data cannot be decoded ({e:?})")))?;
+    let orientation = dec
+        .exif()
+        .and_then(|x| Orientation::from_exif_chunk(x))
+        .unwrap_or(Orientation::NoTransforms);
     let n = w * h;
     let rgb = match dec.output_colorspace() {
         Some(ColorSpace::RGB) if px.len() == n * 3 => px,
@@ -324,7 +461,7 @@ pub fn decode_jpeg(data: &[u8], limits: &Limits) -> Result<(u32, u32, Vec<u8>), 
             ))
         }
     };
-    Ok((w as u32, h as u32, rgb))
+    Ok((w as u32, h as u32, rgb, orientation))
 }
 
 #[cfg(test)]
@@ -435,6 +572,7 @@ mod tests {
                 fy,
                 cx: 127.5,
                 cy: 127.5,
+                distortion: Vec::new(),
             });
             let m = code_msg(query(&r, &LIMITS)).1;
             assert!(m.contains("focal"), "{m}");

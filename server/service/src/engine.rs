@@ -380,10 +380,11 @@ fn worker(
 }
 
 /// Seconds per stage of one localized frame, in the order the response lists them.
-pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f64); 7] {
+pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f64); 8] {
     let t = &loc.times;
     [
         ("queue", queued.as_secs_f64()),
+        ("resampling", t.resampling),
         ("extraction", t.extraction),
         ("retrieval", t.retrieval),
         ("matching", t.matching),

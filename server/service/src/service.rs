@@ -502,12 +502,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
             matcher: h.preset.matcher.clone(),
             global_descriptor: h.preset.global.clone(),
             camera_axes: h.camera_axes.clone(),
-            intrinsics: Some(proto::Intrinsics {
-                fx: h.intrinsics.fx,
-                fy: h.intrinsics.fy,
-                cx: h.intrinsics.cx,
-                cy: h.intrinsics.cy,
-            }),
+            intrinsics: Some(crate::wire::intrinsics_message(&h.intrinsics)),
             image_width: h.intrinsics.width,
             image_height: h.intrinsics.height,
             build_seconds: h.build_seconds,

@@ -8,13 +8,19 @@ use pntr_core::{DepthMap, Intrinsics, RgbImage};
 
 use crate::proto;
 
-fn intrinsics(k: Option<&Intrinsics>) -> Option<proto::Intrinsics> {
-    k.map(|k| proto::Intrinsics {
+/// The wire form of a camera (distortion sent only when there is some).
+pub fn intrinsics_message(k: &Intrinsics) -> proto::Intrinsics {
+    proto::Intrinsics {
         fx: k.fx,
         fy: k.fy,
         cx: k.cx,
         cy: k.cy,
-    })
+        distortion: if k.is_distorted() {
+            k.distortion.to_vec()
+        } else {
+            Vec::new()
+        },
+    }
 }
 
 /// A request with RAW_RGB8 colour and FLOAT32_METERS depth (missing depth sent as 0).
@@ -36,7 +42,7 @@ pub fn raw_request(
             encoding: proto::DepthEncoding::Float32Meters as i32,
             data: depth.data.iter().flat_map(|d| d.to_le_bytes()).collect(),
         }),
-        intrinsics: intrinsics(k),
+        intrinsics: k.map(intrinsics_message),
         ..Default::default()
     }
 }
@@ -85,7 +91,7 @@ pub fn png_request(
                 &mm,
             )?,
         }),
-        intrinsics: intrinsics(k),
+        intrinsics: k.map(intrinsics_message),
         ..Default::default()
     })
 }

@@ -51,6 +51,11 @@ pub struct SynthConfig {
     pub textures: Vec<Arc<TextureImage>>,
     /// How files are written.
     pub write: WriteOptions,
+    /// Camera of the database views (HPointLoc's 256x256, 90 degrees by default).
+    pub db_camera: Intrinsics,
+    /// Camera of the queries (the database camera by default): a robot's camera against a map
+    /// made with another.
+    pub query_camera: Intrinsics,
 }
 
 impl Default for SynthConfig {
@@ -64,6 +69,8 @@ impl Default for SynthConfig {
             tilt_sigma_deg: 2.0,
             textures: Vec::new(),
             write: WriteOptions::default(),
+            db_camera: Intrinsics::hpointloc(),
+            query_camera: Intrinsics::hpointloc(),
         }
     }
 }
@@ -176,15 +183,15 @@ fn frame_seed(seed: u64, scene: usize, point: usize, view: usize) -> u64 {
         ^ view as u64
 }
 
-/// Render every view of one Point.
+/// Render every view of one Point: database views through `cameras.0`, queries through `cameras.1`.
 pub fn render_point(
     renderer: &Renderer,
     plan: &PointPlan,
-    k: &Intrinsics,
+    cameras: (&Intrinsics, &Intrinsics),
     seeds: (u64, usize, usize),
     on_frame: &(dyn Fn() + Sync),
 ) -> PointRecord {
-    let view = |pose: &nalgebra::Isometry3<f64>, i: usize| {
+    let view = |pose: &nalgebra::Isometry3<f64>, k: &Intrinsics, i: usize| {
         let f = renderer.render(pose, k, frame_seed(seeds.0, seeds.1, seeds.2, i));
         on_frame();
         View {
@@ -192,19 +199,20 @@ pub fn render_point(
             rgb: f.rgb,
             depth: f.depth,
             semantic: Some(f.labels),
+            intrinsics: *k,
         }
     };
     let db = plan
         .db
         .iter()
         .enumerate()
-        .map(|(i, p)| view(p, i))
+        .map(|(i, p)| view(p, cameras.0, i))
         .collect();
     let queries = plan
         .queries
         .iter()
         .enumerate()
-        .map(|(i, p)| view(p, 1000 + i))
+        .map(|(i, p)| view(p, cameras.1, 1000 + i))
         .collect();
     PointRecord {
         db,
@@ -238,8 +246,12 @@ pub fn synthesize(
             "scenes and points per scene must be at least 1".into(),
         ));
     }
+    for (what, k) in [("database", &cfg.db_camera), ("query", &cfg.query_camera)] {
+        k.validate()
+            .map_err(|e| SynthError::Config(format!("{what} camera: {e}")))?;
+    }
     let start = Instant::now();
-    let k = Intrinsics::hpointloc();
+    let cameras = (&cfg.db_camera, &cfg.query_camera);
     let frames = AtomicU64::new(0);
     let count = || {
         frames.fetch_add(1, Ordering::Relaxed);
@@ -263,7 +275,7 @@ pub fn synthesize(
             .par_iter()
             .enumerate()
             .try_for_each(|(pi, plan)| {
-                let mut rec = render_point(&renderer, plan, &k, (cfg.seed, si, pi), &count);
+                let mut rec = render_point(&renderer, plan, cameras, (cfg.seed, si, pi), &count);
                 rec.instance_categories = Some(table.clone());
                 let path = tmp_root.join(format!("{name}_point{pi}.hdf5"));
                 write_point(&path, &rec, &cfg.write)

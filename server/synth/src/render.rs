@@ -326,7 +326,8 @@ impl<'s> Renderer<'s> {
         best
     }
 
-    /// Render the view of a camera at `world_from_camera` (Habitat axes, as HPointLoc stores poses).
+    /// Render the view of a camera at `world_from_camera` (Habitat axes, as HPointLoc stores poses)
+    /// through `k`, lens distortion included.
     /// `noise_seed` drives the RGB sensor noise (Gaussian, sigma 0.02 of full scale, as HPointLoc).
     pub fn render(
         &self,
@@ -367,11 +368,9 @@ impl<'s> Renderer<'s> {
         let mut last = None;
         for row in 0..h {
             for col in 0..w {
-                let dc = Vector3::new(
-                    ((col as f64 - k.cx) / k.fx) as f32,
-                    ((row as f64 - k.cy) / k.fy) as f32,
-                    1.0,
-                );
+                // The ray the (possibly distorted) lens sends through this pixel.
+                let (x, y) = k.undistort_normalized((col as f64 - k.cx) / k.fx, (row as f64 - k.cy) / k.fy);
+                let dc = Vector3::new(x as f32, y as f32, 1.0);
                 // Direction with camera-z component 1: the hit's ray parameter is its planar depth.
                 let d = r * dc;
                 let oa = [o.x, o.y, o.z];
