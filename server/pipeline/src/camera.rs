@@ -16,7 +16,15 @@
 //!    the measured planar depth. A nearest-neighbour depth image at the new scale is kept only for the
 //!    dense verification thumbnails.
 //!
-//! A query within 1% of the map's focal length and without distortion is used as it is.
+//! A narrower camera sees less of the scene than the map's images do, so at the map's scale its image
+//! holds fewer pixels and the extractor finds fewer keypoints. Such a query is resampled finer, so its
+//! pixel count matches the map images', by at most [`MAX_FINER_SCALE`] above the map's focal length
+//! (learned features tolerate that mismatch far better than the lost keypoints: on seed 3, a
+//! 640x480 69-degree camera gained 0.68 -> 0.76 recall at (0.25 m, 2 deg), BENCHMARKS.md), and the
+//! pipeline widens its retrieval shortlist by [`Resampled::coverage_ratio`].
+//!
+//! A query within 1% of the target focal length, as large as the map's images and without
+//! distortion is used as it is.
 
 use std::borrow::Cow;
 
@@ -31,6 +39,9 @@ pub const SCALE_TOLERANCE: f64 = 0.01;
 pub const MIN_RESAMPLED_SIDE: u32 = 64;
 /// Largest side of a resampled query, pixels (upsampling beyond gives the extractor nothing new).
 pub const MAX_RESAMPLED_SIDE: u32 = 2048;
+/// Most a query smaller than the map's images (at the map's scale) is resampled beyond the map's
+/// focal length, as a factor.
+pub const MAX_FINER_SCALE: f64 = 1.5;
 
 /// A query at the map's pixel scale, with the way back to the query's own pixels.
 #[derive(Debug)]
@@ -40,6 +51,9 @@ pub struct Resampled<'a> {
     pub query: Cow<'a, Query>,
     /// The query as sent, when `query` is a resampled copy.
     source: Option<&'a Query>,
+    /// The map images' pixel count over the query's at the map's focal length (1 when the query
+    /// sees as much as a map image or more).
+    pub coverage_ratio: f64,
 }
 
 impl<'a> Resampled<'a> {
@@ -89,19 +103,23 @@ fn depth_near(depth: &DepthMap, u: f64, v: f64) -> Option<f64> {
 }
 
 /// Bring `q` to an ideal pinhole camera whose focal length is `focal_px` in both axes (the map's),
-/// as the module documentation describes. Sizes are clamped to [`MIN_RESAMPLED_SIDE`] ..
-/// [`MAX_RESAMPLED_SIDE`] (keeping the aspect ratio), so an extreme camera gets the nearest scale
-/// that still works.
-pub fn to_map_scale(q: &Query, focal_px: f64) -> Resampled<'_> {
+/// or finer when the query would hold fewer than `map_pixels` pixels there, as the module
+/// documentation describes. Sizes are clamped to [`MIN_RESAMPLED_SIDE`] .. [`MAX_RESAMPLED_SIDE`]
+/// (keeping the aspect ratio), so an extreme camera gets the nearest scale that still works.
+pub fn to_map_scale(q: &Query, focal_px: f64, map_pixels: f64) -> Resampled<'_> {
     let k = &q.intrinsics;
+    let (w, h) = (k.width as f64, k.height as f64);
+    let at_map_scale = w * h * (focal_px / k.fx) * (focal_px / k.fy);
+    let coverage_ratio = (map_pixels / at_map_scale).max(1.0);
+    let focal_px = focal_px * coverage_ratio.sqrt().min(MAX_FINER_SCALE);
     let near = |f: f64| ((f - focal_px) / focal_px).abs() < SCALE_TOLERANCE;
     if !k.is_distorted() && near(k.fx) && near(k.fy) {
         return Resampled {
             query: Cow::Borrowed(q),
             source: None,
+            coverage_ratio,
         };
     }
-    let (w, h) = (k.width as f64, k.height as f64);
     let (mut sx, mut sy) = (focal_px / k.fx, focal_px / k.fy);
     let longest = (w * sx).max(h * sy);
     if longest > MAX_RESAMPLED_SIDE as f64 {
@@ -162,6 +180,7 @@ pub fn to_map_scale(q: &Query, focal_px: f64) -> Resampled<'_> {
             intrinsics,
         }),
         source: Some(q),
+        coverage_ratio,
     }
 }
 
@@ -219,9 +238,10 @@ mod tests {
     #[test]
     fn same_scale_is_left_alone() {
         let q = plane(&Intrinsics::hpointloc(), 2.0);
-        let r = to_map_scale(&q, 128.5);
+        let r = to_map_scale(&q, 128.5, 65536.0);
         assert!(!r.changed());
         assert!(matches!(r.query, Cow::Borrowed(_)));
+        assert_eq!(r.coverage_ratio, 1.0);
     }
 
     #[test]
@@ -229,12 +249,18 @@ mod tests {
         let mut k = Intrinsics::from_fov(640, 480, 69.0);
         k.fy *= 1.05; // non-square pixels
         let q = plane(&k, 3.0);
-        let r = to_map_scale(&q, 128.0);
+        // Against a map of small images: the map's focal length exactly.
+        let r = to_map_scale(&q, 128.0, 100.0);
         assert!(r.changed());
         let n = &r.query.intrinsics;
         assert!((n.fx - 128.0).abs() < 0.5 && (n.fy - 128.0).abs() < 0.5, "{n:?}");
         assert_eq!((n.width, n.height), (r.query.rgb.width, r.query.rgb.height));
         assert!(n.width < 200 && n.height < 160);
+        // Against 256x256 map images the narrower view is resampled finer, at most 1.5x.
+        let wide = to_map_scale(&q, 128.0, 65536.0);
+        let nf = &wide.query.intrinsics;
+        assert!(wide.coverage_ratio > 2.0, "{}", wide.coverage_ratio);
+        assert!((nf.fx - 192.0).abs() < 1.0 && (nf.fy - 192.0).abs() < 1.0, "{nf:?}");
         // A keypoint at the resampled principal point sees straight ahead, at the plane's depth.
         let p = r.keypoint_points(&[[n.cx as f32, n.cy as f32], [5.0, 7.0]]);
         assert!(p[0][0].abs() < 1e-4 && p[0][1].abs() < 1e-4 && (p[0][2] - 3.0).abs() < 1e-6);
@@ -270,7 +296,7 @@ mod tests {
         assert!(before > 5.0 * err, "distortion was visible before: {before}");
         // Through the resampler, keypoints trace back through the lens to the depth under them.
         let q = plane(&lens, 2.5);
-        let r = to_map_scale(&q, 128.0);
+        let r = to_map_scale(&q, 128.0, 1.0);
         assert!(r.changed());
         let p = r.keypoint_points(&[[10.0, 12.0]]);
         let n = &r.query.intrinsics;
@@ -284,12 +310,12 @@ mod tests {
     fn extreme_cameras_are_clamped_to_workable_sizes() {
         let tele = Intrinsics::from_fov(800, 600, 5.0);
         let q = plane(&tele, 2.0);
-        let r = to_map_scale(&q, 128.0);
+        let r = to_map_scale(&q, 128.0, 65536.0);
         let n = &r.query.intrinsics;
         assert!(n.width.min(n.height) >= MIN_RESAMPLED_SIDE - 1, "{n:?}");
         let fish = Intrinsics::from_fov(64, 64, 170.0);
         let q = plane(&fish, 2.0);
-        let r = to_map_scale(&q, 128.0);
+        let r = to_map_scale(&q, 128.0, 65536.0);
         let n = &r.query.intrinsics;
         assert!(n.width.max(n.height) <= MAX_RESAMPLED_SIDE, "{n:?}");
     }

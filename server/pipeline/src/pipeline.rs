@@ -172,6 +172,8 @@ pub struct Pipeline {
     point_views: HashMap<(u32, u32), Vec<usize>>,
     /// The focal length queries are resampled to: the median of the map images' cameras, pixels.
     map_focal_px: f64,
+    /// Pixels of a map image (the median), what a query is compared with for coverage.
+    map_pixels: f64,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -208,6 +210,13 @@ impl Pipeline {
             point_views.entry((im.scene, im.point)).or_default().push(i);
         }
         let map_focal_px = map.focal_px();
+        let mut pixels: Vec<f64> = map
+            .images
+            .iter()
+            .map(|im| im.camera.width as f64 * im.camera.height as f64)
+            .collect();
+        pixels.sort_by(f64::total_cmp);
+        let map_pixels = pixels.get(pixels.len() / 2).copied().unwrap_or(65536.0);
         Ok(Self {
             map,
             stage,
@@ -226,6 +235,7 @@ impl Pipeline {
             calibration,
             point_views,
             map_focal_px,
+            map_pixels,
         })
     }
 
@@ -267,7 +277,7 @@ impl Pipeline {
         let mut times = StageTimes::default();
         // Another camera's query is brought to the map's pixel scale; from here on `q` is the
         // resampled query and only the keypoints' depths come from the frame as sent.
-        let resampled = to_map_scale(q, self.map_focal_px);
+        let resampled = to_map_scale(q, self.map_focal_px, self.map_pixels);
         let q: &Query = &resampled.query;
         let tr = Instant::now();
         times.resampling = (tr - t0).as_secs_f64();
@@ -275,7 +285,10 @@ impl Pipeline {
         let t1 = Instant::now();
         times.extraction = (t1 - tr).as_secs_f64();
         let desc = self.map.retriever.describer.describe(&q.rgb, &fq)?;
-        let hits = self.map.retriever.search(&desc, self.preset.candidates)?;
+        // A query that sees less than a map image describes the place less surely: widen the
+        // shortlist with its coverage deficit (at most twice the preset's).
+        let shortlist = (self.preset.candidates as f64 * resampled.coverage_ratio.min(2.0)).round();
+        let hits = self.map.retriever.search(&desc, shortlist as usize)?;
         times.retrieval = t1.elapsed().as_secs_f64();
         let q_pts: Vec<Option<Vector3<f64>>> = resampled
             .keypoint_points(&fq.keypoints)
