@@ -229,6 +229,7 @@ fn localizes_reports_and_refuses_bad_input() {
                 stages,
                 [
                     "queue",
+                    "resampling",
                     "extraction",
                     "retrieval",
                     "matching",

@@ -32,7 +32,7 @@ pub struct LocalizeArgs {
         long,
         value_name = "FX,FY,CX,CY[,K1,K2,P1,P2,K3]",
         num_args = 1..=9,
-        allow_hyphen_values = true
+        allow_negative_numbers = true
     )]
     pub intrinsics: Option<Vec<String>>,
     /// Dataset root, to send one of its query frames (with the ground truth printed beside the answer).
@@ -76,7 +76,11 @@ pub fn parse_intrinsics(words: &[String]) -> Result<proto::Intrinsics> {
         );
     }
     if v[0] <= 0.0 || v[1] <= 0.0 {
-        bail!("--intrinsics: focal lengths fx = {} and fy = {} must be positive", v[0], v[1]);
+        bail!(
+            "--intrinsics: focal lengths fx = {} and fy = {} must be positive",
+            v[0],
+            v[1]
+        );
     }
     Ok(proto::Intrinsics {
         fx: v[0],

@@ -59,8 +59,8 @@ pub struct SynthArgs {
     #[arg(long, value_name = "DEG")]
     pub query_hfov: Option<f64>,
     /// Lens distortion of the query camera, `k1,k2,p1,p2,k3` (OpenCV / ROS plumb_bob).
-    #[arg(long, value_name = "K1,K2,P1,P2,K3", value_delimiter = ',', num_args = 5)]
-    pub query_distortion: Option<Vec<f64>>,
+    #[arg(long, value_name = "K1,K2,P1,P2,K3", allow_hyphen_values = true)]
+    pub query_distortion: Option<String>,
 }
 
 /// Parse a camera size `WxH` (`--camera`, `--query-camera`).
@@ -107,7 +107,15 @@ fn cameras(args: &SynthArgs) -> Result<(Intrinsics, Intrinsics)> {
         (None, None) => db,
     };
     if let Some(d) = &args.query_distortion {
-        query.distortion.copy_from_slice(d);
+        let v: Vec<f64> = d
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| anyhow::anyhow!("--query-distortion {d:?}: {e}"))?;
+        if v.len() != 5 {
+            bail!("--query-distortion {d:?}: give 5 numbers k1,k2,p1,p2,k3");
+        }
+        query.distortion.copy_from_slice(&v);
         query
             .validate()
             .map_err(|e| anyhow::anyhow!("--query-distortion: {e}"))?;
@@ -223,39 +231,44 @@ pub fn run(args: &SynthArgs) -> Result<()> {
 /// `pntr info`: list a dataset and open every file (validating all fields).
 pub fn info(dataset: &Path, as_json: bool) -> Result<()> {
     let index = DatasetIndex::open(dataset)?;
+    let camera = |k: &Intrinsics| json!({"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "distortion": k.distortion});
     let mut scenes = Vec::new();
+    let mut rows = Vec::new();
     for scene in &index.scenes {
         let (mut db, mut q) = (0usize, 0usize);
-        let mut size = None;
+        let mut cams = None;
         for p in &scene.points {
             let r = p.open()?;
             db += r.count(Role::Database);
             q += r.count(Role::Query);
-            size = Some((r.width(), r.height()));
+            cams = Some((r.camera(Role::Database), r.camera(Role::Query)));
         }
-        scenes.push((
-            scene.name.clone(),
-            scene.points.len(),
-            db,
-            q,
-            size.unwrap_or((0, 0)),
-        ));
+        let (kd, kq) = cams.unwrap_or((Intrinsics::hpointloc(), Intrinsics::hpointloc()));
+        scenes.push(json!({
+            "name": scene.name, "points": scene.points.len(), "db_views": db, "queries": q,
+            "width": kd.width, "height": kd.height,
+            "query_width": kq.width, "query_height": kq.height,
+            "camera": camera(&kd), "query_camera": camera(&kq),
+        }));
+        rows.push((scene.name.clone(), scene.points.len(), db, q, kd, kq));
     }
     if as_json {
-        let v: Vec<_> = scenes
-            .iter()
-            .map(|(n, p, d, q, (w, h))| {
-                json!({"name": n, "points": p, "db_views": d, "queries": q, "width": w, "height": h})
-            })
-            .collect();
-        println!("{}", serde_json::to_string_pretty(&json!({ "scenes": v }))?);
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({ "scenes": scenes }))?
+        );
     } else {
         println!(
-            "{:<16} {:>6} {:>8} {:>8} {:>9}",
-            "scene", "points", "db_views", "queries", "size"
+            "{:<16} {:>6} {:>8} {:>8} {:>14} {:>14}",
+            "scene", "points", "db_views", "queries", "db camera", "query camera"
         );
-        for (n, p, d, q, (w, h)) in scenes {
-            println!("{n:<16} {p:>6} {d:>8} {q:>8} {:>9}", format!("{w}x{h}"));
+        let cam = |k: &Intrinsics| format!("{}x{} f{:.0}", k.width, k.height, k.fx);
+        for (n, p, d, q, kd, kq) in rows {
+            println!(
+                "{n:<16} {p:>6} {d:>8} {q:>8} {:>14} {:>14}",
+                cam(&kd),
+                cam(&kq)
+            );
         }
     }
     Ok(())

@@ -158,6 +158,7 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert!(threshold >= 0.5 && conf >= threshold && conf <= 1.0, "{v}");
     for s in [
         "queue",
+        "resampling",
         "extraction",
         "retrieval",
         "matching",

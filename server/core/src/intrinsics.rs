@@ -250,7 +250,10 @@ mod tests {
         let mut k = Intrinsics::hpointloc();
         k.cx = 900.0;
         let e = k.validate().unwrap_err().0;
-        assert!(e.contains("principal point") && e.contains("256x256"), "{e}");
+        assert!(
+            e.contains("principal point") && e.contains("256x256"),
+            "{e}"
+        );
         let mut k = Intrinsics::hpointloc();
         k.fx = f64::NAN;
         assert!(k.validate().is_err());

@@ -330,7 +330,9 @@ impl PointReader {
             return Err(DatasetError::field(
                 path,
                 &field,
-                format!("shape {shape:?}, expected (4,) [fx, fy, cx, cy] or (9,) with k1 k2 p1 p2 k3"),
+                format!(
+                    "shape {shape:?}, expected (4,) [fx, fy, cx, cy] or (9,) with k1 k2 p1 p2 k3"
+                ),
             ));
         }
         let v = h5(path, &field, || ds.read_raw::<f64>()).map_err(h5err(path, &field))?;

@@ -97,7 +97,11 @@ fn write_file(tmp: &Path, record: &PointRecord, opts: &WriteOptions) -> Result<(
         message: e.to_string(),
     })?;
     // A role without views takes the other role's size (HDF5 needs a shape even for zero frames).
-    let any = record.db.first().or(record.queries.first()).expect("checked");
+    let any = record
+        .db
+        .first()
+        .or(record.queries.first())
+        .expect("checked");
     for (role, views) in [(Role::Database, &record.db), (Role::Query, &record.queries)] {
         let v = views.first().unwrap_or(any);
         let (w, h) = (v.rgb.width as usize, v.rgb.height as usize);

@@ -80,10 +80,7 @@ impl<'a> Resampled<'a> {
         keypoints
             .iter()
             .map(|kp| {
-                let (x, y) = (
-                    (kp[0] as f64 - k.cx) / k.fx,
-                    (kp[1] as f64 - k.cy) / k.fy,
-                );
+                let (x, y) = ((kp[0] as f64 - k.cx) / k.fx, (kp[1] as f64 - k.cy) / k.fy);
                 let (u, v) = src.intrinsics.pixel_of_ray(x, y);
                 match depth_near(&src.depth, u, v) {
                     Some(z) => [(x * z) as f32, (y * z) as f32, z as f32],
@@ -253,22 +250,35 @@ mod tests {
         let r = to_map_scale(&q, 128.0, 100.0);
         assert!(r.changed());
         let n = &r.query.intrinsics;
-        assert!((n.fx - 128.0).abs() < 0.5 && (n.fy - 128.0).abs() < 0.5, "{n:?}");
+        assert!(
+            (n.fx - 128.0).abs() < 0.5 && (n.fy - 128.0).abs() < 0.5,
+            "{n:?}"
+        );
         assert_eq!((n.width, n.height), (r.query.rgb.width, r.query.rgb.height));
         assert!(n.width < 200 && n.height < 160);
         // Against 256x256 map images the narrower view is resampled finer, at most 1.5x.
         let wide = to_map_scale(&q, 128.0, 65536.0);
         let nf = &wide.query.intrinsics;
         assert!(wide.coverage_ratio > 2.0, "{}", wide.coverage_ratio);
-        assert!((nf.fx - 192.0).abs() < 1.0 && (nf.fy - 192.0).abs() < 1.0, "{nf:?}");
+        assert!(
+            (nf.fx - 192.0).abs() < 1.0 && (nf.fy - 192.0).abs() < 1.0,
+            "{nf:?}"
+        );
         // A keypoint at the resampled principal point sees straight ahead, at the plane's depth.
         let p = r.keypoint_points(&[[n.cx as f32, n.cy as f32], [5.0, 7.0]]);
         assert!(p[0][0].abs() < 1e-4 && p[0][1].abs() < 1e-4 && (p[0][2] - 3.0).abs() < 1e-6);
         // Any keypoint's 3D point projects back to where it was found in the resampled image.
         let back = n
-            .project(&nalgebra::Point3::new(p[1][0] as f64, p[1][1] as f64, p[1][2] as f64))
+            .project(&nalgebra::Point3::new(
+                p[1][0] as f64,
+                p[1][1] as f64,
+                p[1][2] as f64,
+            ))
             .unwrap();
-        assert!((back.x - 5.0).abs() < 1e-3 && (back.y - 7.0).abs() < 1e-3, "{back:?}");
+        assert!(
+            (back.x - 5.0).abs() < 1e-3 && (back.y - 7.0).abs() < 1e-3,
+            "{back:?}"
+        );
         assert!(r.query.depth.data.iter().all(|&d| d == 3.0));
     }
 
@@ -293,7 +303,10 @@ mod tests {
         }
         let (err, before) = (err / n as f64, before / n as f64);
         assert!(err < 2.0, "mean error {err} grey levels after undistortion");
-        assert!(before > 5.0 * err, "distortion was visible before: {before}");
+        assert!(
+            before > 5.0 * err,
+            "distortion was visible before: {before}"
+        );
         // Through the resampler, keypoints trace back through the lens to the depth under them.
         let q = plane(&lens, 2.5);
         let r = to_map_scale(&q, 128.0, 1.0);
@@ -301,7 +314,11 @@ mod tests {
         let p = r.keypoint_points(&[[10.0, 12.0]]);
         let n = &r.query.intrinsics;
         let back = n
-            .project(&nalgebra::Point3::new(p[0][0] as f64, p[0][1] as f64, p[0][2] as f64))
+            .project(&nalgebra::Point3::new(
+                p[0][0] as f64,
+                p[0][1] as f64,
+                p[0][2] as f64,
+            ))
             .unwrap();
         assert!((back.x - 10.0).abs() < 1e-3 && (back.y - 12.0).abs() < 1e-3);
     }

@@ -200,6 +200,18 @@ fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsic
         };
         return invalid(format!("intrinsics: {}{hint}", e.0));
     }
+    // A quarter-turned image sent with the camera of the upright one: the principal point sits at
+    // the centre of the image with its axes swapped and far from this one's centre.
+    let (wf, hf) = (w as f64 - 1.0, h as f64 - 1.0);
+    let off = (k.cx - wf / 2.0).abs() + (k.cy - hf / 2.0).abs();
+    let swapped_off = (k.cx - hf / 2.0).abs() + (k.cy - wf / 2.0).abs();
+    let side = w.max(h) as f64;
+    if w != h && swapped_off < 0.02 * side && off > 0.1 * side {
+        return invalid(format!(
+            "intrinsics: principal point ({}, {}) is the centre of a {h}x{w} image but this one is {w}x{h}: was the image rotated without rotating the intrinsics (swap fx with fy and cx with cy)?",
+            k.cx, k.cy
+        ));
+    }
     Ok(out)
 }
 

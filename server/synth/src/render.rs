@@ -369,7 +369,8 @@ impl<'s> Renderer<'s> {
         for row in 0..h {
             for col in 0..w {
                 // The ray the (possibly distorted) lens sends through this pixel.
-                let (x, y) = k.undistort_normalized((col as f64 - k.cx) / k.fx, (row as f64 - k.cy) / k.fy);
+                let (x, y) =
+                    k.undistort_normalized((col as f64 - k.cx) / k.fx, (row as f64 - k.cy) / k.fy);
                 let dc = Vector3::new(x as f32, y as f32, 1.0);
                 // Direction with camera-z component 1: the hit's ray parameter is its planar depth.
                 let d = r * dc;
