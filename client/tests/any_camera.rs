@@ -388,5 +388,44 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
     );
     let out = localize(&rgb, &depth, "466,466,319.5");
     assert!(String::from_utf8_lossy(&out.stderr).contains("4, 8 or 9 numbers"));
+    // A portrait JPEG (EXIF orientation 6) with its upright depth, and the old space-separated form.
+    let v = &vga[0];
+    let jpg = dir.path().join("portrait.jpg");
+    std::fs::write(&jpg, portrait_jpeg(&v.rgb)).unwrap();
+    let k = &v.intrinsics;
+    let out = pntr(&[
+        "localize",
+        "--addr",
+        &addr,
+        "--rgb",
+        jpg.to_str().unwrap(),
+        "--depth",
+        depth.to_str().unwrap(),
+        "--intrinsics",
+        &k.fx.to_string(),
+        &k.fy.to_string(),
+        &k.cx.to_string(),
+        &k.cy.to_string(),
+        "--json",
+    ]);
+    // Accepted (a sideways depth would be INVALID_ARGUMENT, a failed command here).
+    let answer: serde_json::Value = serde_json::from_str(&ok(&out)).unwrap();
+    assert!(answer["status"].is_string(), "{answer}");
+    // Millimetres in a float32 metre file.
+    let f32_file = dir.path().join("mm.f32");
+    let mm: Vec<u8> = v
+        .depth
+        .data
+        .iter()
+        .flat_map(|m| (m * 1000.0).to_le_bytes())
+        .collect();
+    std::fs::write(&f32_file, mm).unwrap();
+    let out = localize(&rgb, &f32_file, &fmt(k));
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("look like millimetres") && !err.contains("panicked"),
+        "{err}"
+    );
     drop(server);
 }

@@ -240,9 +240,11 @@ fn wrong_shape_is_named() {
     let mut f = Fields::good();
     f.gps = Array2::zeros((2, 2));
     refused(d, "gpsshape", f, &["field `gps`", "expected (2, 3)"]);
+    // Queries may have another size than the database views (another camera), but each role's
+    // depth must match its own colour images.
     let mut f = Fields::good();
     f.rgb = Array4::zeros((2, 5, 4, 3));
-    refused(d, "size", f, &["field `rgb`", "differs"]);
+    refused(d, "size", f, &["field `depth`", "to match `rgb`"]);
 }
 
 #[test]

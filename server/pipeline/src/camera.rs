@@ -128,6 +128,13 @@ pub fn to_map_scale(q: &Query, focal_px: f64, map_pixels: f64) -> Resampled<'_> 
         let c = MIN_RESAMPLED_SIDE as f64 / shortest;
         (sx, sy) = (sx * c, sy * c);
     }
+    // The largest side wins over the smallest: a frame thinner than 2048:64 keeps a short side
+    // below 64 rather than growing without bound.
+    let longest = (w * sx).max(h * sy);
+    if longest > MAX_RESAMPLED_SIDE as f64 {
+        let c = MAX_RESAMPLED_SIDE as f64 / longest;
+        (sx, sy) = (sx * c, sy * c);
+    }
     let ow = ((w * sx).round() as u32).max(1);
     let oh = ((h * sy).round() as u32).max(1);
     // Exact scales after rounding the size, so pixel centres line up.
@@ -330,6 +337,15 @@ mod tests {
         let r = to_map_scale(&q, 128.0, 65536.0);
         let n = &r.query.intrinsics;
         assert!(n.width.min(n.height) >= MIN_RESAMPLED_SIDE - 1, "{n:?}");
+        // A hostile strip: 4096x1 may not grow past the largest side.
+        let strip = Intrinsics::from_fov(4096, 1, 60.0);
+        let q = plane(&strip, 2.0);
+        let r = to_map_scale(&q, 128.0, 65536.0);
+        let n = &r.query.intrinsics;
+        assert!(
+            n.width <= MAX_RESAMPLED_SIDE && n.height <= MAX_RESAMPLED_SIDE,
+            "{n:?}"
+        );
         let fish = Intrinsics::from_fov(64, 64, 170.0);
         let q = plane(&fish, 2.0);
         let r = to_map_scale(&q, 128.0, 65536.0);

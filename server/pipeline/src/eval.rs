@@ -617,7 +617,11 @@ pub fn table(report: &EvalReport) -> String {
         "verification",
         "total",
     ] {
-        s += &format!(" {k} {:.1}", report.stage_ms[k]);
+        // Resampling is listed only when queries came from another camera than the map's.
+        let ms = report.stage_ms.get(k).copied().unwrap_or(0.0);
+        if k != "resampling" || ms >= 0.05 {
+            s += &format!(" {k} {ms:.1}");
+        }
     }
     s += &format!("; {:.2} queries/s\n", report.fps);
     s

@@ -304,6 +304,13 @@ pub fn build(
         for j in 0..reader.count(Role::Database) {
             let v = reader.view(Role::Database, j)?;
             let k = v.intrinsics;
+            if k.is_distorted() {
+                return Err(PipelineError::Config(format!(
+                    "{}: the database camera has lens distortion {:?}; maps are built from rectified images (undistort them first)",
+                    entry.db_image_id(j),
+                    k.distortion
+                )));
+            }
             header_camera.get_or_insert(k);
             let f = stage.extractor.extract(&v.rgb)?;
             if let Some(m) = &global_model {

@@ -161,6 +161,12 @@ fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsic
             k.fx, k.fy
         ));
     }
+    if k.fx < 1.0 || k.fy < 1.0 || k.fx > 1e6 || k.fy > 1e6 {
+        return invalid(format!(
+            "intrinsics fx = {} and fy = {}: focal lengths are in pixels, 1 to 1e6 (normalised or metric intrinsics? multiply by the image size)",
+            k.fx, k.fy
+        ));
+    }
     if !(k.cx.is_finite() && k.cy.is_finite()) {
         return invalid(format!(
             "intrinsics cx = {} and cy = {}: the principal point must be finite",
@@ -266,6 +272,7 @@ fn decode_rgb(im: &proto::Image, limits: &Limits) -> Result<Oriented, Status> {
                 let img = img.into_rgb8();
                 orientation = Some((o, (w, h)));
                 let (ow, oh) = img.dimensions();
+                limits.check("rgb (after its EXIF orientation)", ow, oh)?;
                 return RgbImage::new(ow, oh, img.into_raw())
                     .map(|r| (r, orientation))
                     .or_else(|e| invalid(format!("rgb: {e}")));
@@ -577,6 +584,7 @@ mod tests {
             (-1.0, 128.0),
             (128.0, f64::NAN),
             (f64::INFINITY, 1.0),
+            (0.9, 0.9),
         ] {
             let mut r = good.clone();
             r.intrinsics = Some(proto::Intrinsics {
