@@ -259,6 +259,15 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
     };
     if let Some(k) = &args.intrinsics {
         req.intrinsics = Some(parse_intrinsics(k)?);
+    } else if args.rgb.is_some() {
+        let size = (req.depth.as_ref().map(|d| (d.width, d.height))).unwrap_or_default();
+        if size != (256, 256) {
+            bail!(
+                "the frame is {}x{}: give its camera with --intrinsics fx,fy,cx,cy (the HPointLoc camera is the default only for 256x256 frames)",
+                size.0,
+                size.1
+            );
+        }
     }
     let mut remote = Remote::connect(&args.connect)?;
     let r = remote

@@ -53,10 +53,10 @@ pub struct SynthArgs {
     /// Horizontal field of view in degrees of the cameras named by `--camera` and `--query-camera`
     /// (default 90, HPointLoc's). With only `--query-camera` it sets the queries' field of view and
     /// the database keeps HPointLoc's camera.
-    #[arg(long, value_name = "DEG")]
+    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
     pub hfov: Option<f64>,
     /// Horizontal field of view of the query camera in degrees, when it differs from `--hfov`.
-    #[arg(long, value_name = "DEG")]
+    #[arg(long, value_name = "DEG", allow_negative_numbers = true)]
     pub query_hfov: Option<f64>,
     /// Lens distortion of the query camera, `k1,k2,p1,p2,k3` (OpenCV / ROS plumb_bob).
     #[arg(long, value_name = "K1,K2,P1,P2,K3", allow_hyphen_values = true)]
@@ -262,7 +262,11 @@ pub fn info(dataset: &Path, as_json: bool) -> Result<()> {
             "{:<16} {:>6} {:>8} {:>8} {:>14} {:>14}",
             "scene", "points", "db_views", "queries", "db camera", "query camera"
         );
-        let cam = |k: &Intrinsics| format!("{}x{} f{:.0}", k.width, k.height, k.fx);
+        // Size, focal length in pixels, and "+lens" when the camera has distortion.
+        let cam = |k: &Intrinsics| {
+            let lens = if k.is_distorted() { "+lens" } else { "" };
+            format!("{}x{} f={:.0}{lens}", k.width, k.height, k.fx)
+        };
         for (n, p, d, q, kd, kq) in rows {
             println!(
                 "{n:<16} {p:>6} {d:>8} {q:>8} {:>14} {:>14}",
