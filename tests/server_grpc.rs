@@ -520,8 +520,13 @@ fn localizes_reports_and_refuses_bad_input() {
         let r = c.localize(request(v, "all")).await.unwrap().into_inner();
         assert!(translation_error(&r, v).is_some_and(|e| e < 0.25), "{r:?}");
 
-        // Reflection lists the service.
+        // Reflection lists the service, in both protocol versions (older grpcurl, Python's
+        // grpcio-reflection and GUI clients speak only v1alpha).
         let services = reflection_services(addr).await;
+        let alpha = reflection_services_v1alpha(addr).await;
+        for s in ["pntr.v1.Localizer", "grpc.health.v1.Health"] {
+            assert!(alpha.iter().any(|x| x == s), "v1alpha lacks {s}: {alpha:?}");
+        }
         assert!(
             services.iter().any(|s| s == "pntr.v1.Localizer"),
             "{services:?}"
@@ -559,28 +564,35 @@ fn tokio_stream(
     pntr_service::tokio_stream::iter(frames)
 }
 
-async fn reflection_services(addr: SocketAddr) -> Vec<String> {
-    use pntr_service::tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
-    use pntr_service::tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
-    use pntr_service::tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
-    use pntr_service::tonic_reflection::pb::v1::ServerReflectionRequest;
-    let req = ServerReflectionRequest {
-        host: String::new(),
-        message_request: Some(MessageRequest::ListServices(String::new())),
-    };
-    let mut out = ServerReflectionClient::new(channel(addr).await)
-        .server_reflection_info(tokio_stream_one(req))
-        .await
-        .unwrap()
-        .into_inner();
-    let r = out.message().await.unwrap().unwrap();
-    match r.message_response {
-        Some(MessageResponse::ListServicesResponse(l)) => {
-            l.service.into_iter().map(|s| s.name).collect()
+/// The services a reflection client of one protocol version lists.
+macro_rules! reflection_services {
+    ($name:ident, $version:ident) => {
+        async fn $name(addr: SocketAddr) -> Vec<String> {
+            use pntr_service::tonic_reflection::pb::$version::server_reflection_client::ServerReflectionClient;
+            use pntr_service::tonic_reflection::pb::$version::server_reflection_request::MessageRequest;
+            use pntr_service::tonic_reflection::pb::$version::server_reflection_response::MessageResponse;
+            use pntr_service::tonic_reflection::pb::$version::ServerReflectionRequest;
+            let req = ServerReflectionRequest {
+                host: String::new(),
+                message_request: Some(MessageRequest::ListServices(String::new())),
+            };
+            let mut out = ServerReflectionClient::new(channel(addr).await)
+                .server_reflection_info(tokio_stream_one(req))
+                .await
+                .unwrap()
+                .into_inner();
+            let r = out.message().await.unwrap().unwrap();
+            match r.message_response {
+                Some(MessageResponse::ListServicesResponse(l)) => {
+                    l.service.into_iter().map(|s| s.name).collect()
+                }
+                other => panic!("unexpected reflection answer {other:?}"),
+            }
         }
-        other => panic!("unexpected reflection answer {other:?}"),
-    }
+    };
 }
+reflection_services!(reflection_services, v1);
+reflection_services!(reflection_services_v1alpha, v1alpha);
 
 fn tokio_stream_one<T: Send + 'static>(x: T) -> impl pntr_service::tokio_stream::Stream<Item = T> {
     pntr_service::tokio_stream::iter([x])

@@ -195,9 +195,14 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
+    let matched = if r.matched_image_id.is_empty() {
+        String::new()
+    } else {
+        format!(", matched {}", r.matched_image_id)
+    };
     println!(
-        "status {status} (map {}), confidence {:.3} (threshold {:.2}), {} inliers, matched {}",
-        r.map_id, r.confidence, r.min_confidence, r.inliers, r.matched_image_id
+        "status {status} (map {}), confidence {:.3} (threshold {:.2}), {} inliers{matched}",
+        r.map_id, r.confidence, r.min_confidence, r.inliers
     );
     if !r.reason.is_empty() {
         println!("reason: {}", r.reason);
@@ -248,7 +253,12 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
                 left -= n;
             }
             let Some((id, v)) = found else {
-                bail!("scene {} has fewer than {} queries", scene.name, k + 1);
+                let total = k - left;
+                bail!(
+                    "--query {k} is out of range: scene {} has {total} queries (0..{})",
+                    scene.name,
+                    total.saturating_sub(1)
+                );
             };
             (
                 wire::raw_request(&v.rgb, &v.depth, Some(&v.intrinsics)),

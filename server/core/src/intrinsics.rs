@@ -158,6 +158,29 @@ impl Intrinsics {
         (x, y)
     }
 
+    /// The largest normalised radius sqrt((x/z)^2 + (y/z)^2) of a ray this lens images one to one:
+    /// where the radial model `r * (1 + k1 r^2 + k2 r^4 + k3 r^6)` stops growing, the lens folds
+    /// over and rays beyond land on the mirrored side. Infinite without such a fold (up to r = 10,
+    /// 84 degrees off axis). Tangential terms are small and ignored here.
+    pub fn lens_radius_limit(&self) -> f64 {
+        let [k1, k2, _, _, k3] = self.distortion;
+        if k1 == 0.0 && k2 == 0.0 && k3 == 0.0 {
+            return f64::INFINITY;
+        }
+        let growth = |r: f64| {
+            let r2 = r * r;
+            1.0 + r2 * (3.0 * k1 + r2 * (5.0 * k2 + r2 * 7.0 * k3))
+        };
+        let mut r = 0.0;
+        while r < 10.0 {
+            r += 0.001;
+            if growth(r) <= 0.0 {
+                return r - 0.001;
+            }
+        }
+        f64::INFINITY
+    }
+
     /// The pixel (u, v) of this (possibly distorted) camera that sees the ray through normalised
     /// coordinates (x/z, y/z).
     pub fn pixel_of_ray(&self, x: f64, y: f64) -> (f64, f64) {
@@ -241,6 +264,12 @@ mod tests {
         }
         assert!(k.is_distorted() && !Intrinsics::hpointloc().is_distorted());
         k.validate().unwrap();
+        // A barrel lens folds where d/dr of r * (1 + k1 r^2) is zero: r = sqrt(-1 / (3 k1)).
+        let mut folded = k;
+        folded.distortion = [-0.5, 0.0, 0.0, 0.0, 0.0];
+        let r = folded.lens_radius_limit();
+        assert!((r - (1.0f64 / 1.5).sqrt()).abs() < 2e-3, "{r}");
+        assert!(Intrinsics::hpointloc().lens_radius_limit().is_infinite());
         k.distortion[0] = 50.0;
         assert!(k.validate().is_err());
     }

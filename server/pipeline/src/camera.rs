@@ -77,10 +77,14 @@ impl<'a> Resampled<'a> {
             .0;
         };
         let k = &self.query.intrinsics;
+        let limit = src.intrinsics.lens_radius_limit();
         keypoints
             .iter()
             .map(|kp| {
                 let (x, y) = ((kp[0] as f64 - k.cx) / k.fx, (kp[1] as f64 - k.cy) / k.fy);
+                if x * x + y * y > limit * limit {
+                    return [f32::NAN; 3];
+                }
                 let (u, v) = src.intrinsics.pixel_of_ray(x, y);
                 match depth_near(&src.depth, u, v) {
                     Some(z) => [(x * z) as f32, (y * z) as f32, z as f32],
@@ -93,7 +97,8 @@ impl<'a> Resampled<'a> {
 
 fn depth_near(depth: &DepthMap, u: f64, v: f64) -> Option<f64> {
     let (c, r) = ((u + 0.5).floor(), (v + 0.5).floor());
-    if c < 0.0 || r < 0.0 || c >= depth.width as f64 || r >= depth.height as f64 {
+    let inside = (0.0..depth.width as f64).contains(&c) && (0.0..depth.height as f64).contains(&r);
+    if !inside {
         return None;
     }
     depth.get(c as u32, r as u32).map(f64::from)
@@ -166,10 +171,14 @@ pub fn to_map_scale(q: &Query, focal_px: f64, map_pixels: f64) -> Resampled<'_> 
         distortion: [0.0; 5],
     };
     let mut depth = vec![0f32; (ow * oh) as usize];
+    let limit = k.lens_radius_limit();
     for r in 0..oh {
         for c in 0..ow {
             let x = (c as f64 - intrinsics.cx) / intrinsics.fx;
             let y = (r as f64 - intrinsics.cy) / intrinsics.fy;
+            if x * x + y * y > limit * limit {
+                continue;
+            }
             let (u, v) = k.pixel_of_ray(x, y);
             if let Some(z) = depth_near(&q.depth, u, v) {
                 depth[(r * ow + c) as usize] = z as f32;
@@ -190,15 +199,21 @@ pub fn to_map_scale(q: &Query, focal_px: f64, map_pixels: f64) -> Resampled<'_> 
 
 /// The image an ideal pinhole camera with `k`'s focal lengths and principal point would take, from
 /// `rgb` taken through `k`'s distorted lens: bilinear samples at the distorted position of every
-/// pixel's ray (black where that falls outside the frame), same size.
+/// pixel's ray (black where that falls outside the frame or beyond the lens's fold,
+/// [`Intrinsics::lens_radius_limit`]), same size.
 pub fn undistort_rgb(rgb: &RgbImage, k: &Intrinsics) -> RgbImage {
     let (w, h) = (rgb.width as usize, rgb.height as usize);
     let mut out = vec![0u8; w * h * 3];
+    let limit = k.lens_radius_limit();
     for r in 0..h {
         for c in 0..w {
             let (x, y) = ((c as f64 - k.cx) / k.fx, (r as f64 - k.cy) / k.fy);
+            if x * x + y * y > limit * limit {
+                continue;
+            }
             let (u, v) = k.pixel_of_ray(x, y);
-            if u < 0.0 || v < 0.0 || u > (w - 1) as f64 || v > (h - 1) as f64 {
+            let inside = (0.0..=(w - 1) as f64).contains(&u) && (0.0..=(h - 1) as f64).contains(&v);
+            if !inside {
                 continue;
             }
             let (u0, v0) = (u.floor() as usize, v.floor() as usize);
@@ -328,6 +343,24 @@ mod tests {
             ))
             .unwrap();
         assert!((back.x - 10.0).abs() < 1e-3 && (back.y - 12.0).abs() < 1e-3);
+    }
+
+    #[test]
+    fn rays_beyond_a_folding_lens_are_left_out() {
+        // k1 = -0.5 folds at r = 0.816; a 120-degree view reaches r = 1.73 at its sides.
+        let mut k = Intrinsics::from_fov(120, 120, 120.0);
+        k.distortion = [-0.5, 0.0, 0.0, 0.0, 0.0];
+        let q = plane(&k, 2.0);
+        let out = undistort_rgb(&q.rgb, &k);
+        assert_eq!(
+            out.pixel(0, 0),
+            [0, 0, 0],
+            "a corner ray beyond the fold is black"
+        );
+        assert_ne!(out.pixel(60, 60), [0, 0, 0]);
+        let r = to_map_scale(&q, 40.0, 1.0);
+        let p = r.keypoint_points(&[[0.0, 0.0]]);
+        assert!(p[0][0].is_nan(), "no depth for a ray beyond the fold");
     }
 
     #[test]

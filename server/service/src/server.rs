@@ -172,11 +172,19 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
         proto::localizer_server::LocalizerServer::new(LocalizerService::new(state.clone()))
             .max_decoding_message_size(settings.max_message_bytes)
             .max_encoding_message_size(settings.max_message_bytes);
-    let reflection = tonic_reflection::server::Builder::configure()
-        .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
-        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    // Both reflection versions: `v1` for current tools, `v1alpha` for older grpcurl, Python's
+    // grpcio-reflection and several GUI clients, which speak only that one.
+    let reflection_builder = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let reflection = reflection_builder()
         .build_v1()
-        .map_err(|e| ServerError::Serve(format!("reflection: {e}")))?;
+        .map_err(|e| ServerError::Serve(format!("reflection v1: {e}")))?;
+    let reflection_v1alpha = reflection_builder()
+        .build_v1alpha()
+        .map_err(|e| ServerError::Serve(format!("reflection v1alpha: {e}")))?;
 
     let mut builder = Server::builder()
         .max_concurrent_streams(Some(settings.max_streams_per_connection))
@@ -190,7 +198,8 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
     let router = builder
         .add_service(health_service)
         .add_service(InterceptedService::new(localizer, gate.clone()))
-        .add_service(InterceptedService::new(reflection, gate));
+        .add_service(InterceptedService::new(reflection, gate.clone()))
+        .add_service(InterceptedService::new(reflection_v1alpha, gate));
 
     let (shutdown, shutdown_rx) = watch::channel(false);
     let (load_tx, load_rx) = watch::channel(LoadState::Loading);
