@@ -30,6 +30,11 @@ pub struct CalibrateArgs {
     /// Only this scene of --dataset.
     #[arg(long)]
     pub scene: Option<String>,
+    /// More in-map datasets of the same places seen through other cameras (`pntr synth` with the same
+    /// seed and `--query-camera`): their queries join the fit, so confidence is calibrated for the
+    /// cameras robots bring, not only the map's. Repeatable.
+    #[arg(long)]
+    pub camera_dataset: Vec<PathBuf>,
     /// Dataset of places the map does not cover (out-of-map queries).
     #[arg(long)]
     pub negatives: PathBuf,
@@ -242,6 +247,27 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             &mut notes,
         )?;
     }
+    let mut other_cameras = Vec::new();
+    for dir in &args.camera_dataset {
+        let idx = DatasetIndex::open(dir)
+            .with_context(|| format!("--camera-dataset {}", dir.display()))?;
+        let (_, sc) = map_cmd::select_scenes(&idx, args.scene.as_deref())?;
+        let list = query_list(sc.iter().copied(), args.queries)?;
+        collect(
+            &pipeline,
+            &list,
+            None,
+            false,
+            &format!("in-map queries, {}", dir.display()),
+            &mut samples,
+            &mut notes,
+        )?;
+        other_cameras.push(format!(
+            "in-map, other camera {} ({} queries)",
+            dir.display(),
+            list.len()
+        ));
+    }
     let n_inmap = samples.len();
     let neg = query_list(neg_scenes.iter().copied(), args.negative_queries)?;
     collect(
@@ -281,6 +307,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             neg.len()
         ),
     ];
+    c.fitted_on.datasets.extend(other_cameras);
     c.fitted_on.date = today();
     c.save(&args.out)?;
     // Read it back: what was written is what the server will load.

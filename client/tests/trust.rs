@@ -122,6 +122,23 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
 
     // Refit on this data (other apartments as negatives), then evaluate with the new file.
     let cal = dir.path().join("cal.json");
+    // The same places through a narrower robot camera, for `--camera-dataset`.
+    let narrow = dir.path().join("narrow");
+    ok(&pntr(&[
+        "synth",
+        "--out",
+        narrow.to_str().unwrap(),
+        "--points-per-scene",
+        "6",
+        "--queries-per-point",
+        "2",
+        "--seed",
+        "7",
+        "--query-camera",
+        "320x240",
+        "--hfov",
+        "69",
+    ]));
     let out = ok(&pntr(&[
         "calibrate",
         "--dataset",
@@ -134,12 +151,17 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
         cal.to_str().unwrap(),
         "--models",
         models,
+        "--camera-dataset",
+        narrow.to_str().unwrap(),
     ]));
     let s: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert!(s["samples"].as_u64().unwrap() > s["positives"].as_u64().unwrap());
     assert!(s["threshold"].as_f64().unwrap() >= 0.5, "{s}");
     let c = json(&cal);
     assert_eq!(c["format"], "pntr-calibration");
+    // The other camera's queries joined the fit.
+    let fitted = c["fitted_on"]["datasets"].to_string();
+    assert!(fitted.contains("other camera"), "{fitted}");
     assert_eq!(c["checksum"].as_str().unwrap().len(), 16);
     let again = dir.path().join("again.json");
     ok(&eval(
