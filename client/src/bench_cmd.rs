@@ -59,8 +59,9 @@ pub struct BenchArgs {
     #[arg(long)]
     pub compare_in_process: Option<PathBuf>,
     /// Folder of the ONNX models (for --compare-in-process).
-    #[arg(long, default_value = "models")]
-    pub models: PathBuf,
+    /// (default: `PNTR_MODELS`, `./models`, next to the executable, `../share/pntr/models`).
+    #[arg(long)]
+    pub models: Option<PathBuf>,
     /// ONNX Runtime threads of the in-process pipeline (match the server's --ort-threads).
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
@@ -446,6 +447,7 @@ fn compare(
     c: &LocalizerClient<Channel>,
 ) -> Result<Overhead> {
     use anyhow::Context;
+    let models = crate::map_cmd::models_dir(args.models.as_deref())?;
     let m = crate::map_cmd::load_map(map, args.threads)?;
     let preset = m.header.preset.clone();
     let stage = pntr_features::config::FeatureConfig {
@@ -453,10 +455,10 @@ fn compare(
             threads: args.threads,
             ..Default::default()
         },
-        ..preset.feature_config(args.models.clone())
+        ..preset.feature_config(models.clone())
     }
     .build()
-    .with_context(|| format!("loading the models from {}", args.models.display()))?;
+    .with_context(|| format!("loading the models from {}", models.display()))?;
     let pipeline = pntr_pipeline::pipeline::Pipeline::new(Arc::new(m), stage, preset)?;
     // One untimed pass of each warms both paths.
     let (req0, q0) = &frames[0];

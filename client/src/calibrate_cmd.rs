@@ -73,8 +73,9 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub calibration: Option<PathBuf>,
     /// Folder of the ONNX models.
-    #[arg(long, default_value = "models")]
-    pub models: PathBuf,
+    /// (default: `PNTR_MODELS`, `./models`, next to the executable, `../share/pntr/models`).
+    #[arg(long)]
+    pub models: Option<PathBuf>,
     /// Threads for ONNX Runtime.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
@@ -209,19 +210,20 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             args.negatives.display()
         );
     }
+    let models = map_cmd::models_dir(args.models.as_deref())?;
     let map = match &args.db {
         Some(p) => map_cmd::load_map(p, args.threads)
             .with_context(|| format!("loading {}", p.display()))?,
         None => {
             let preset = Preset::named(args.preset.as_deref().unwrap_or(DEFAULT_PRESET))?;
-            map_cmd::build_map(&map_id, &scenes, &preset, &args.models, args.threads)?
+            map_cmd::build_map(&map_id, &scenes, &preset, &models, args.threads)?
         }
     };
     let preset = match &args.preset {
         Some(name) => Preset::named(name)?,
         None => map.header.preset.clone(),
     };
-    let stage = map_cmd::feature_stage(&preset, &args.models, args.threads)?;
+    let stage = map_cmd::feature_stage(&preset, &models, args.threads)?;
     let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?
         .with_calibration(map_cmd::calibration(args.calibration.as_deref())?, None);
     let (mut samples, mut notes) = (Vec::new(), Vec::new());

@@ -59,8 +59,9 @@ enum Command {
         #[arg(long, default_value = "out/demo")]
         out: PathBuf,
         /// Folder of the ONNX models.
-        #[arg(long, default_value = "models")]
-        models: PathBuf,
+        /// (default: `PNTR_MODELS`, `./models`, next to the executable, `../share/pntr/models`).
+        #[arg(long)]
+        models: Option<PathBuf>,
         /// How many queries (evenly spaced) to localise.
         #[arg(long, default_value_t = 200)]
         queries: usize,
@@ -89,7 +90,9 @@ fn main() {
             out,
             models,
             queries,
-        } => synth_cmd::demo(&out, &models, queries),
+        } => {
+            map_cmd::models_dir(models.as_deref()).and_then(|m| synth_cmd::demo(&out, &m, queries))
+        }
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -31,8 +31,9 @@ pub struct BuildArgs {
     #[arg(long, default_value = DEFAULT_PRESET)]
     pub preset: String,
     /// Folder of the ONNX models.
-    #[arg(long, default_value = "models")]
-    pub models: PathBuf,
+    /// (default: `PNTR_MODELS`, `./models`, next to the executable, `../share/pntr/models`).
+    #[arg(long)]
+    pub models: Option<PathBuf>,
     /// ONNX global-descriptor model (switches retrieval to `onnx`).
     #[arg(long)]
     pub global_model: Option<PathBuf>,
@@ -79,8 +80,9 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0)]
     pub queries: usize,
     /// Folder of the ONNX models.
-    #[arg(long, default_value = "models")]
-    pub models: PathBuf,
+    /// (default: `PNTR_MODELS`, `./models`, next to the executable, `../share/pntr/models`).
+    #[arg(long)]
+    pub models: Option<PathBuf>,
     /// Threads for ONNX Runtime.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
@@ -162,6 +164,11 @@ fn runtime(threads: usize) -> RuntimeOptions {
     }
 }
 
+/// The models folder: `--models`, else found as [`pntr_features::models_dir::locate`] says.
+pub fn models_dir(arg: Option<&Path>) -> Result<PathBuf> {
+    pntr_features::models_dir::locate(arg).map_err(|e| anyhow::anyhow!(e))
+}
+
 /// Build a map of `scenes` in memory.
 pub fn build_map(
     map_id: &str,
@@ -229,7 +236,8 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
         preset.global = "onnx".into();
         preset.global_model = Some(m.clone());
     }
-    let map = build_map(&map_id, &scenes, &preset, &args.models, args.threads)?;
+    let models = models_dir(args.models.as_deref())?;
+    let map = build_map(&map_id, &scenes, &preset, &models, args.threads)?;
     let t = std::time::Instant::now();
     mapfile::save(&map, &args.out).with_context(|| format!("writing {}", args.out.display()))?;
     let write_s = t.elapsed().as_secs_f64();
@@ -416,6 +424,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         eprintln!("report written to {}", args.json.display());
         return Ok(());
     }
+    let models = models_dir(args.models.as_deref())?;
     let map = match &args.db {
         Some(p) => {
             let t = std::time::Instant::now();
@@ -432,14 +441,14 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         }
         None => {
             let preset = Preset::named(args.preset.as_deref().unwrap_or(DEFAULT_PRESET))?;
-            build_map(&map_id, &scenes, &preset, &args.models, args.threads)?
+            build_map(&map_id, &scenes, &preset, &models, args.threads)?
         }
     };
     let preset = match &args.preset {
         Some(name) => Preset::named(name)?,
         None => map.header.preset.clone(),
     };
-    let stage = feature_stage(&preset, &args.models, args.threads)?;
+    let stage = feature_stage(&preset, &models, args.threads)?;
     let fx = effects(&args.effects)?;
     if let Some(c) = args.min_confidence {
         if !(0.0..=1.0).contains(&c) {

@@ -385,3 +385,56 @@ fn build_db_killed_while_replacing_a_map_leaves_the_old_map_loadable() {
         }
     }
 }
+
+#[test]
+fn models_are_found_from_any_directory() {
+    // Run from a folder that is not the repository: the models are found from the executable
+    // (a cargo build's target/<profile>/ sits below the source tree's models/).
+    let dir = tempfile::tempdir().unwrap();
+    let run = |args: &[&str], env: Option<&str>| {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_pntr"));
+        c.args(args)
+            .current_dir(dir.path())
+            .env_remove("PNTR_MODELS");
+        if let Some(v) = env {
+            c.env("PNTR_MODELS", v);
+        }
+        c.output().expect("pntr runs")
+    };
+    let out = run(
+        &[
+            "synth",
+            "--out",
+            "data",
+            "--points-per-scene",
+            "2",
+            "--queries-per-point",
+            "1",
+        ],
+        None,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let build = ["build-db", "--dataset", "data", "--out", "m.pntrmap"];
+    let out = run(&build, None);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(dir.path().join("m.pntrmap").is_file());
+    // A wrong PNTR_MODELS is named, not silently replaced by another folder.
+    let err = fails_cleanly(&run(&build, Some("/nonexistent/models")));
+    assert!(err.contains("PNTR_MODELS /nonexistent/models"), "{err}");
+    let err = fails_cleanly(&run(
+        &[&build[..], &["--models", "elsewhere"]].concat(),
+        None,
+    ));
+    assert!(
+        err.contains("--models elsewhere") && err.contains("xfeat_backbone.onnx"),
+        "{err}"
+    );
+}

@@ -12,6 +12,7 @@
 pub mod config;
 pub mod lighterglue;
 pub mod mnn;
+pub mod models_dir;
 pub mod onnx_extractor;
 pub mod orb;
 pub mod runtime;

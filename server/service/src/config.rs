@@ -377,9 +377,12 @@ impl Settings {
             db,
             addr: parse_addr("addr", &addr)?,
             metrics_addr: parse_addr("metrics-addr", &metrics_addr)?,
+            // Not given: found from the working folder, the executable or the install prefix
+            // (`validate` lists where it looked when that fails).
             models: args
                 .models
                 .or(file.models)
+                .or_else(|| pntr_features::models_dir::locate(None).ok())
                 .unwrap_or_else(|| PathBuf::from("models")),
             workers,
             queue: args.queue.or(file.queue).unwrap_or(4 * workers),
@@ -446,9 +449,15 @@ impl Settings {
             }
         }
         if !self.models.is_dir() {
+            let looked: Vec<String> = pntr_features::models_dir::candidates()
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect();
             return bad(format!(
-                "--models {}: no such folder (the ONNX models; see models/README.md)",
-                self.models.display()
+                "--models {}: no such folder (the ONNX models; see models/README.md); without --models, {} and the folders {} are looked at",
+                self.models.display(),
+                pntr_features::models_dir::ENV,
+                looked.join(", ")
             ));
         }
         if !(1..=256).contains(&self.workers) {

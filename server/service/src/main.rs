@@ -36,7 +36,13 @@ fn main() -> ExitCode {
     pntr_service::telemetry::init_tracing();
     // The embedded default: no map named anywhere -> the demo scene's map, generated and cached.
     if args.db.is_empty() && args.config.is_none() {
-        let models = args.models.clone().unwrap_or_else(|| "models".into());
+        let models = match pntr_features::models_dir::locate(args.models.as_deref()) {
+            Ok(m) => m,
+            Err(e) => {
+                eprintln!("pntr-server: the demo map could not be made: {e}");
+                return ExitCode::FAILURE;
+            }
+        };
         let cache = std::path::PathBuf::from(
             std::env::var_os("PNTR_DEMO_DIR").unwrap_or_else(|| "out/demo".into()),
         );
