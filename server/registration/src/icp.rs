@@ -54,8 +54,10 @@ pub struct IcpResult {
     pub valid: bool,
 }
 
-fn step_size(a: &Rigid, b: &Rigid) -> f64 {
-    (a.translation - b.translation).norm() + a.rotation.angle_to(&b.rotation)
+/// How far two estimates are apart at `at` (the source's centroid: far from the origin the
+/// translation vectors differ by the rotation change times the distance, which says nothing).
+fn step_size(a: &Rigid, b: &Rigid, at: &Vector3<f64>) -> f64 {
+    (a.apply(at) - b.apply(at)).norm() + a.rotation.angle_to(&b.rotation)
 }
 
 /// Shared loop: `pair` gives, for the current estimate, the (src index, dst point) pairs within `d`.
@@ -63,6 +65,15 @@ fn run<F>(src: &[Vector3<f64>], prior: Rigid, p: &IcpParams, mut pair: F) -> Icp
 where
     F: FnMut(&Rigid, f64) -> Vec<(usize, Vector3<f64>)>,
 {
+    let finite: Vec<&Vector3<f64>> = src
+        .iter()
+        .filter(|v| v.iter().all(|x| x.is_finite()))
+        .collect();
+    let centroid = if finite.is_empty() {
+        Vector3::zeros()
+    } else {
+        finite.iter().copied().sum::<Vector3<f64>>() / finite.len() as f64
+    };
     let mut est = prior;
     let mut radius = p.max_correspondence_m;
     let mut last: Vec<(usize, Vector3<f64>)> = Vec::new();
@@ -79,7 +90,7 @@ where
         let Some(next) = kabsch(&s, &d) else {
             break;
         };
-        let step = step_size(&next, &est);
+        let step = step_size(&next, &est, &centroid);
         est = next;
         // Shrink the capture radius to three times the current residual spread, not below the floor.
         let rmse = (pairs

@@ -71,9 +71,14 @@ pub fn generate(seed: u64, n: usize, outlier_ratio: f64, sigma_m: f64) -> Proble
 }
 
 /// Rotation error (degrees, geodesic) and translation error (metres) of `est` against `truth`.
+///
+/// The angle comes from the chordal distance, `|R1 - R2|_F = 2 sqrt(2) sin(theta / 2)`, which stays
+/// finite and accurate for tiny angles where `acos` of the trace rounds past 1 and gives NaN.
 pub fn errors(est: &Rigid, truth: &Rigid) -> (f64, f64) {
+    let chord = (est.rotation.matrix() - truth.rotation.matrix()).norm();
+    let angle = 2.0 * (chord / (2.0 * 2f64.sqrt())).clamp(0.0, 1.0).asin();
     (
-        est.rotation.angle_to(&truth.rotation).to_degrees(),
+        angle.to_degrees(),
         (est.translation - truth.translation).norm(),
     )
 }

@@ -227,7 +227,33 @@ pub fn consistency_graph(
 }
 
 /// Register `src` to `dst` (paired by index) robustly.
+///
+/// Both sets are first moved to their centroids (of the finite points), so coordinates far from the
+/// origin (UTM-sized, 1e6 m) lose nothing in the single-precision consistency graph; the answer is
+/// moved back: `dst = R (src - c_s) + t_c + c_d`.
 pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> TeaserResult {
+    let centroid = |pts: &[Vector3<f64>]| {
+        let finite: Vec<&Vector3<f64>> = pts
+            .iter()
+            .filter(|v| v.iter().all(|x| x.is_finite()))
+            .collect();
+        if finite.is_empty() {
+            return Vector3::zeros();
+        }
+        finite.iter().copied().sum::<Vector3<f64>>() / finite.len() as f64
+    };
+    let (cs, cd) = (centroid(src), centroid(dst));
+    let s: Vec<Vector3<f64>> = src.iter().map(|v| v - cs).collect();
+    let d: Vec<Vector3<f64>> = dst.iter().map(|v| v - cd).collect();
+    let mut r = solve_centred(&s, &d, p);
+    if r.valid {
+        r.transform.translation += cd - r.transform.rotation * cs;
+    }
+    r
+}
+
+/// [`solve`] on sets already near the origin.
+fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> TeaserResult {
     if src.len() != dst.len() {
         return TeaserResult::invalid(
             format!(

@@ -243,3 +243,116 @@ fn pnp_recovers_a_known_pose_with_outliers() {
     let planar: Vec<_> = pts.iter().map(|p| Vector3::new(p.x, p.y, 3.0)).collect();
     assert!(!pnp_ransac(&k, &planar, &px, &PnpParams::default()).valid);
 }
+
+/// `p` with the source moved by `os` and the destination by `od`, and the transform that now holds.
+fn offset(
+    p: &Problem,
+    os: Vector3<f64>,
+    od: Vector3<f64>,
+) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>, Rigid) {
+    let src = p.src.iter().map(|v| v + os).collect();
+    let dst = p.dst.iter().map(|v| v + od).collect();
+    let truth = Rigid {
+        rotation: p.truth.rotation,
+        translation: p.truth.translation + od - p.truth.rotation * os,
+    };
+    (src, dst, truth)
+}
+
+#[test]
+fn every_solver_works_far_from_the_origin() {
+    // UTM-sized coordinates (the case of geographic maps): 500 pairs around (500000, 5500000, 100)
+    // with 60% outliers and 1 cm noise, and offsets of 1e6 m on every axis.
+    let p = TeaserParams::default();
+    for (k, (os, od)) in [
+        (
+            Vector3::new(5e5, 5.5e6, 100.0),
+            Vector3::new(5e5, 5.5e6, 100.0),
+        ),
+        (Vector3::new(1e6, 1e6, 1e6), Vector3::new(-1e6, 1e6, -1e6)),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let problem = generate(40 + k as u64, 500, 0.6, NOISE_SIGMA_M);
+        let near = solve(&problem.src, &problem.dst, &p);
+        let (src, dst, truth) = offset(&problem, os, od);
+        let r = solve(&src, &dst, &p);
+        assert!(r.valid, "{:?}", r.reason);
+        let true_inliers = problem.is_inlier.iter().filter(|&&b| b).count();
+        assert!(
+            r.clique_size as f64 >= 0.9 * true_inliers as f64
+                && r.clique_size >= near.clique_size - 5,
+            "clique {} of {true_inliers} true inliers (near the origin {})",
+            r.clique_size,
+            near.clique_size
+        );
+        // Far from the origin the translation vector mostly says where the origin went; what the
+        // user relies on is where the points go.
+        let at_points = |t: &Rigid| t.apply(&(os + Vector3::new(0.0, 0.0, 4.0)));
+        let (rot, _) = errors(&r.transform, &truth);
+        let trans = (at_points(&r.transform) - at_points(&truth)).norm();
+        assert!(
+            rot < 1.0 && trans < 3.0 * NOISE_SIGMA_M,
+            "{rot} deg, {trans} m at the points"
+        );
+
+        // ICP on the inliers from a prior 0.1 rad and 10 cm off.
+        let inl: Vec<usize> = (0..500).filter(|&i| problem.is_inlier[i]).collect();
+        let (s, d): (Vec<_>, Vec<_>) = inl.iter().map(|&i| (src[i], dst[i])).unzip();
+        // The prior is turned 0.1 rad about the points (not about the far origin) and moved 17 cm.
+        let c = s.iter().sum::<Vector3<f64>>() / s.len() as f64;
+        let turn = Rotation3::from_axis_angle(&Vector3::x_axis(), 0.1);
+        let prior = Rigid {
+            rotation: truth.rotation * turn,
+            translation: truth.rotation * (c - turn * c)
+                + truth.translation
+                + Vector3::new(0.1, -0.1, 0.1),
+        };
+        let r = icp_matched(
+            &s,
+            &d,
+            prior,
+            &IcpParams {
+                max_correspondence_m: 1.5,
+                ..Default::default()
+            },
+        );
+        assert!(r.valid);
+        let (rot, _) = errors(&r.transform, &truth);
+        let trans = (at_points(&r.transform) - at_points(&truth)).norm();
+        assert!(rot < 0.3 && trans < 0.02, "ICP: {rot} deg, {trans} m");
+    }
+
+    // PnP with map points 1e6 m from the origin.
+    use nalgebra::Point2;
+    use pntr_registration::pnp::{pnp_ransac, PnpParams};
+    let k = pntr_core::Intrinsics::hpointloc();
+    let mut rng = ChaCha8Rng::seed_from_u64(77);
+    let truth = Rigid {
+        rotation: Rotation3::from_euler_angles(0.05, 0.7, -0.02),
+        translation: Vector3::new(4e5, -1e6, 2.5e6),
+    };
+    let inv = truth.to_isometry().inverse();
+    let (mut pts, mut px) = (Vec::new(), Vec::new());
+    while pts.len() < 200 {
+        let c = Vector3::new(
+            rng.gen_range(-3.0..3.0),
+            rng.gen_range(-2.0..2.0),
+            rng.gen_range(1.0..8.0),
+        );
+        let uv = k.project(&c.into()).unwrap();
+        if uv.x < 0.0 || uv.y < 0.0 || uv.x > 255.0 || uv.y > 255.0 {
+            continue;
+        }
+        pts.push(inv.transform_vector(&c) + inv.translation.vector);
+        px.push(Point2::new(uv.x, uv.y));
+    }
+    let r = pnp_ransac(&k, &pts, &px, &PnpParams::default());
+    assert!(r.valid, "{:?}", r.reason);
+    let (rot, _) = errors(&r.camera_from_points, &truth);
+    // The camera's position in the map (what a robot uses), not the translation vector.
+    let centre = |t: &Rigid| t.to_isometry().inverse().translation.vector;
+    let trans = (centre(&r.camera_from_points) - centre(&truth)).norm();
+    assert!(rot < 0.5 && trans < 0.05, "PnP: {rot} deg, {trans} m");
+}
