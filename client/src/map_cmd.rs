@@ -164,9 +164,19 @@ fn runtime(threads: usize) -> RuntimeOptions {
     }
 }
 
-/// The models folder: `--models`, else found as [`pntr_features::models_dir::locate`] says.
+/// The models folder: `--models`, else found as [`pntr_features::models_dir::locate`] says. A wrong
+/// `--models` or `PNTR_MODELS` is an error; when nothing is found anywhere the places looked at are
+/// printed as a warning and `models` is used (presets without ONNX models, `classical`, need none;
+/// the others then fail naming the file).
 pub fn models_dir(arg: Option<&Path>) -> Result<PathBuf> {
-    pntr_features::models_dir::locate(arg).map_err(|e| anyhow::anyhow!(e))
+    match pntr_features::models_dir::locate(arg) {
+        Ok(dir) => Ok(dir),
+        Err(e) if arg.is_none() && std::env::var_os(pntr_features::models_dir::ENV).is_none() => {
+            tracing::warn!("{e}");
+            Ok(PathBuf::from("models"))
+        }
+        Err(e) => Err(anyhow::anyhow!(e)),
+    }
 }
 
 /// Build a map of `scenes` in memory.

@@ -454,7 +454,7 @@ impl Settings {
                 .map(|p| p.display().to_string())
                 .collect();
             return bad(format!(
-                "--models {}: no such folder (the ONNX models; see models/README.md); without --models, {} and the folders {} are looked at",
+                "models folder {}: no such folder (the ONNX models; see models/README.md); without --models or `models` in the config file, {} and the folders {} are looked at",
                 self.models.display(),
                 pntr_features::models_dir::ENV,
                 looked.join(", ")
