@@ -254,6 +254,19 @@ mod tests {
         }
     }
 
+    /// Where the 3D point of keypoint `kp` projects in the resampled image.
+    fn reprojected(r: &Resampled, kp: [f32; 2]) -> nalgebra::Point2<f64> {
+        let p = r.keypoint_points(&[kp])[0];
+        r.query
+            .intrinsics
+            .project(&nalgebra::Point3::new(
+                p[0] as f64,
+                p[1] as f64,
+                p[2] as f64,
+            ))
+            .unwrap()
+    }
+
     #[test]
     fn same_scale_is_left_alone() {
         let q = plane(&Intrinsics::hpointloc(), 2.0);
@@ -287,16 +300,10 @@ mod tests {
             "{nf:?}"
         );
         // A keypoint at the resampled principal point sees straight ahead, at the plane's depth.
-        let p = r.keypoint_points(&[[n.cx as f32, n.cy as f32], [5.0, 7.0]]);
+        let p = r.keypoint_points(&[[n.cx as f32, n.cy as f32]]);
         assert!(p[0][0].abs() < 1e-4 && p[0][1].abs() < 1e-4 && (p[0][2] - 3.0).abs() < 1e-6);
         // Any keypoint's 3D point projects back to where it was found in the resampled image.
-        let back = n
-            .project(&nalgebra::Point3::new(
-                p[1][0] as f64,
-                p[1][1] as f64,
-                p[1][2] as f64,
-            ))
-            .unwrap();
+        let back = reprojected(&r, [5.0, 7.0]);
         assert!(
             (back.x - 5.0).abs() < 1e-3 && (back.y - 7.0).abs() < 1e-3,
             "{back:?}"
@@ -333,15 +340,7 @@ mod tests {
         let q = plane(&lens, 2.5);
         let r = to_map_scale(&q, 128.0, 1.0);
         assert!(r.changed());
-        let p = r.keypoint_points(&[[10.0, 12.0]]);
-        let n = &r.query.intrinsics;
-        let back = n
-            .project(&nalgebra::Point3::new(
-                p[0][0] as f64,
-                p[0][1] as f64,
-                p[0][2] as f64,
-            ))
-            .unwrap();
+        let back = reprojected(&r, [10.0, 12.0]);
         assert!((back.x - 10.0).abs() < 1e-3 && (back.y - 12.0).abs() < 1e-3);
     }
 

@@ -160,6 +160,18 @@ impl Map {
         f[f.len() / 2]
     }
 
+    /// Pixels of a map image (the median over the images' cameras; HPointLoc's 256x256 for an empty
+    /// map): what a query's coverage is compared with.
+    pub fn image_pixels(&self) -> f64 {
+        let mut px: Vec<f64> = self
+            .images
+            .iter()
+            .map(|im| im.camera.width as f64 * im.camera.height as f64)
+            .collect();
+        px.sort_by(f64::total_cmp);
+        px.get(px.len() / 2).copied().unwrap_or(65536.0)
+    }
+
     /// Name of the scene of image `i`.
     pub fn scene_of(&self, i: usize) -> &str {
         self.header

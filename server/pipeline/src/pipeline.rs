@@ -210,13 +210,7 @@ impl Pipeline {
             point_views.entry((im.scene, im.point)).or_default().push(i);
         }
         let map_focal_px = map.focal_px();
-        let mut pixels: Vec<f64> = map
-            .images
-            .iter()
-            .map(|im| im.camera.width as f64 * im.camera.height as f64)
-            .collect();
-        pixels.sort_by(f64::total_cmp);
-        let map_pixels = pixels.get(pixels.len() / 2).copied().unwrap_or(65536.0);
+        let map_pixels = map.image_pixels();
         Ok(Self {
             map,
             stage,

@@ -194,21 +194,19 @@ fn icp_converges_from_ten_degrees_and_thirty_centimetres() {
     assert!(r.inliers.iter().all(|&i| i >= 60), "outliers kept");
 }
 
-#[test]
-fn pnp_recovers_a_known_pose_with_outliers() {
-    use nalgebra::Point2;
-    use pntr_registration::pnp::{pnp_ransac, PnpParams};
-    let k = pntr_core::Intrinsics::hpointloc();
-    let mut rng = ChaCha8Rng::seed_from_u64(21);
-    let truth = Rigid {
-        rotation: Rotation3::from_euler_angles(0.05, 0.7, -0.02),
-        translation: Vector3::new(0.4, -0.1, 1.5),
-    };
-    let inv = truth.to_isometry().inverse();
-    let noise = Normal::new(0.0, 0.5).unwrap();
+/// `n` points in front of a camera `camera_from_points`, in the points' frame, and their pixels in the
+/// 256x256 image with Gaussian noise of `sigma_px`.
+fn pnp_scene(
+    rng: &mut ChaCha8Rng,
+    k: &pntr_core::Intrinsics,
+    camera_from_points: &Rigid,
+    n: usize,
+    sigma_px: f64,
+) -> (Vec<Vector3<f64>>, Vec<nalgebra::Point2<f64>>) {
+    let inv = camera_from_points.to_isometry().inverse();
+    let noise = Normal::new(0.0, sigma_px).unwrap();
     let (mut pts, mut px) = (Vec::new(), Vec::new());
-    while pts.len() < 300 {
-        // A point in front of the camera, expressed in the world frame.
+    while pts.len() < n {
         let c = Vector3::new(
             rng.gen_range(-3.0..3.0),
             rng.gen_range(-2.0..2.0),
@@ -219,11 +217,25 @@ fn pnp_recovers_a_known_pose_with_outliers() {
             continue;
         }
         pts.push(inv.transform_vector(&c) + inv.translation.vector);
-        px.push(Point2::new(
-            uv.x + noise.sample(&mut rng),
-            uv.y + noise.sample(&mut rng),
+        px.push(nalgebra::Point2::new(
+            uv.x + noise.sample(rng),
+            uv.y + noise.sample(rng),
         ));
     }
+    (pts, px)
+}
+
+#[test]
+fn pnp_recovers_a_known_pose_with_outliers() {
+    use nalgebra::Point2;
+    use pntr_registration::pnp::{pnp_ransac, PnpParams};
+    let k = pntr_core::Intrinsics::hpointloc();
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let truth = Rigid {
+        rotation: Rotation3::from_euler_angles(0.05, 0.7, -0.02),
+        translation: Vector3::new(0.4, -0.1, 1.5),
+    };
+    let (pts, mut px) = pnp_scene(&mut rng, &k, &truth, 300, 0.5);
     for p in px.iter_mut().take(90) {
         *p = Point2::new(rng.gen_range(0.0..256.0), rng.gen_range(0.0..256.0));
     }
@@ -325,7 +337,6 @@ fn every_solver_works_far_from_the_origin() {
     }
 
     // PnP with map points 1e6 m from the origin.
-    use nalgebra::Point2;
     use pntr_registration::pnp::{pnp_ransac, PnpParams};
     let k = pntr_core::Intrinsics::hpointloc();
     let mut rng = ChaCha8Rng::seed_from_u64(77);
@@ -333,21 +344,7 @@ fn every_solver_works_far_from_the_origin() {
         rotation: Rotation3::from_euler_angles(0.05, 0.7, -0.02),
         translation: Vector3::new(4e5, -1e6, 2.5e6),
     };
-    let inv = truth.to_isometry().inverse();
-    let (mut pts, mut px) = (Vec::new(), Vec::new());
-    while pts.len() < 200 {
-        let c = Vector3::new(
-            rng.gen_range(-3.0..3.0),
-            rng.gen_range(-2.0..2.0),
-            rng.gen_range(1.0..8.0),
-        );
-        let uv = k.project(&c.into()).unwrap();
-        if uv.x < 0.0 || uv.y < 0.0 || uv.x > 255.0 || uv.y > 255.0 {
-            continue;
-        }
-        pts.push(inv.transform_vector(&c) + inv.translation.vector);
-        px.push(Point2::new(uv.x, uv.y));
-    }
+    let (pts, px) = pnp_scene(&mut rng, &k, &truth, 200, 0.0);
     let r = pnp_ransac(&k, &pts, &px, &PnpParams::default());
     assert!(r.valid, "{:?}", r.reason);
     let (rot, _) = errors(&r.camera_from_points, &truth);

@@ -116,13 +116,9 @@ fn check_depth_unit(depth: &DepthMap, encoding: i32) -> Result<(), Status> {
     let mid = valid.len() / 2;
     let (_, &mut median, _) = valid.select_nth_unstable_by(mid, f32::total_cmp);
     let meters = encoding == proto::DepthEncoding::Float32Meters as i32;
-    let declared = if meters {
-        "FLOAT32_METERS"
-    } else if encoding == proto::DepthEncoding::Uint16Millimeters as i32 {
-        "UINT16_MILLIMETERS"
-    } else {
-        "PNG16_MILLIMETERS"
-    };
+    let declared = proto::DepthEncoding::try_from(encoding)
+        .map(|e| e.as_str_name())
+        .unwrap_or("the declared encoding");
     if median > MAX_MEDIAN_DEPTH_M {
         let hint = if meters {
             "these look like millimetres: send UINT16_MILLIMETERS, or divide by 1000"
