@@ -7,9 +7,12 @@
 #     the build links HDF5 2.2 statically, compiled from source by hdf5-metno)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
 #   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py,
-#     grpcio + grpcio-tools for the Python client (client/python) and its test, and kubernetes-validate
+#     grpcio + grpcio-tools at the versions the Python client (client/python) builds with (its test
+#     installs that package into a fresh venv of its own), and kubernetes-validate
 #     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs,
 #     and cmake 4.4 from PyPI (the static HDF5 build needs cmake >= 3.26; .cargo/config.toml points at it)
+#   - Prometheus and promtool from Debian's `prometheus` package, unpacked into .deps/prometheus/ (for the
+#     test that evaluates the Grafana dashboard's queries in a real Prometheus)
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -55,6 +58,24 @@ if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, kubernetes_validate, 
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else
   log "python: venv ready"
+fi
+
+# --- Prometheus (Debian's package, unpacked into .deps/prometheus: no service is installed or started) --
+# The deploy test runs the real Prometheus against a live server with deploy/'s configuration.
+PROM_DIR="$DEPS/prometheus"
+if [ ! -x "$PROM_DIR/usr/bin/prometheus" ] || [ ! -x "$PROM_DIR/usr/bin/promtool" ]; then
+  log "prometheus: unpacking Debian's prometheus package into .deps/prometheus"
+  tmp_prom="$(mktemp -d)"
+  if ! (cd "$tmp_prom" && apt-get download prometheus >/dev/null 2>&1); then
+    $SUDO apt-get update -qq
+    (cd "$tmp_prom" && apt-get download prometheus >/dev/null 2>&1)
+  fi
+  rm -rf "$PROM_DIR.partial"
+  dpkg-deb -x "$tmp_prom"/prometheus_*.deb "$PROM_DIR.partial"
+  rm -rf "$PROM_DIR" "$tmp_prom"
+  mv "$PROM_DIR.partial" "$PROM_DIR"
+else
+  log "prometheus: $PROM_DIR/usr/bin/prometheus present"
 fi
 
 # --- ONNX Runtime shared library from the PyPI wheel ---------------------------------------------

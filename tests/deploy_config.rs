@@ -46,17 +46,16 @@ fn metric_names(expr: &str) -> Vec<String> {
     out
 }
 
-#[test]
-fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
-    let dir = tempfile::tempdir().unwrap();
+/// A small synthetic scene in `dir`, its map file and one query view of it.
+fn small_map(dir: &Path) -> (PathBuf, PathBuf, pntr_dataset::View) {
     let cfg = pntr_synth::SynthConfig {
         points_per_scene: 2,
         queries_per_point: 2,
         seed: 9,
         ..Default::default()
     };
-    pntr_synth::synthesize(&cfg, dir.path(), pntr_synth::plan_all(&cfg), &|| {}).unwrap();
-    let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
+    pntr_synth::synthesize(&cfg, dir, pntr_synth::plan_all(&cfg), &|| {}).unwrap();
+    let index = pntr_dataset::DatasetIndex::open(dir).unwrap();
     let models = root().join("models");
     let preset = Preset::named(DEFAULT_PRESET).unwrap();
     let stage = preset.feature_config(models.clone()).build().unwrap();
@@ -70,14 +69,34 @@ fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
         &mut |_, _| {},
     )
     .unwrap();
-    let path = dir.path().join("m.pntrmap");
+    let path = dir.join("m.pntrmap");
     mapfile::save(&m, &path).unwrap();
     let view = index.scenes[0].points[0]
         .open()
         .unwrap()
         .view(pntr_dataset::Role::Query, 0)
         .unwrap();
+    (path, models, view)
+}
 
+/// The PromQL expressions of the Grafana dashboard, panel by panel.
+fn dashboard_expressions() -> Vec<String> {
+    let dash: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(deploy("grafana/dashboards/pntr.json")).unwrap())
+            .unwrap();
+    let mut exprs = Vec::new();
+    for p in dash["panels"].as_array().unwrap() {
+        for t in p["targets"].as_array().unwrap() {
+            exprs.push(t["expr"].as_str().unwrap().to_string());
+        }
+    }
+    exprs
+}
+
+#[test]
+fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, models, view) = small_map(dir.path());
     let rt = tokio::runtime::Runtime::new().unwrap();
     let mut settings = Settings::local(vec![path], models);
     settings.workers = 1;
@@ -99,18 +118,8 @@ fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
         text
     });
 
-    let dash: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(deploy("grafana/dashboards/pntr.json")).unwrap())
-            .unwrap();
-    let mut names = BTreeSet::new();
-    let mut exprs = Vec::new();
-    for p in dash["panels"].as_array().unwrap() {
-        for t in p["targets"].as_array().unwrap() {
-            let e = t["expr"].as_str().unwrap().to_string();
-            names.extend(metric_names(&e));
-            exprs.push(e);
-        }
-    }
+    let exprs = dashboard_expressions();
+    let names: BTreeSet<String> = exprs.iter().flat_map(|e| metric_names(e)).collect();
     assert!(names.len() >= 4, "{names:?}");
     for n in &names {
         assert!(
@@ -355,4 +364,221 @@ fn kubernetes_manifests_pass_the_openapi_schemas_and_a_broken_one_does_not() {
         .replace("clusterIP: None", "clusterIP: None\n  sessionAffinty: None");
     std::fs::write(&bad, text).unwrap();
     assert!(!kubernetes_validate(&[bad]).status.success());
+}
+
+/// A program from .deps/prometheus (where scripts/setup.sh unpacks it), else on PATH, if installed.
+fn program(name: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::iter::once(root().join(".deps/prometheus/usr/bin"))
+        .chain(std::env::split_paths(&path))
+        .map(|d| d.join(name))
+        .find(|p| p.is_file())
+}
+
+/// GET `path_and_query` from an HTTP server on 127.0.0.1:`port`: (status line, body).
+fn http_get(port: u16, path_and_query: &str) -> std::io::Result<(String, String)> {
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
+    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
+    write!(
+        s,
+        "GET {path_and_query} HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n"
+    )?;
+    let mut out = String::new();
+    s.read_to_string(&mut out)?;
+    let status = out.lines().next().unwrap_or_default().to_string();
+    let body = out.split_once("\r\n\r\n").map(|x| x.1).unwrap_or_default();
+    Ok((status, body.to_string()))
+}
+
+/// An instant query through Prometheus's HTTP API: the result's samples as (labels, value).
+fn prom_query(port: u16, expr: &str) -> Vec<(serde_json::Value, f64)> {
+    let q = percent_encoding::utf8_percent_encode(expr, percent_encoding::NON_ALPHANUMERIC);
+    let (status, body) = http_get(port, &format!("/api/v1/query?query={q}")).unwrap();
+    let v: serde_json::Value =
+        serde_json::from_str(&body).unwrap_or_else(|e| panic!("{expr}: {status}: {e}: {body}"));
+    assert_eq!(v["status"], "success", "{expr}: {body}");
+    v["data"]["result"]
+        .as_array()
+        .unwrap_or_else(|| panic!("{expr}: no result array: {body}"))
+        .iter()
+        .map(|r| {
+            let value = r["value"][1].as_str().unwrap().parse::<f64>().unwrap();
+            (r["metric"].clone(), value)
+        })
+        .collect()
+}
+
+/// A free TCP port on 127.0.0.1 (bound and released; Prometheus takes its port as a flag).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Stops the child when dropped, so a failing assertion does not leave Prometheus running.
+struct Child(std::process::Child);
+
+impl Drop for Child {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// deploy/'s Prometheus configuration and the dashboard, run for real: Prometheus (Debian's package,
+/// unpacked by scripts/setup.sh) scrapes a live pntr-server with deploy/prometheus/prometheus.yml
+/// (only the target and the interval changed), frames go through the server, and every expression of
+/// the Grafana dashboard must evaluate to a non-empty, finite result through Prometheus's query API.
+#[test]
+fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
+    let (Some(prometheus), Some(promtool)) = (program("prometheus"), program("promtool")) else {
+        eprintln!(
+            "SKIPPED: the prometheus and promtool programs are not installed (scripts/setup.sh \
+             unpacks Debian's `prometheus` package into .deps/prometheus)"
+        );
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    // The shipped configuration passes promtool as it is.
+    let out = std::process::Command::new(&promtool)
+        .args(["check", "config"])
+        .arg(deploy("prometheus/prometheus.yml"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "promtool check config deploy/prometheus/prometheus.yml:\n{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let (path, models, view) = small_map(dir.path());
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let mut settings = Settings::local(vec![path], models);
+    settings.workers = 1;
+    let mut server = rt.block_on(async {
+        let s = pntr_service::start(settings).await.unwrap();
+        s.ready().await.unwrap();
+        s
+    });
+
+    // The shipped scrape configuration, pointed at this server and scraping every second.
+    let mut cfg = yaml_docs(&deploy("prometheus/prometheus.yml")).remove(0);
+    cfg["global"]["scrape_interval"] = Value::from("1s");
+    cfg["global"]["evaluation_interval"] = Value::from("1s");
+    let jobs = cfg["scrape_configs"].as_sequence_mut().unwrap();
+    assert_eq!(jobs.len(), 1, "one scrape job, pntr");
+    jobs[0]["static_configs"][0]["targets"] =
+        Value::from(vec![Value::from(server.metrics_addr.to_string())]);
+    let cfg_path = dir.path().join("prometheus.yml");
+    std::fs::write(&cfg_path, serde_yaml::to_string(&cfg).unwrap()).unwrap();
+    let out = std::process::Command::new(&promtool)
+        .args(["check", "config"])
+        .arg(&cfg_path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let port = free_port();
+    let log = std::fs::File::create(dir.path().join("prometheus.log")).unwrap();
+    let _prom = Child(
+        std::process::Command::new(&prometheus)
+            .arg(format!("--config.file={}", cfg_path.display()))
+            .arg(format!(
+                "--storage.tsdb.path={}",
+                dir.path().join("tsdb").display()
+            ))
+            .arg(format!("--web.listen-address=127.0.0.1:{port}"))
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .unwrap(),
+    );
+    let log_text =
+        || std::fs::read_to_string(dir.path().join("prometheus.log")).unwrap_or_default();
+    // Wait until Prometheus has scraped the server at least once.
+    let start = std::time::Instant::now();
+    loop {
+        let up = http_get(port, "/api/v1/query?query=up")
+            .ok()
+            .and_then(|(_, b)| serde_json::from_str::<serde_json::Value>(&b).ok())
+            .and_then(|v| {
+                v["data"]["result"][0]["value"][1]
+                    .as_str()
+                    .map(String::from)
+            });
+        if up.as_deref() == Some("1") {
+            break;
+        }
+        assert!(
+            start.elapsed().as_secs() < 60,
+            "Prometheus never scraped the server (up = {up:?}):\n{}",
+            log_text()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(250));
+    }
+
+    // Traffic across several scrapes: LOCALIZED frames, and refused ones for the errors panel.
+    let frame = wire::raw_request(&view.rgb, &view.depth, None);
+    rt.block_on(async {
+        let mut c = pntr_service::proto::localizer_client::LocalizerClient::connect(format!(
+            "http://{}",
+            server.addr
+        ))
+        .await
+        .unwrap();
+        for round in 0..3 {
+            for _ in 0..2 {
+                c.localize(frame.clone()).await.unwrap();
+            }
+            let mut bad = frame.clone();
+            bad.depth = None;
+            let e = c.localize(bad).await.unwrap_err();
+            assert_eq!(e.code(), pntr_service::tonic::Code::InvalidArgument);
+            if round < 2 {
+                tokio::time::sleep(std::time::Duration::from_millis(1500)).await;
+            }
+        }
+    });
+    // Two more scrapes after the last frame.
+    std::thread::sleep(std::time::Duration::from_millis(2500));
+
+    let exprs = dashboard_expressions();
+    assert!(exprs.len() >= 10, "{exprs:?}");
+    for e in &exprs {
+        let samples = prom_query(port, e);
+        assert!(!samples.is_empty(), "`{e}` is empty in Prometheus");
+        for (labels, v) in &samples {
+            assert!(v.is_finite(), "`{e}` gives {v} for {labels}");
+        }
+        // Panels by label show each label value.
+        if e.contains("by (le, stage)") {
+            let stages: BTreeSet<String> = samples
+                .iter()
+                .filter_map(|(l, _)| l["stage"].as_str().map(String::from))
+                .collect();
+            for s in ["total", "extraction", "retrieval", "verification"] {
+                assert!(stages.contains(s), "`{e}`: no stage {s} in {stages:?}");
+            }
+        }
+        if e.contains("by (code)") {
+            assert!(
+                samples
+                    .iter()
+                    .any(|(l, v)| l["code"] == "INVALID_ARGUMENT" && *v > 0.0),
+                "`{e}`: {samples:?}"
+            );
+        }
+    }
+    // The request rate counts what was sent: 6 answered frames within the last minute.
+    let ok = prom_query(port, "sum(increase(pntr_requests_total{code=\"OK\"}[1m]))");
+    assert!(ok[0].1 > 3.0, "{ok:?}");
+    server.shutdown();
+    rt.block_on(server.wait()).unwrap();
 }

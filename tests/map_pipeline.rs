@@ -171,7 +171,7 @@ fn map_round_trip_pipeline_and_refused_files() {
             max_queries: 10,
             ..Default::default()
         },
-        &mut |q| {
+        &mut |q, _| {
             n += 1;
             if n % 2 == 0 {
                 return Err(pntr_pipeline::PipelineError::Query("dropped".into()));
@@ -206,7 +206,7 @@ fn classical_preset_localizes_with_orb_bow_and_pnp() {
     let report = eval::run(
         &scenes,
         &EvalOptions::default(),
-        &mut |q| {
+        &mut |q, _| {
             let l = pipeline.localize(q)?;
             Ok(Answer::of(&l, &map))
         },

@@ -157,6 +157,44 @@ fn vlad_finds_the_right_point_and_faiss_agrees_with_brute_force() {
             assert!((g.score - w.score).abs() < 1e-4);
         }
     }
+    // Among a subset (a prior's region): exactly the brute-force ranking of that subset, for the
+    // flat index; an approximate index still returns every allowed image, and nothing else.
+    let n_db = db.len() / book.vlad_dim();
+    let among: Vec<usize> = (0..n_db).filter(|i| i % 3 != 1).collect();
+    let mut ivf = GlobalIndex::build(
+        &db,
+        book.vlad_dim(),
+        IndexKind::Ivf {
+            nlist: 4,
+            nprobe: 1,
+        },
+    )
+    .unwrap();
+    for q in &queries {
+        let got = index.search_among(q, 5, &among).unwrap();
+        let sub: Vec<f32> = among
+            .iter()
+            .flat_map(|&i| db[i * book.vlad_dim()..(i + 1) * book.vlad_dim()].to_vec())
+            .collect();
+        let want: Vec<usize> = brute_force(&sub, book.vlad_dim(), q, 5)
+            .iter()
+            .map(|h| among[h.id])
+            .collect();
+        assert_eq!(got.iter().map(|h| h.id).collect::<Vec<_>>(), want);
+        let mut all_allowed: Vec<usize> = ivf
+            .search_among(q, among.len(), &among)
+            .unwrap()
+            .iter()
+            .map(|h| h.id)
+            .collect();
+        all_allowed.sort();
+        assert_eq!(
+            all_allowed, among,
+            "an approximate index returns every allowed id"
+        );
+        assert!(index.search_among(q, 5, &[]).unwrap().is_empty());
+        assert!(index.search_among(q, 5, &[n_db + 7]).unwrap().is_empty());
+    }
     let mut hnsw = GlobalIndex::build(&db, book.vlad_dim(), IndexKind::Hnsw { m: 16 }).unwrap();
     let agree = queries
         .iter()

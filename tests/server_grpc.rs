@@ -720,3 +720,179 @@ fn overload_deadlines_auth_and_drain() {
         );
     });
 }
+
+/// A prior of `radius_m` around `center` (map frame, metres).
+fn prior_at(center: nalgebra::Vector3<f64>, radius_m: f64) -> proto::Prior {
+    wire::prior_message(&pntr_pipeline::prior::Region {
+        center_m: center,
+        radius_m,
+    })
+}
+
+fn mode_of(r: &proto::LocalizeResponse) -> proto::Mode {
+    proto::Mode::try_from(r.mode).unwrap()
+}
+
+/// Priors: a right one answers through the prior region, a wrong or empty one falls back to global
+/// retrieval and still localizes, a broken one is refused; LocalizeStream tracks from its last pose and
+/// frees its state when the client goes away.
+#[test]
+fn priors_fall_back_and_streams_track() {
+    let f = fixture();
+    let rt = runtime();
+    rt.block_on(async {
+        let running = pntr_service::start(settings(&[&f.map])).await.unwrap();
+        running.ready().await.unwrap();
+        let mut c = client(running.addr).await;
+        let v = &f.queries[0];
+        let truth = v.world_from_camera.translation.vector;
+        let localize = |prior: Option<proto::Prior>| proto::LocalizeRequest {
+            prior,
+            ..request(v, "")
+        };
+        let check = |r: &proto::LocalizeResponse, mode: proto::Mode, what: &str| {
+            assert_eq!(
+                r.status,
+                proto::Status::Localized as i32,
+                "{what}: {}",
+                r.reason
+            );
+            let e = translation_error(r, v).unwrap();
+            assert!(e < 0.25, "{what}: {e} m off");
+            assert_eq!(mode_of(r), mode, "{what}");
+        };
+
+        // No prior: global retrieval.
+        let r = c.localize(localize(None)).await.unwrap().into_inner();
+        check(&r, proto::Mode::Global, "no prior");
+        // A right prior, by radius and by covariance (3 sigma of 0.3 m).
+        let near = truth + nalgebra::Vector3::new(0.3, 0.0, -0.2);
+        let r = c
+            .localize(localize(Some(prior_at(near, 1.0))))
+            .await
+            .unwrap()
+            .into_inner();
+        check(&r, proto::Mode::Prior, "right prior");
+        let mut by_cov = prior_at(near, 0.0);
+        by_cov.covariance = (0..36)
+            .map(|i| if i % 7 == 0 { 0.09 } else { 0.0 })
+            .collect();
+        let r = c
+            .localize(localize(Some(by_cov)))
+            .await
+            .unwrap()
+            .into_inner();
+        check(&r, proto::Mode::Prior, "covariance prior");
+        // A prior around another Point of the apartment (its images do not verify this frame) and
+        // one where the map has no image at all: both fall back to the whole map.
+        let map = mapfile::load(&f.map, |_| panic!("no onnx model in this map")).unwrap();
+        let other = map
+            .images
+            .iter()
+            .map(|im| im.world_from_camera.translation.vector)
+            .max_by(|a, b| (a - truth).norm().total_cmp(&(b - truth).norm()))
+            .unwrap();
+        assert!(
+            (other - truth).norm() > 1.5,
+            "the fixture's Points are apart"
+        );
+        let r = c
+            .localize(localize(Some(prior_at(other, 0.5))))
+            .await
+            .unwrap()
+            .into_inner();
+        check(&r, proto::Mode::Global, "prior at another Point");
+        let far = truth + nalgebra::Vector3::new(100.0, 0.0, 0.0);
+        let r = c
+            .localize(localize(Some(prior_at(far, 1.0))))
+            .await
+            .unwrap()
+            .into_inner();
+        check(&r, proto::Mode::Global, "prior where the map is empty");
+        // Broken priors are refused with the mistake named.
+        let mut no_region = prior_at(near, 0.0);
+        no_region.covariance.clear();
+        let mut short_cov = prior_at(near, 0.0);
+        short_cov.covariance = vec![0.1; 35];
+        let no_pose = proto::Prior {
+            radius_m: 1.0,
+            ..Default::default()
+        };
+        for (prior, want) in [
+            (prior_at(near, -1.0), "radius"),
+            (no_region, "radius_m > 0 or a 36-value covariance"),
+            (short_cov, "35 values"),
+            (no_pose, "pose.translation"),
+        ] {
+            let (code, msg) = code_of(&mut c, localize(Some(prior))).await;
+            assert_eq!(code, Code::InvalidArgument, "{msg}");
+            assert!(msg.contains("prior") && msg.contains(want), "{msg}");
+        }
+
+        // A stream tracks: after its first fix, frames of the same place answer through tracking,
+        // and a frame's own prior wins over tracking.
+        let gauge = |text: &str| -> f64 {
+            text.lines()
+                .find_map(|l| l.strip_prefix("pntr_streams_active "))
+                .map(|v| v.trim().parse().unwrap())
+                .unwrap_or(f64::NAN)
+        };
+        let same_place: Vec<&View> = f
+            .queries
+            .iter()
+            .filter(|q| (q.world_from_camera.translation.vector - truth).norm() < 0.5)
+            .take(3)
+            .collect();
+        assert!(same_place.len() >= 2);
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        let mut out = c
+            .localize_stream(pntr_service::tokio_stream::wrappers::ReceiverStream::new(
+                rx,
+            ))
+            .await
+            .unwrap()
+            .into_inner();
+        let mut modes = Vec::new();
+        for (i, q) in same_place.iter().enumerate() {
+            tx.send(request(q, "")).await.unwrap();
+            let r = out.message().await.unwrap().unwrap();
+            assert_eq!(
+                r.status,
+                proto::Status::Localized as i32,
+                "frame {i}: {}",
+                r.reason
+            );
+            assert!(translation_error(&r, q).unwrap() < 0.25, "frame {i}");
+            modes.push(mode_of(&r));
+        }
+        assert_eq!(modes[0], proto::Mode::Global, "{modes:?}");
+        assert!(
+            modes[1..].iter().all(|m| *m == proto::Mode::Tracking),
+            "{modes:?}"
+        );
+        tx.send(localize(Some(prior_at(near, 1.0)))).await.unwrap();
+        let r = out.message().await.unwrap().unwrap();
+        assert_eq!(mode_of(&r), proto::Mode::Prior);
+        assert!(gauge(&scrape(running.metrics_addr)) >= 1.0);
+        // The client goes away without closing its stream: the server frees the stream's state.
+        drop(out);
+        drop(tx);
+        drop(c);
+        let t = Instant::now();
+        while gauge(&scrape(running.metrics_addr)) != 0.0 {
+            assert!(
+                t.elapsed() < Duration::from_secs(20),
+                "stream state still held after the client left"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        let text = scrape(running.metrics_addr);
+        for mode in ["GLOBAL", "PRIOR", "TRACKING"] {
+            assert!(
+                text.contains(&format!("pntr_answers_total{{mode=\"{mode}\"}}")),
+                "{text}"
+            );
+        }
+        stop(running).await;
+    });
+}

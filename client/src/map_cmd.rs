@@ -13,6 +13,7 @@ use pntr_pipeline::map::{self, Map};
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
+use pntr_pipeline::prior::{LocalizeOptions, Mode};
 use pntr_retrieval::onnx_global::OnnxGlobal;
 
 /// Arguments of `pntr build-db`.
@@ -106,6 +107,10 @@ pub struct EvalArgs {
     /// LOCALIZED threshold on the calibrated confidence (default: the calibration's own).
     #[arg(long)]
     pub min_confidence: Option<f64>,
+    /// Send each query a prior (a robot's rough position) of this radius, metres, centred half the
+    /// radius away from the true position; retrieval then looks inside it first.
+    #[arg(long, value_name = "METRES")]
+    pub prior_radius: Option<f64>,
 }
 
 /// The query transformation `--effects` names.
@@ -295,14 +300,18 @@ pub fn evaluate_in_process(
     let report = eval::run(
         scenes,
         opts,
-        &mut |q| {
+        &mut |q, prior| {
             seed += 1;
+            let opts = LocalizeOptions {
+                region: prior.copied(),
+                region_mode: Mode::Prior,
+            };
             match &effects {
-                None => Ok(Answer::of(&pipeline.localize(q)?, &map)),
+                None => Ok(Answer::of(&pipeline.localize_with(q, &opts)?, &map)),
                 Some(fx) => {
                     let mut q = q.clone();
                     fx.apply(&mut q.rgb, &mut q.depth, seed);
-                    Ok(Answer::of(&pipeline.localize(&q)?, &map))
+                    Ok(Answer::of(&pipeline.localize_with(&q, &opts)?, &map))
                 }
             }
         },
@@ -338,7 +347,7 @@ pub fn evaluate_remote(
     let report = eval::run(
         scenes,
         opts,
-        &mut |q| remote.answer(q),
+        &mut |q, prior| remote.answer(q, prior),
         &mut |done, total| {
             pb.set_length(total as u64);
             pb.set_position(done as u64);
@@ -407,6 +416,14 @@ pub fn serve_and_evaluate(
 pub fn eval(args: &EvalArgs) -> Result<()> {
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+    if let Some(r) = args.prior_radius {
+        if !(r.is_finite() && r > 0.0 && r <= pntr_pipeline::prior::MAX_RADIUS_M) {
+            anyhow::bail!(
+                "--prior-radius {r}: must be in (0, {}] metres",
+                pntr_pipeline::prior::MAX_RADIUS_M
+            );
+        }
+    }
     if args.remote.is_some()
         && (args.effects != "none" || args.calibration.is_some() || args.min_confidence.is_some())
     {
@@ -427,6 +444,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             negatives: negative_scenes(args.negatives.as_deref())?,
             max_negatives: args.negative_queries,
             min_confidence: None,
+            prior_radius_m: args.prior_radius,
         };
         let report = evaluate_remote(&mut remote, &scenes, &opts)?;
         print!("{}", eval::table(&report));
@@ -476,6 +494,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         negatives: negative_scenes(args.negatives.as_deref())?,
         max_negatives: args.negative_queries,
         min_confidence: Some(pipeline.min_confidence()),
+        prior_radius_m: args.prior_radius,
     };
     let report = evaluate_in_process(&pipeline, &scenes, &opts, fx)?;
     print!("{}", eval::table(&report));

@@ -7,6 +7,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use pntr_pipeline::eval::Answer;
 use pntr_pipeline::pipeline::{Query, StageTimes, Status};
+use pntr_pipeline::prior::{Mode, Region};
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self, LocalizeResponse};
 use pntr_service::tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint};
@@ -133,9 +134,17 @@ impl Remote {
     }
 
     /// [`Remote::send`] of a query as raw RGB8 + float32 depth, as an evaluation answer.
-    pub fn answer(&mut self, q: &Query) -> Result<Answer, pntr_pipeline::PipelineError> {
+    pub fn answer(
+        &mut self,
+        q: &Query,
+        prior: Option<&Region>,
+    ) -> Result<Answer, pntr_pipeline::PipelineError> {
+        let req = proto::LocalizeRequest {
+            prior: prior.map(wire::prior_message),
+            ..wire::raw_request(&q.rgb, &q.depth, Some(&q.intrinsics))
+        };
         let r = self
-            .send(wire::raw_request(&q.rgb, &q.depth, Some(&q.intrinsics)))
+            .send(req)
             .map_err(|s| pntr_pipeline::PipelineError::Query(format!("server: {s}")))?;
         Ok(answer_of(&r))
     }
@@ -182,5 +191,11 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
         confidence: r.confidence,
         estimate: None,
         threshold: Some(r.min_confidence),
+        mode: match proto::Mode::try_from(r.mode) {
+            Ok(proto::Mode::Global) => Some(Mode::Global),
+            Ok(proto::Mode::Prior) => Some(Mode::Prior),
+            Ok(proto::Mode::Tracking) => Some(Mode::Tracking),
+            _ => None,
+        },
     }
 }

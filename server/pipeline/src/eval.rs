@@ -10,12 +10,13 @@
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use nalgebra::{Isometry3, Point3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics};
 use pntr_dataset::{PointEntry, Role, SceneEntry};
 use serde::Serialize;
 
 use crate::pipeline::{Query, StageTimes, Status};
+use crate::prior::{Mode, Region};
 use crate::PipelineError;
 
 /// (metres, degrees) thresholds of the protocol.
@@ -53,6 +54,8 @@ pub struct Answer {
     pub estimate: Option<Isometry3<f64>>,
     /// The LOCALIZED threshold the localiser reported, when it reports one (the server does).
     pub threshold: Option<f64>,
+    /// Which path answered (`None` when unknown: an old server, a failed request).
+    pub mode: Option<Mode>,
 }
 
 impl Answer {
@@ -71,6 +74,7 @@ impl Answer {
             confidence: l.confidence,
             estimate: l.estimate.or(l.pose),
             threshold: None,
+            mode: Some(l.mode),
         }
     }
 }
@@ -159,6 +163,31 @@ pub struct EvalReport {
     pub precision_recall: Vec<CurvePoint>,
     /// The LOCALIZED threshold the localiser used (NaN when unknown, e.g. remote).
     pub min_confidence: f64,
+    /// The radius of the prior sent with each in-map query (`--prior-radius`), when one was.
+    pub prior_radius_m: Option<f64>,
+    /// Answers by the path that produced them (`GLOBAL`, `PRIOR`, `TRACKING`; `UNKNOWN` for failed
+    /// requests and servers that do not say).
+    pub modes: BTreeMap<String, usize>,
+    /// Each in-map query's outcome, in evaluation order (for plots; not in the JSON).
+    #[serde(skip)]
+    pub per_query: Vec<QueryOutcome>,
+}
+
+/// One in-map query's outcome.
+#[derive(Debug, Clone, Serialize)]
+pub struct QueryOutcome {
+    /// Query id (`scene/pointN/qI`).
+    pub id: String,
+    /// Ground-truth camera position, map frame, metres.
+    pub position_m: [f64; 3],
+    /// (metres, degrees) error of the LOCALIZED pose; `None` when not localized.
+    pub error: Option<(f64, f64)>,
+    /// (metres, degrees) error of the best pose found, LOCALIZED or not.
+    pub estimate_error: Option<(f64, f64)>,
+    /// (metres, degrees) error of the top retrieved database pose used as the answer.
+    pub retrieval_error: Option<(f64, f64)>,
+    /// The calibrated confidence.
+    pub confidence: f64,
 }
 
 /// How a localiser answered queries from places the map does not cover.
@@ -250,13 +279,37 @@ pub struct EvalOptions {
     pub max_negatives: usize,
     /// The localiser's LOCALIZED threshold, for the report (else the one answers report, else NaN).
     pub min_confidence: Option<f64>,
+    /// Send each in-map query a prior of this radius, metres, whose centre lies half the radius
+    /// from the true position in a direction that varies from query to query (a robot's odometry is
+    /// off by about that much). Out-of-map queries get none (there is no true position to be near).
+    pub prior_radius_m: Option<f64>,
 }
+
+/// The prior [`run`] sends query number `n` at true position `truth_m`: a region of `radius_m` whose
+/// centre is half the radius away along a direction of the golden-angle spiral (deterministic, evenly
+/// spread over the sphere).
+pub fn prior_around(
+    truth_m: &Vector3<f64>,
+    radius_m: f64,
+    n: usize,
+) -> Result<Region, PipelineError> {
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    let k = (n % 64) as f64;
+    let z = 1.0 - (2.0 * k + 1.0) / 64.0;
+    let r = (1.0 - z * z).sqrt();
+    let dir = Vector3::new(r * (golden * k).cos(), z, r * (golden * k).sin());
+    Region::new(truth_m + dir * (0.5 * radius_m), radius_m)
+}
+
+/// What [`run`] localises with: a query and the prior to send with it (`--prior-radius`), to an
+/// answer.
+pub type Localizer<'a> = dyn FnMut(&Query, Option<&Region>) -> Result<Answer, PipelineError> + 'a;
 
 /// Localise every query of `scenes` with `localize` and score the answers.
 pub fn run(
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
-    localize: &mut dyn FnMut(&Query) -> Result<Answer, PipelineError>,
+    localize: &mut Localizer<'_>,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<EvalReport, PipelineError> {
     // Every database pose by id, for the retrieval-only row.
@@ -284,6 +337,8 @@ pub fn run(
     // (confidence, error of the best estimate, localized) per in-map query.
     let mut scored: Vec<Scored> = Vec::new();
     let mut reported_threshold = None;
+    let mut modes: BTreeMap<String, usize> = BTreeMap::new();
+    let mut per_query: Vec<QueryOutcome> = Vec::new();
     let t0 = Instant::now();
     for (n, &(pi, qi)) in picked.iter().enumerate() {
         let (entry, reader) = &readers[pi];
@@ -319,7 +374,11 @@ pub fn run(
             depth: v.depth,
             intrinsics: v.intrinsics,
         };
-        let a = match localize(&q) {
+        let prior = match opts.prior_radius_m {
+            Some(r) => Some(prior_around(&gt.translation.vector, r, n)?),
+            None => None,
+        };
+        let a = match localize(&q, prior.as_ref()) {
             Ok(a) => a,
             Err(e) => {
                 tracing::warn!("query {}: {e}", entry.query_id(qi));
@@ -330,6 +389,9 @@ pub fn run(
         if a.status == Some(Status::Localized) {
             localized += 1;
         }
+        *modes
+            .entry(a.mode.map_or("UNKNOWN", |m| m.name()).to_string())
+            .or_default() += 1;
         errors.push(a.pose.map(|p| pose_error(&p, &gt, opts.legacy)));
         reported_threshold = a.threshold.or(reported_threshold);
         scored.push((
@@ -337,6 +399,14 @@ pub fn run(
             a.estimate.or(a.pose).map(|p| pose_error(&p, &gt, false)),
             a.status == Some(Status::Localized),
         ));
+        per_query.push(QueryOutcome {
+            id: entry.query_id(qi),
+            position_m: gt.translation.vector.into(),
+            error: *errors.last().expect("pushed above"),
+            estimate_error: scored.last().and_then(|s| s.1),
+            retrieval_error: None,
+            confidence: a.confidence,
+        });
         let same_point = |id: &String| {
             db_pose
                 .get(id)
@@ -348,6 +418,9 @@ pub fn run(
                 .and_then(|id| db_pose.get(id))
                 .map(|(p, _, _)| pose_error(p, &gt, opts.legacy)),
         );
+        if let Some(last) = per_query.last_mut() {
+            last.retrieval_error = *retrieval_errors.last().expect("pushed above");
+        }
         rr.point_at_1 += a.retrieved.first().is_some_and(same_point) as usize as f64;
         let chosen = a.matched.as_ref().or(a.retrieved.first());
         rr.reranked_point_at_1 += chosen.is_some_and(same_point) as usize as f64;
@@ -378,7 +451,7 @@ pub fn run(
                 depth: v.depth,
                 intrinsics: v.intrinsics,
             };
-            match localize(&q) {
+            match localize(&q, None) {
                 Ok(a) => negatives.push((a.confidence, a.status == Some(Status::Localized))),
                 Err(e) => {
                     tracing::warn!("negative query {}: {e}", p.query_id(*qi));
@@ -460,6 +533,9 @@ pub fn run(
             .min_confidence
             .or(reported_threshold)
             .unwrap_or(f64::NAN),
+        prior_radius_m: opts.prior_radius_m,
+        modes,
+        per_query,
     })
 }
 
@@ -601,6 +677,17 @@ pub fn table(report: &EvalReport) -> String {
         s += &format!(
             "out-of-map queries: {} sent, {} LOCALIZED (false-positive rate {:.4})\n",
             n.queries, n.localized, n.false_positive_rate
+        );
+    }
+    if let Some(r) = report.prior_radius_m {
+        let by_mode: Vec<String> = report
+            .modes
+            .iter()
+            .map(|(m, n)| format!("{m} {n}"))
+            .collect();
+        s += &format!(
+            "prior of {r} m radius sent with each query; answered by: {}\n",
+            by_mode.join(", ")
         );
     }
     s += &format!(

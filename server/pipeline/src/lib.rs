@@ -12,6 +12,8 @@
 //! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
 //! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
 //!   [`calibration`]: the fitted model that turns them into the probability of a right pose.
+//! - [`prior`]: a rough pose from the robot (odometry, the last fix) as a search region, and the
+//!   spatial index over the map's camera positions that serves it.
 //! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
 //!   separate, labelled mode).
 
@@ -22,6 +24,7 @@ pub mod map;
 pub mod mapfile;
 pub mod pipeline;
 pub mod preset;
+pub mod prior;
 pub mod verify;
 
 use std::path::PathBuf;

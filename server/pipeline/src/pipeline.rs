@@ -34,6 +34,7 @@ use crate::calibration::{choose, Calibration};
 use crate::camera::to_map_scale;
 use crate::map::Map;
 use crate::preset::{Preset, Solver};
+use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
 use crate::verify::{dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb};
 use crate::PipelineError;
 
@@ -118,6 +119,8 @@ pub struct Localization {
     pub retrieved: Vec<Hit>,
     /// Stage timings.
     pub times: StageTimes,
+    /// Which path answered: global retrieval, or the map images inside a prior or tracking region.
+    pub mode: Mode,
 }
 
 /// A candidate pose that verification scored.
@@ -174,6 +177,8 @@ pub struct Pipeline {
     map_focal_px: f64,
     /// Pixels of a map image (the median), what a query is compared with for coverage.
     map_pixels: f64,
+    /// The map images' camera positions, for prior and tracking regions.
+    pose_index: PoseIndex,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -211,6 +216,12 @@ impl Pipeline {
         }
         let map_focal_px = map.focal_px();
         let map_pixels = map.image_pixels();
+        let pose_index = PoseIndex::new(
+            map.images
+                .iter()
+                .map(|im| im.world_from_camera.translation.vector)
+                .collect(),
+        );
         Ok(Self {
             map,
             stage,
@@ -230,6 +241,7 @@ impl Pipeline {
             point_views,
             map_focal_px,
             map_pixels,
+            pose_index,
         })
     }
 
@@ -264,8 +276,26 @@ impl Pipeline {
         self.min_confidence
     }
 
-    /// Localise one query.
+    /// Localise one query with global retrieval over the whole map.
     pub fn localize(&self, q: &Query) -> Result<Localization, PipelineError> {
+        self.localize_with(q, &LocalizeOptions::default())
+    }
+
+    /// The map images inside `region`, nearest first.
+    pub fn images_within(&self, region: &Region) -> Vec<usize> {
+        self.pose_index.within(region)
+    }
+
+    /// Localise one query, trying the map images inside `opts.region` first (a caller's prior or a
+    /// stream's last pose): retrieval ranks only those images, and the rest of the pipeline is the
+    /// same. When the region holds no map image, or none of its candidates verifies, global retrieval
+    /// over the whole map answers (the features are extracted once; the stage times add up both
+    /// attempts). [`Localization::mode`] says which path produced the answer.
+    pub fn localize_with(
+        &self,
+        q: &Query,
+        opts: &LocalizeOptions,
+    ) -> Result<Localization, PipelineError> {
         let t0 = Instant::now();
         check_query(q)?;
         let mut times = StageTimes::default();
@@ -282,14 +312,42 @@ impl Pipeline {
         // A query that sees less than a map image describes the place less surely: widen the
         // shortlist with its coverage deficit (at most twice the preset's).
         let shortlist = (self.preset.candidates as f64 * resampled.coverage_ratio.min(2.0)).round();
-        let hits = self.map.retriever.search(&desc, shortlist as usize)?;
-        times.retrieval = t1.elapsed().as_secs_f64();
+        let shortlist = shortlist as usize;
         let q_pts: Vec<Option<Vector3<f64>>> = resampled
             .keypoint_points(&fq.keypoints)
             .iter()
             .map(|p| p[0].is_finite().then(|| vec3(*p)))
             .collect();
+        let inside = opts.region.map(|r| self.images_within(&r));
+        if let Some(ids) = inside.filter(|ids| !ids.is_empty()) {
+            let hits = self.map.retriever.search_among(&desc, shortlist, &ids)?;
+            times.retrieval += t1.elapsed().as_secs_f64();
+            let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
+            if loc.status == Status::Localized {
+                return Ok(Localization {
+                    mode: opts.region_mode,
+                    ..loc
+                });
+            }
+            times = loc.times;
+        }
+        let t2 = Instant::now();
+        let hits = self.map.retriever.search(&desc, shortlist)?;
+        times.retrieval += t2.elapsed().as_secs_f64();
+        self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)
+    }
 
+    /// Match, register and verify the retrieval candidates `hits` of the (resampled) query `q` with
+    /// features `fq` and back-projected keypoints `q_pts`; a GLOBAL answer.
+    fn answer_from_candidates(
+        &self,
+        fq: &Features,
+        q_pts: &[Option<Vector3<f64>>],
+        q: &Query,
+        hits: Vec<Hit>,
+        mut times: StageTimes,
+        t0: Instant,
+    ) -> Result<Localization, PipelineError> {
         let matcher_is_cheap = self.preset.matcher == "mnn";
         let mut finalists: Vec<(usize, usize)> =
             hits.iter().enumerate().map(|(r, h)| (h.id, r)).collect();
@@ -299,7 +357,7 @@ impl Pipeline {
         if self.preset.rerank && hits.len() > 1 {
             let mut scored = Vec::with_capacity(hits.len());
             for &(id, rank) in &finalists {
-                let c = self.candidate(&fq, &q_pts, q, id, rank, &self.cheap, &mut times)?;
+                let c = self.candidate(fq, q_pts, q, id, rank, &self.cheap, &mut times)?;
                 scored.push(c);
             }
             scored.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
@@ -318,8 +376,8 @@ impl Pipeline {
         if done.is_empty() {
             for &(id, rank) in &finalists {
                 let c = self.candidate(
-                    &fq,
-                    &q_pts,
+                    fq,
+                    q_pts,
                     q,
                     id,
                     rank,
@@ -428,6 +486,7 @@ impl Pipeline {
                 image: top,
                 retrieved: hits,
                 times,
+                mode: Mode::Global,
             });
         };
         let world_from_query = self
@@ -460,6 +519,7 @@ impl Pipeline {
             image: Some(c.image),
             retrieved: hits,
             times,
+            mode: Mode::Global,
         })
     }
 

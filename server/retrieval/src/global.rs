@@ -226,6 +226,39 @@ impl Retriever {
         }
     }
 
+    /// The `k` most similar among the database images `among` (map order ids, the caller's preferred
+    /// order first), best first; see [`GlobalIndex::search_among`] for approximate indexes.
+    pub fn search_among(
+        &self,
+        query: &Descriptor,
+        k: usize,
+        among: &[usize],
+    ) -> Result<Vec<Hit>, RetrievalError> {
+        match (&self.store, query) {
+            (Store::Dense(index, _), Descriptor::Dense(q)) => index
+                .lock()
+                .map_err(|_| RetrievalError::Faiss("a previous search panicked".into()))?
+                .search_among(q, k, among),
+            (Store::Bow(_, vecs), Descriptor::Bow(q)) => {
+                let mut hits: Vec<Hit> = among
+                    .iter()
+                    .filter_map(|&id| {
+                        vecs.get(id).map(|v| Hit {
+                            id,
+                            score: crate::bow::l1_score(q, v),
+                        })
+                    })
+                    .collect();
+                hits.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.id.cmp(&b.id)));
+                hits.truncate(k);
+                Ok(hits)
+            }
+            _ => Err(RetrievalError::Input(
+                "the query descriptor is not of the map's kind".into(),
+            )),
+        }
+    }
+
     /// Serialise the describer's learned part and the store. An ONNX describer stores nothing of the
     /// model (the map records the model's identity; the model is loaded from its file).
     pub fn to_bytes(&self) -> Result<Vec<u8>, RetrievalError> {

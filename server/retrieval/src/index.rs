@@ -1,6 +1,7 @@
 //! The global-descriptor index: faiss with inner product on L2-normalised vectors.
 
 use faiss::index::IndexImpl;
+use faiss::index::SearchWithParamsMut;
 use faiss::{Index, MetricType};
 
 use crate::RetrievalError;
@@ -64,6 +65,9 @@ impl IndexKind {
         }
     }
 }
+
+/// How deep [`GlobalIndex::search_among`] searches an index that cannot filter by id.
+const SEARCH_AMONG_DEPTH: usize = 1024;
 
 /// A searchable set of global descriptors; ids are insertion order.
 pub struct GlobalIndex {
@@ -200,6 +204,75 @@ impl GlobalIndex {
                 })
             })
             .collect())
+    }
+}
+
+impl GlobalIndex {
+    /// The `k` most similar vectors among the ids `among` (a prior's region), best first.
+    ///
+    /// A flat index searches with faiss's id selector (exact ranking of the subset). Index types that
+    /// refuse a plain selector (IVF, HNSW, PCA) rank what an ordinary search of depth
+    /// max(8k, 1024) finds among the allowed ids. Allowed ids an approximate search misses follow
+    /// the found ones in the order of `among` (the caller's, nearest first) with a score of
+    /// `f32::MIN`, so a small region always yields all of its images. Ids outside the index are
+    /// ignored.
+    pub fn search_among(
+        &mut self,
+        query: &[f32],
+        k: usize,
+        among: &[usize],
+    ) -> Result<Vec<Hit>, RetrievalError> {
+        if query.len() != self.dim {
+            return Err(RetrievalError::Input(format!(
+                "query has {} values, index is {}-d",
+                query.len(),
+                self.dim
+            )));
+        }
+        let allowed: Vec<usize> = among.iter().copied().filter(|&i| i < self.len).collect();
+        let k = k.min(allowed.len());
+        if k == 0 {
+            return Ok(Vec::new());
+        }
+        let ids: Vec<faiss::Idx> = allowed.iter().map(|&i| faiss::Idx::new(i as u64)).collect();
+        let params =
+            faiss::search_params::SearchParameters::new(faiss::selector::IdSelector::batch(&ids)?)?;
+        let mut hits: Vec<Hit> = match self.index.search_with_params(query, k, &params) {
+            Ok(r) => r
+                .labels
+                .iter()
+                .zip(&r.distances)
+                .filter_map(|(l, &score)| {
+                    l.get().map(|id| Hit {
+                        id: id as usize,
+                        score,
+                    })
+                })
+                .collect(),
+            // Index types whose search takes their own parameter type (IVF, HNSW, PCA) refuse a
+            // plain selector: rank what an ordinary, deeper search finds of the allowed ids.
+            Err(_) => {
+                let deep = (k * 8).max(SEARCH_AMONG_DEPTH).min(self.len);
+                let allowed_set: std::collections::HashSet<usize> =
+                    allowed.iter().copied().collect();
+                let mut found = self.search(query, deep)?;
+                found.retain(|h| allowed_set.contains(&h.id));
+                found.truncate(k);
+                found
+            }
+        };
+        for &id in &allowed {
+            if hits.len() >= k {
+                break;
+            }
+            if !hits.iter().any(|h| h.id == id) {
+                hits.push(Hit {
+                    id,
+                    score: f32::MIN,
+                });
+            }
+        }
+        Ok(hits)
     }
 }
 

@@ -18,8 +18,11 @@ use std::io::Cursor;
 
 use image::metadata::Orientation;
 
+use nalgebra::Vector3;
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 use pntr_pipeline::pipeline::Query;
+use pntr_pipeline::prior::Region;
+use pntr_pipeline::PipelineError;
 use tonic::Status;
 
 use crate::proto;
@@ -56,6 +59,43 @@ impl Limits {
             ));
         }
         Ok(())
+    }
+}
+
+/// The search region of a request's prior (`None` without one), or what is wrong with it.
+pub fn prior(req: &proto::LocalizeRequest) -> Result<Option<Region>, Status> {
+    let Some(prior) = &req.prior else {
+        return Ok(None);
+    };
+    let Some(t) = prior.pose.as_ref().and_then(|p| p.translation.as_ref()) else {
+        return invalid("prior: pose.translation is missing (the position, map frame, metres)");
+    };
+    let center = Vector3::new(t.x, t.y, t.z);
+    let region = if prior.radius_m != 0.0 || prior.covariance.is_empty() {
+        if prior.radius_m == 0.0 {
+            return invalid(
+                "prior: give radius_m > 0 or a 36-value covariance (the region to search)",
+            );
+        }
+        Region::new(center, prior.radius_m)
+    } else {
+        Region::from_covariance(center, &prior.covariance)
+    };
+    region.map(Some).map_err(status_of)
+}
+
+/// The gRPC status of a pipeline error: the one mapping, exhaustive so that a new kind of error must
+/// choose its code. A query the pipeline cannot use is the caller's (INVALID_ARGUMENT); everything
+/// else is the server's (INTERNAL, the message logged by the caller).
+pub fn status_of(e: PipelineError) -> Status {
+    match e {
+        PipelineError::Query(m) => Status::invalid_argument(m),
+        e @ (PipelineError::Config(_)
+        | PipelineError::MapFile { .. }
+        | PipelineError::Io { .. }
+        | PipelineError::Dataset(_)
+        | PipelineError::Features(_)
+        | PipelineError::Retrieval(_)) => Status::internal(format!("localization failed: {e}")),
     }
 }
 

@@ -27,6 +27,7 @@ use pntr_features::runtime::RuntimeOptions;
 use pntr_pipeline::map::Map;
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::{Localization, Pipeline, Query};
+use pntr_pipeline::prior::LocalizeOptions;
 use pntr_pipeline::PipelineError;
 use pntr_retrieval::onnx_global::OnnxGlobal;
 use tokio::sync::oneshot;
@@ -52,6 +53,8 @@ pub struct Job {
     pub map: usize,
     /// The decoded frame.
     pub query: Query,
+    /// A prior or tracking region to try first.
+    pub options: LocalizeOptions,
     /// The client's deadline.
     pub deadline: Option<Instant>,
     /// When it was queued.
@@ -356,12 +359,22 @@ fn worker(
         let Job {
             map,
             query,
+            options,
             deadline,
             enqueued,
             span,
             reply,
         } = job;
-        let outcome = span.in_scope(|| run(&pipelines[map], &query, deadline, enqueued, &reply));
+        let outcome = span.in_scope(|| {
+            run(
+                &pipelines[map],
+                &query,
+                &options,
+                deadline,
+                enqueued,
+                &reply,
+            )
+        });
         // Stage times are recorded here, for every frame a worker localized, whether or not its
         // caller is still there to hear the answer: they describe the work done.
         if let Some(Outcome::Done {
@@ -404,6 +417,7 @@ fn record_stages(loc: &Localization, queued: Duration) {
 fn run(
     pipeline: &Pipeline,
     query: &Query,
+    options: &LocalizeOptions,
     deadline: Option<Instant>,
     enqueued: Instant,
     reply: &oneshot::Sender<Outcome>,
@@ -421,7 +435,8 @@ fn run(
         return Some(Outcome::Expired { queued });
     }
     Some(
-        match std::panic::catch_unwind(AssertUnwindSafe(|| pipeline.localize(query))) {
+        match std::panic::catch_unwind(AssertUnwindSafe(|| pipeline.localize_with(query, options)))
+        {
             Ok(result) => Outcome::Done {
                 result: result.map(Box::new),
                 queued,

@@ -8,6 +8,8 @@ use std::pin::Pin;
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
+use nalgebra::Vector3;
+use pntr_pipeline::prior::{tracking_region, LocalizeOptions, Mode, Region};
 use tokio::sync::oneshot;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
@@ -19,7 +21,9 @@ use tracing::Instrument;
 use crate::decode::{self, Limits};
 use crate::engine::{Engine, Job, Outcome, SubmitError};
 use crate::proto;
-use crate::telemetry::{IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION};
+use crate::telemetry::{
+    ANSWERS_BY_MODE, IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION, STREAMS_ACTIVE,
+};
 use crate::wire;
 
 /// Shared state of the service: the engine once loaded, the frame limits, and the permits for
@@ -217,6 +221,52 @@ impl Drop for InFlight {
     }
 }
 
+/// Counts an open `LocalizeStream` for as long as its task lives.
+struct StreamGauge;
+
+impl StreamGauge {
+    fn new() -> Self {
+        metrics::gauge!(STREAMS_ACTIVE).increment(1.0);
+        Self
+    }
+}
+
+impl Drop for StreamGauge {
+    fn drop(&mut self) {
+        metrics::gauge!(STREAMS_ACTIVE).decrement(1.0);
+    }
+}
+
+/// What a stream remembers between frames: where its last LOCALIZED answer put the camera.
+struct Track {
+    map_id: String,
+    position_m: Vector3<f64>,
+    at: Instant,
+}
+
+impl Track {
+    /// The state after a LOCALIZED answer (`None` for any other answer: the last fix stays).
+    fn from_answer(r: &proto::LocalizeResponse) -> Option<Self> {
+        if r.status != proto::Status::Localized as i32 {
+            return None;
+        }
+        let t = r.pose.as_ref()?.translation.as_ref()?;
+        Some(Self {
+            map_id: r.map_id.clone(),
+            position_m: Vector3::new(t.x, t.y, t.z),
+            at: Instant::now(),
+        })
+    }
+
+    /// The tracking region for the next frame of map `map_id` (empty: the server's only map).
+    fn region(&self, map_id: &str) -> Option<Region> {
+        if !map_id.is_empty() && map_id != self.map_id {
+            return None;
+        }
+        tracking_region(self.position_m, self.at.elapsed().as_secs_f64())
+    }
+}
+
 /// The Localizer service.
 #[derive(Debug, Clone)]
 pub struct LocalizerService {
@@ -235,11 +285,12 @@ impl LocalizerService {
         msg: proto::LocalizeRequest,
         request_id: String,
         deadline: Option<Instant>,
+        tracking: Option<Region>,
     ) -> Result<proto::LocalizeResponse, Status> {
         let mut in_flight = InFlight::new();
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
         let result = self
-            .run(msg, deadline, span.clone())
+            .run(msg, deadline, tracking, span.clone())
             .instrument(span.clone())
             .await;
         let _entered = span.enter();
@@ -264,10 +315,23 @@ impl LocalizerService {
         &self,
         msg: proto::LocalizeRequest,
         deadline: Option<Instant>,
+        tracking: Option<Region>,
         span: tracing::Span,
     ) -> Result<proto::LocalizeResponse, Status> {
         let engine = self.state.loaded()?.clone();
         let map = engine.resolve(&msg.map_id)?;
+        // The caller's prior wins over the stream's own tracking region.
+        let options = match (decode::prior(&msg)?, tracking) {
+            (Some(region), _) => LocalizeOptions {
+                region: Some(region),
+                region_mode: Mode::Prior,
+            },
+            (None, Some(region)) => LocalizeOptions {
+                region: Some(region),
+                region_mode: Mode::Tracking,
+            },
+            (None, None) => LocalizeOptions::default(),
+        };
         let map_id = engine.maps[map].id.clone();
         span.record("map_id", map_id.as_str());
         let permit = self
@@ -292,6 +356,7 @@ impl LocalizerService {
         let job = Job {
             map,
             query,
+            options,
             deadline,
             enqueued: Instant::now(),
             span,
@@ -322,13 +387,7 @@ impl LocalizerService {
         };
         let outcome = outcome.map_err(|_| Status::internal("the worker dropped the request"))?;
         let (loc, queued) = match outcome {
-            Outcome::Done { result, queued } => (
-                result.map_err(|e| match e {
-                    pntr_pipeline::PipelineError::Query(m) => Status::invalid_argument(m),
-                    other => Status::internal(format!("localization failed: {other}")),
-                })?,
-                queued,
-            ),
+            Outcome::Done { result, queued } => (result.map_err(decode::status_of)?, queued),
             Outcome::Expired { queued } => {
                 metrics::histogram!(STAGE_DURATION, "stage" => "queue")
                     .record(queued.as_secs_f64());
@@ -342,6 +401,7 @@ impl LocalizerService {
             }
         };
         let t = &loc.times;
+        metrics::counter!(ANSWERS_BY_MODE, "mode" => loc.mode.name()).increment(1);
         let stages = crate::engine::stage_seconds(&loc, queued);
         let m = &engine.maps[map].map;
         let localized = loc.status == pntr_pipeline::pipeline::Status::Localized;
@@ -389,6 +449,7 @@ impl LocalizerService {
                 Vec::new()
             },
             min_confidence: engine.min_confidence,
+            mode: wire::mode_message(loc.mode) as i32,
         })
     }
 }
@@ -418,12 +479,15 @@ impl proto::localizer_server::Localizer for LocalizerService {
                 return Err(e);
             }
         };
-        let mut out = self.one(msg, id.clone(), deadline).await.map_err(|mut e| {
-            if let Ok(v) = MetadataValue::try_from(id.as_str()) {
-                e.metadata_mut().insert("x-request-id", v);
-            }
-            e
-        })?;
+        let mut out = self
+            .one(msg, id.clone(), deadline, None)
+            .await
+            .map_err(|mut e| {
+                if let Ok(v) = MetadataValue::try_from(id.as_str()) {
+                    e.metadata_mut().insert("x-request-id", v);
+                }
+                e
+            })?;
         out.request_id = id.clone();
         Ok(with_request_id(Response::new(out), &id))
     }
@@ -444,7 +508,10 @@ impl proto::localizer_server::Localizer for LocalizerService {
         let this = self.clone();
         tokio::spawn(
             async move {
+                let _open = StreamGauge::new();
                 let mut n = 0u64;
+                // Tracking state, the whole of what a stream keeps: the last verified position.
+                let mut track: Option<Track> = None;
                 loop {
                     let msg = match input.message().await {
                         Ok(Some(m)) => m,
@@ -460,16 +527,25 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     } else {
                         request_id(&msg.request_id, &MetadataMap::new())
                     };
+                    let region = track.as_ref().and_then(|t| t.region(&msg.map_id));
                     let result = match id {
-                        Ok(id) => this.one(msg, id.clone(), deadline).await.map(|mut r| {
-                            r.request_id = id;
-                            r
-                        }),
+                        Ok(id) => this
+                            .one(msg, id.clone(), deadline, region)
+                            .await
+                            .map(|mut r| {
+                                r.request_id = id;
+                                r
+                            }),
                         Err(e) => {
                             count("ERROR", e.code());
                             Err(e)
                         }
                     };
+                    if let Ok(r) = &result {
+                        if let Some(t) = Track::from_answer(r) {
+                            track = Some(t);
+                        }
+                    }
                     let failed = result.is_err();
                     if tx.send(result).await.is_err() || failed {
                         break; // the client went away, or an error ends the stream

@@ -13,6 +13,7 @@ use std::time::Duration;
 use http_body_util::Full;
 use hyper::body::Bytes;
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
+use pntr_pipeline::prior::Mode;
 use tokio::net::TcpListener;
 
 /// Histogram of seconds per stage (`stage` = queue, extraction, retrieval, matching, registration, verification,
@@ -28,6 +29,10 @@ pub const QUEUE_DEPTH: &str = "pntr_queue_depth";
 pub const BUSY_WORKERS: &str = "pntr_busy_workers";
 /// Gauge of database images per loaded map (`map_id`).
 pub const MAP_IMAGES: &str = "pntr_map_images";
+/// Gauge: open `LocalizeStream` calls (each holds its tracking state until it ends).
+pub const STREAMS_ACTIVE: &str = "pntr_streams_active";
+/// Counter: answers by the path that produced them, labelled `mode` (GLOBAL, PRIOR, TRACKING).
+pub const ANSWERS_BY_MODE: &str = "pntr_answers_total";
 
 /// Bucket bounds of the stage histogram, seconds.
 const BUCKETS: [f64; 16] = [
@@ -59,11 +64,25 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
             metrics::describe_gauge!(QUEUE_DEPTH, "Requests waiting for a worker");
             metrics::describe_gauge!(BUSY_WORKERS, "Workers running the pipeline");
             metrics::describe_gauge!(MAP_IMAGES, "Database images of each loaded map");
+            metrics::describe_gauge!(
+                STREAMS_ACTIVE,
+                "Open LocalizeStream calls, each holding its tracking state"
+            );
+            metrics::describe_counter!(
+                ANSWERS_BY_MODE,
+                "Answers (LOCALIZED or NOT_LOCALIZED) by the path that produced them"
+            );
             // Register the series so a scrape shows them before the first request.
             metrics::gauge!(IN_FLIGHT).set(0.0);
             metrics::gauge!(QUEUE_DEPTH).set(0.0);
             metrics::gauge!(BUSY_WORKERS).set(0.0);
-            metrics::counter!(REQUESTS_TOTAL, "status" => "LOCALIZED", "code" => "OK").absolute(0);
+            metrics::gauge!(STREAMS_ACTIVE).set(0.0);
+            for status in ["LOCALIZED", "NOT_LOCALIZED"] {
+                metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => "OK").absolute(0);
+            }
+            for mode in [Mode::Global, Mode::Prior, Mode::Tracking] {
+                metrics::counter!(ANSWERS_BY_MODE, "mode" => mode.name()).absolute(0);
+            }
             Ok(handle)
         })
         .clone()

@@ -5,8 +5,40 @@
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
+use pntr_pipeline::prior::{Mode, Region};
 
 use crate::proto;
+
+/// The wire form of a prior region: its centre as the pose's translation (identity rotation) and its
+/// radius.
+pub fn prior_message(r: &Region) -> proto::Prior {
+    proto::Prior {
+        pose: Some(proto::Pose {
+            translation: Some(proto::Vector3 {
+                x: r.center_m.x,
+                y: r.center_m.y,
+                z: r.center_m.z,
+            }),
+            rotation: Some(proto::Quaternion {
+                w: 1.0,
+                x: 0.0,
+                y: 0.0,
+                z: 0.0,
+            }),
+        }),
+        covariance: Vec::new(),
+        radius_m: r.radius_m,
+    }
+}
+
+/// The wire form of the path that answered.
+pub fn mode_message(m: Mode) -> proto::Mode {
+    match m {
+        Mode::Global => proto::Mode::Global,
+        Mode::Prior => proto::Mode::Prior,
+        Mode::Tracking => proto::Mode::Tracking,
+    }
+}
 
 /// The wire form of a camera (distortion sent only when there is some).
 pub fn intrinsics_message(k: &Intrinsics) -> proto::Intrinsics {
