@@ -12,7 +12,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use pntr_dataset::{DatasetIndex, Role};
 use pntr_service::proto::{self, localizer_client::LocalizerClient};
 use pntr_service::tonic::transport::Channel;
@@ -54,6 +54,10 @@ pub struct BenchArgs {
     /// Write the JSON report here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// With --sweep: also draw frames per second and latency against concurrency into this folder
+    /// (bench_sweep.png and .svg).
+    #[arg(long, value_name = "DIR")]
+    pub plot: Option<PathBuf>,
     /// Also measure the service's overhead: load this map in this process and time every frame
     /// through the server (one at a time) and through the in-process pipeline, alternately.
     #[arg(long)]
@@ -352,6 +356,10 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     if !(args.duration.is_finite() && args.duration > 0.0 && args.warmup >= 0.0) {
         bail!("--duration must be positive and --warmup not negative");
     }
+    if let Some(dir) = &args.plot {
+        // Fail before the measurement, not after it.
+        std::fs::create_dir_all(dir).with_context(|| format!("--plot {}", dir.display()))?;
+    }
     if let Some(r) = args.rate {
         if !(r > 0.0 && r.is_finite()) {
             bail!("--rate must be a positive number of requests per second");
@@ -422,6 +430,25 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             "service overhead over {} frames: through the server {:.1} ms mean ({:.1} p50), in process {:.1} ms mean ({:.1} p50): ratio {:.3}",
             o.pairs, o.remote_ms_mean, o.remote_ms_p50, o.in_process_ms_mean, o.in_process_ms_p50, o.ratio
         );
+    }
+    if let Some(dir) = &args.plot {
+        let points: Vec<crate::plot::SweepPoint> = reports
+            .iter()
+            .map(|r| crate::plot::SweepPoint {
+                concurrency: r.concurrency,
+                fps: r.fps,
+                p50_ms: r.latency_ms.p50,
+                p90_ms: r.latency_ms.p90,
+                p99_ms: r.latency_ms.p99,
+                errors: r.errors,
+            })
+            .collect();
+        let title = format!(
+            "pntr bench against {} ({} frames, {:.0} s per level)",
+            args.connect.addr, args.frames, args.duration
+        );
+        let files = crate::plot::bench_plot(&points, dir, &title)?;
+        eprintln!("{} pictures written to {}", files.len(), dir.display());
     }
     if let Some(path) = &args.json {
         let mut v = if reports.len() == 1 {

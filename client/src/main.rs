@@ -8,6 +8,7 @@ mod bench_cmd;
 mod calibrate_cmd;
 mod localize_cmd;
 mod map_cmd;
+mod plot;
 mod register_cmd;
 mod remote;
 mod synth_cmd;

@@ -111,6 +111,25 @@ pub struct EvalArgs {
     /// radius away from the true position; retrieval then looks inside it first.
     #[arg(long, value_name = "METRES")]
     pub prior_radius: Option<f64>,
+    /// Also draw pictures into this folder, PNG and SVG: error distributions (pipeline and retrieval
+    /// only), precision/recall over the confidence threshold, and a top-down map per scene.
+    #[arg(long, value_name = "DIR")]
+    pub plot: Option<PathBuf>,
+}
+
+/// Draw the `--plot` pictures of `report` and say where they went.
+fn plot_report(args: &EvalArgs, report: &EvalReport, what: &str) -> Result<()> {
+    let Some(dir) = &args.plot else {
+        return Ok(());
+    };
+    let title = format!(
+        "{what}: {} queries of {}",
+        report.queries,
+        args.dataset.display()
+    );
+    let files = crate::plot::eval_plots(report, dir, &title)?;
+    eprintln!("{} pictures written to {}", files.len(), dir.display());
+    Ok(())
 }
 
 /// The query transformation `--effects` names.
@@ -450,7 +469,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         print!("{}", eval::table(&report));
         write_json(&args.json, &report)?;
         eprintln!("report written to {}", args.json.display());
-        return Ok(());
+        return plot_report(args, &report, &format!("pntr-server at {addr}"));
     }
     let models = models_dir(args.models.as_deref())?;
     let map = match &args.db {
@@ -500,5 +519,5 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     print!("{}", eval::table(&report));
     write_json(&args.json, &report)?;
     eprintln!("report written to {}", args.json.display());
-    Ok(())
+    plot_report(args, &report, &format!("preset {}", preset.name))
 }

@@ -2,6 +2,8 @@
 
 use std::process::{Command, Output};
 
+mod support;
+
 fn pntr(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_pntr"))
         .args(args)
@@ -235,6 +237,54 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     assert!(
         r["recall"]["5m"].as_f64().unwrap() >= 0.5,
         "most queries localise: {r}"
+    );
+    // Pictures: error distributions, precision/recall over the threshold, the scene from above.
+    let plots = dir.path().join("plots");
+    let out = pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--db",
+        map_s,
+        "--models",
+        models,
+        "--queries",
+        "6",
+        "--json",
+        report.to_str().unwrap(),
+        "--plot",
+        plots.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    support::assert_picture(
+        &plots,
+        "errors_cdf",
+        (1200, 560),
+        &[
+            "translation error (m)",
+            "rotation error (deg)",
+            "retrieval only (top-1 database pose)",
+            "6 queries",
+        ],
+    );
+    support::assert_picture(
+        &plots,
+        "precision_recall",
+        (1200, 560),
+        &[
+            "threshold on the calibrated confidence",
+            "recall (0.25 m, 2 deg)",
+        ],
+    );
+    support::assert_picture(
+        &plots,
+        "map_synth000",
+        (900, 900),
+        &["synth000: 6 queries", "database cameras", "x (m)", "z (m)"],
     );
     let legacy = dir.path().join("legacy.json");
     let out = pntr(&[

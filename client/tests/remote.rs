@@ -5,6 +5,8 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+mod support;
+
 use pntr_service::config::Settings;
 use pntr_service::tokio;
 
@@ -237,8 +239,21 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         "3",
         "--json",
         report.to_str().unwrap(),
+        "--plot",
+        dir.path().join("plots").to_str().unwrap(),
     ]));
     let sweep = json(&report)["sweep"].as_array().unwrap().clone();
+    support::assert_picture(
+        &dir.path().join("plots"),
+        "bench_sweep",
+        (1200, 560),
+        &[
+            "frames per second",
+            "latency (ms)",
+            "concurrent clients",
+            "p99",
+        ],
+    );
     // The service's overhead, measured against the in-process pipeline on the same frames.
     ok(&pntr(&[
         "bench",

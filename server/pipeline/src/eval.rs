@@ -171,6 +171,10 @@ pub struct EvalReport {
     /// Each in-map query's outcome, in evaluation order (for plots; not in the JSON).
     #[serde(skip)]
     pub per_query: Vec<QueryOutcome>,
+    /// (scene, position in metres) of every database camera of the evaluated scenes (for plots; not
+    /// in the JSON).
+    #[serde(skip)]
+    pub map_positions_m: Vec<(String, [f64; 3])>,
 }
 
 /// One in-map query's outcome.
@@ -536,6 +540,10 @@ pub fn run(
         prior_radius_m: opts.prior_radius_m,
         modes,
         per_query,
+        map_positions_m: db_pose
+            .values()
+            .map(|(p, scene, _)| (scene.clone(), p.translation.vector.into()))
+            .collect(),
     })
 }
 

@@ -1,0 +1,36 @@
+//! Checks shared by the CLI tests.
+
+use std::path::Path;
+
+/// A picture `pntr ... --plot` wrote: `dir/name.png` decodes at `size` with more than a few colours
+/// (lines and text, not a blank canvas), and `dir/name.svg` is an SVG document holding every one of
+/// `texts` (titles, axis names, legend entries).
+pub fn assert_picture(dir: &Path, name: &str, size: (u32, u32), texts: &[&str]) {
+    let png = dir.join(format!("{name}.png"));
+    let img = image::open(&png)
+        .unwrap_or_else(|e| panic!("{}: {e}", png.display()))
+        .to_rgb8();
+    assert_eq!(img.dimensions(), size, "{}", png.display());
+    let colours: std::collections::BTreeSet<[u8; 3]> = img.pixels().map(|p| p.0).collect();
+    assert!(
+        colours.len() > 20,
+        "{}: only {} colours",
+        png.display(),
+        colours.len()
+    );
+    let svg_path = dir.join(format!("{name}.svg"));
+    let svg = std::fs::read_to_string(&svg_path).unwrap();
+    assert!(
+        svg.trim_start().starts_with("<svg") && svg.trim_end().ends_with("</svg>"),
+        "{}",
+        svg_path.display()
+    );
+    for t in texts {
+        assert!(svg.contains(t), "{} lacks \"{t}\"", svg_path.display());
+    }
+    // Nothing half-written is left beside them.
+    for e in std::fs::read_dir(dir).unwrap() {
+        let n = e.unwrap().file_name();
+        assert!(!n.to_string_lossy().contains(".partial"), "{n:?}");
+    }
+}
