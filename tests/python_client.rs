@@ -1,19 +1,37 @@
-//! The Python client (`client/python/pntr_client.py`) against a real server: a synthetic scene and
-//! its map made here, the `pntr-service` library started in-process on 127.0.0.1:0 as the binary
-//! starts it, and the client run as a separate process with the venv's Python (grpcio, grpcio-tools,
-//! h5py), generating its stubs from proto/ into a fresh cache folder.
+//! The Python client package (`client/python`, distribution `pntr-client`, module `pntr_client`)
+//! installed as a user installs it, against a real server: a synthetic scene and its map made here,
+//! the `pntr-service` library started in-process on 127.0.0.1:0 as the binary starts it, and the
+//! client run as separate processes from a fresh virtual environment.
 //!
-//! Covered: the frames the client reads with h5py and sends are byte-identical to the Rust reader's
-//! (RGB, depth decoded to metres, ground-truth poses); most queries are LOCALIZED within 0.25 m and
-//! the reported errors agree with the poses; a token-protected TLS server refuses a missing or wrong
-//! token with a clean UNAUTHENTICATED error and serves the right token over TLS (CA from `--tls-ca`);
-//! a closed port, a missing scene and a missing Point file end with one clear line and no traceback.
+//! Each test process makes its own venv in a temporary folder (`<python> -m venv`, with the
+//! interpreter of `$PNTR_PYTHON` / `.deps/venv`) and runs `pip install "client/python[hpointloc]"`
+//! into it, which needs the Python package index (grpcio-tools to build, grpcio, protobuf, numpy,
+//! h5py to run): without it the tests fail, naming the cause. The install is checked: the gRPC stubs
+//! were generated at build time and shipped inside the package (`pntr_client/_proto/`, with `.pyi`
+//! and `py.typed`), nothing top-level besides `pntr_client` was installed, grpcio-tools (a build
+//! requirement only) was not, and the module imported is the installed one. Every client run gets
+//! an empty `HOME` / `XDG_CACHE_HOME`, which must stay empty: nothing is generated or cached at run
+//! time.
+//!
+//! Covered: the frames the package reads with h5py and sends are byte-identical to the Rust reader's
+//! (RGB, depth decoded to metres, ground-truth poses); the `pntr-client` console script localizes
+//! most queries within 0.25 m and reports errors that agree with the poses; a token-protected TLS
+//! server refuses a missing or wrong token with a clean UNAUTHENTICATED error and serves the right
+//! token over TLS (CA from `--tls-ca`); a closed port, a missing scene and a missing Point file end
+//! with one clear line and no traceback (also through `python -m pntr_client`). The typed API:
+//! `Client.localize` answers a 4x4 `world_from_camera` close to the Rust reader's ground truth with a
+//! 6x6 covariance and per-stage times, `localize_stream` answers in order and reports a malformed
+//! frame by index, malformed inputs raise ValueError naming the mistake, a wrong token raises
+//! `UnauthenticatedError` (a `PntrError` with code UNAUTHENTICATED), an unknown map NOT_FOUND, and a
+//! `Prior` (also from `Answer.as_prior`) is answered through the prior region (mode PRIOR).
 
+use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
+use nalgebra::{Isometry3, Matrix4};
 use pntr_dataset::{Role, View};
 use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
@@ -27,6 +45,8 @@ struct Fixture {
     map: PathBuf,
     /// Query views of Point 0, read by the Rust reader.
     point0: Vec<View>,
+    /// Ground-truth world_from_camera of every query of the scene, by (Point index, query index).
+    truth: BTreeMap<(u32, usize), Isometry3<f64>>,
     /// Query count of the whole scene.
     queries: usize,
 }
@@ -40,25 +60,191 @@ fn fixture() -> &'static Fixture {
         let path = dir.path().join("all.pntrmap");
         mapfile::save(&built, &path).unwrap();
         let scene = index.scene(SCENE).unwrap();
-        let mut queries = 0;
         let mut point0 = Vec::new();
+        let mut truth = BTreeMap::new();
         for p in &scene.points {
             let r = p.open().unwrap();
-            queries += r.count(Role::Query);
-            if p.index == 0 {
-                for i in 0..r.count(Role::Query) {
-                    point0.push(r.view(Role::Query, i).unwrap());
+            for i in 0..r.count(Role::Query) {
+                let v = r.view(Role::Query, i).unwrap();
+                truth.insert((p.index, i), v.world_from_camera);
+                if p.index == 0 {
+                    point0.push(v);
                 }
             }
         }
+        let queries = truth.len();
         assert!(!point0.is_empty() && queries >= 6, "{queries} queries");
         Fixture {
             dir,
             map: path,
             point0,
+            truth,
             queries,
         }
     })
+}
+
+/// A fresh virtual environment with `client/python[hpointloc]` installed from this checkout.
+struct Venv {
+    /// The venv (`venv/`) and the client's empty home (`home/`).
+    dir: tempfile::TempDir,
+}
+
+impl Venv {
+    fn root(&self) -> PathBuf {
+        self.dir.path().join("venv")
+    }
+
+    fn bin(&self, name: &str) -> PathBuf {
+        self.root().join("bin").join(name)
+    }
+
+    /// The folder given to every client run as HOME and XDG_CACHE_HOME; it must stay empty.
+    fn home(&self) -> PathBuf {
+        self.dir.path().join("home")
+    }
+
+    /// `program` (a file in the venv's bin/) with an empty home, no token in the environment, and a
+    /// working directory outside the repository.
+    fn command(&self, program: &str) -> Command {
+        let mut c = Command::new(self.bin(program));
+        c.current_dir(self.dir.path())
+            .env("HOME", self.home())
+            .env("XDG_CACHE_HOME", self.home().join(".cache"))
+            .env("PYTHONNOUSERSITE", "1")
+            .env_remove("PYTHONPATH")
+            .env_remove("PNTR_TOKEN")
+            .env_remove("PNTR_PROTO_DIR")
+            .env_remove("PNTR_CLIENT_CACHE");
+        c
+    }
+
+    /// Nothing wrote into the client's home (no stub cache, no generated code).
+    fn assert_home_untouched(&self) {
+        let left: Vec<_> = std::fs::read_dir(self.home())
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        assert!(left.is_empty(), "the client wrote into its HOME: {left:?}");
+    }
+}
+
+fn venv() -> &'static Venv {
+    static V: OnceLock<Venv> = OnceLock::new();
+    V.get_or_init(|| {
+        let v = Venv {
+            dir: tempfile::tempdir().unwrap(),
+        };
+        std::fs::create_dir(v.home()).unwrap();
+        let base = pntr_tests::python();
+        let out = Command::new(&base)
+            .args(["-m", "venv"])
+            .arg(v.root())
+            .output()
+            .expect("python runs");
+        assert!(
+            out.status.success(),
+            "`{} -m venv` failed (on Debian: apt-get install python3-venv):\n{}",
+            base.display(),
+            text(&out.stderr)
+        );
+        let package = pntr_tests::workspace_root().join("client/python");
+        let t0 = std::time::Instant::now();
+        let out = Command::new(v.bin("python"))
+            .args(["-m", "pip", "install", "--disable-pip-version-check"])
+            .args(["--no-input", "--retries", "2"])
+            .arg(format!("{}[hpointloc]", package.display()))
+            .env_remove("PYTHONPATH")
+            .output()
+            .expect("the venv's python runs");
+        let err = text(&out.stderr);
+        assert!(
+            out.status.success(),
+            "pip could not install {}[hpointloc] into a fresh venv ({}). It needs the Python package \
+             index (grpcio-tools to build; grpcio, protobuf, numpy, h5py to run): check network \
+             access to it. pip said:\n{}\n{}",
+            package.display(),
+            out.status,
+            text(&out.stdout),
+            tail(&err, 6000)
+        );
+        eprintln!(
+            "installed pntr-client into a fresh venv in {:.1} s",
+            t0.elapsed().as_secs_f64()
+        );
+        check_installed(&v);
+        v
+    })
+}
+
+/// What the install put into the venv: the generated stubs inside the package, nothing else.
+fn check_installed(v: &Venv) {
+    let code = r#"
+import importlib.metadata as md, importlib.util, json, pathlib, sysconfig
+import pntr_client
+from pntr_client._proto import localizer_pb2, localizer_pb2_grpc
+dist = md.distribution("pntr-client")
+print(json.dumps({
+    "module": str(pathlib.Path(pntr_client.__file__).resolve().parent),
+    "site": str(pathlib.Path(sysconfig.get_paths()["purelib"]).resolve()),
+    "files": sorted(str(f) for f in dist.files),
+    "top_level": sorted({str(f).split("/")[0] for f in dist.files}),
+    "pntr_importable": importlib.util.find_spec("pntr") is not None,
+    "grpc_tools_installed": importlib.util.find_spec("grpc_tools") is not None,
+    "stubs_have_prior": hasattr(localizer_pb2, "Prior") and hasattr(localizer_pb2, "Mode"),
+    "stub": hasattr(localizer_pb2_grpc, "LocalizerStub"),
+    "version": pntr_client.__version__,
+    "requires": dist.requires,
+}))
+"#;
+    let out = v.command("python").args(["-c", code]).output().unwrap();
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    let m: Value = serde_json::from_slice(&out.stdout).unwrap();
+    eprintln!("installed: {m}");
+    let site = PathBuf::from(m["site"].as_str().unwrap());
+    assert_eq!(
+        PathBuf::from(m["module"].as_str().unwrap()),
+        site.join("pntr_client"),
+        "pntr_client must be imported from the venv, not from a source tree"
+    );
+    let files: Vec<&str> = m["files"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| f.as_str().unwrap())
+        .collect();
+    for want in [
+        "pntr_client/_proto/localizer_pb2.py",
+        "pntr_client/_proto/localizer_pb2.pyi",
+        "pntr_client/_proto/localizer_pb2_grpc.py",
+        "pntr_client/py.typed",
+        "pntr_client/cli.py",
+    ] {
+        assert!(files.contains(&want), "{want} not installed: {files:?}");
+    }
+    assert!(
+        files.iter().any(|f| f.ends_with("bin/pntr-client")),
+        "no pntr-client console script: {files:?}"
+    );
+    // Only the package (plus the script and the metadata) lands in site-packages.
+    for top in m["top_level"].as_array().unwrap() {
+        let top = top.as_str().unwrap();
+        assert!(
+            top == "pntr_client" || top == ".." || top.ends_with(".dist-info"),
+            "unexpected top-level entry {top:?}"
+        );
+    }
+    assert_eq!(
+        m["pntr_importable"], false,
+        "a top-level `pntr` was installed"
+    );
+    assert_eq!(
+        m["grpc_tools_installed"], false,
+        "grpcio-tools is a build requirement only"
+    );
+    assert_eq!(m["stubs_have_prior"], true, "stubs not built from proto/");
+    assert_eq!(m["stub"], true);
+    v.assert_home_untouched();
 }
 
 fn runtime() -> tokio::runtime::Runtime {
@@ -85,24 +271,26 @@ fn stop(rt: &tokio::runtime::Runtime, mut running: Running) {
     })
 }
 
-fn script() -> PathBuf {
-    pntr_tests::workspace_root().join("client/python/pntr_client.py")
-}
-
-/// Run the client with `args`, a stub cache under the fixture's folder and no token in the env.
+/// Run the `pntr-client` console script with `args`.
 fn client(args: &[&str]) -> Output {
-    let f = fixture();
-    Command::new(pntr_tests::python())
-        .arg(script())
+    venv()
+        .command("pntr-client")
         .args(args)
-        .env("PNTR_CLIENT_CACHE", f.dir.path().join("stub-cache"))
-        .env_remove("PNTR_TOKEN")
         .output()
-        .expect("python runs")
+        .expect("pntr-client runs")
 }
 
 fn text(b: &[u8]) -> String {
     String::from_utf8_lossy(b).into_owned()
+}
+
+/// The last `n` bytes of `s` (at a character boundary).
+fn tail(s: &str, n: usize) -> &str {
+    let mut i = s.len().saturating_sub(n);
+    while !s.is_char_boundary(i) {
+        i += 1;
+    }
+    &s[i..]
 }
 
 /// The client failed cleanly: exit status `code`, one `error:` line with `needle`, no traceback.
@@ -139,35 +327,35 @@ fn f64s(v: &Value) -> Vec<f64> {
 #[test]
 fn client_frames_match_the_rust_reader() {
     let f = fixture();
+    let v = venv();
     let out_dir = f.dir.path().join("frames");
     std::fs::create_dir_all(&out_dir).unwrap();
-    // The client's own functions: read Point 0 with h5py and build each request, then dump the
+    // The package's own functions: read Point 0 with h5py and build each request, then dump the
     // payloads for comparison with what the Rust reader and `wire::raw_request` make.
     let code = r#"
 import json, sys
 from pathlib import Path
-sys.path.insert(0, sys.argv[1])
-import pntr_client as c
-pb2, _ = c.load_stubs()
-out = Path(sys.argv[3])
+import pntr_client
+from pntr_client.hpointloc import read_point
+out = Path(sys.argv[2])
 meta = []
-for i, rgb, depth, gps, quat in c.read_point(sys.argv[2]):
-    r = c.make_request(pb2, rgb, depth)
+for i, rgb, depth, gps, quat in read_point(sys.argv[1]):
+    r = pntr_client.make_request(rgb, depth)
     (out / f"rgb{i}").write_bytes(r.rgb.data)
     (out / f"depth{i}").write_bytes(r.depth.data)
     meta.append({"w": r.rgb.width, "h": r.rgb.height, "dw": r.depth.width, "dh": r.depth.height,
                  "enc": r.rgb.encoding, "denc": r.depth.encoding, "k": r.HasField("intrinsics"),
-                 "gps": [float(v) for v in gps], "quat": [float(v) for v in quat]})
+                 "prior": r.HasField("prior"), "gps": [float(v) for v in gps],
+                 "quat": [float(v) for v in quat]})
 print(json.dumps(meta))
 "#;
     let point0 = pntr_dataset::layout::point_path(f.dir.path(), SCENE, 0);
-    let out = Command::new(pntr_tests::python())
+    let out = v
+        .command("python")
         .arg("-c")
         .arg(code)
-        .arg(script().parent().unwrap())
         .arg(&point0)
         .arg(&out_dir)
-        .env("PNTR_CLIENT_CACHE", f.dir.path().join("stub-cache"))
         .output()
         .unwrap();
     assert!(out.status.success(), "{}", text(&out.stderr));
@@ -187,6 +375,7 @@ print(json.dumps(meta))
             Value::Bool(false),
             "intrinsics are left to the server"
         );
+        assert_eq!(m["prior"], Value::Bool(false), "no prior unless given");
         assert!(
             std::fs::read(out_dir.join(format!("rgb{i}"))).unwrap() == rgb.data,
             "rgb of query {i} differs"
@@ -205,11 +394,13 @@ print(json.dumps(meta))
             assert!((s * pq[k] - quat[k]).abs() < 1e-6, "{pq:?} vs {quat:?}");
         }
     }
+    v.assert_home_untouched();
 }
 
 #[test]
 fn localizes_against_a_real_server() {
     let f = fixture();
+    let v = venv();
     let rt = runtime();
     let running = serve(
         &rt,
@@ -289,16 +480,13 @@ fn localizes_against_a_real_server() {
     );
     assert!(lines.contains("summary: "), "{lines}");
 
-    // Missing input: the scene, a Point.
-    let out = client(&[
-        "--addr",
-        &addr,
-        "--dataset",
-        dataset,
-        "--scene",
-        "nosuch",
-        "--json",
-    ]);
+    // Missing input: the scene (through `python -m pntr_client`), a Point.
+    let out = v
+        .command("python")
+        .args(["-m", "pntr_client", "--addr", &addr, "--dataset", dataset])
+        .args(["--scene", "nosuch", "--json"])
+        .output()
+        .unwrap();
     assert_clean_failure(&out, 2, "scene folder not found");
     let out = client(&[
         "--addr",
@@ -328,6 +516,7 @@ fn localizes_against_a_real_server() {
     ]);
     assert_clean_failure(&out, 1, &format!("cannot reach pntr-server at {closed}"));
     assert!(out.stdout.is_empty(), "{}", text(&out.stdout));
+    v.assert_home_untouched();
 }
 
 /// A loopback address where nothing listens (bound, then closed).
@@ -365,6 +554,7 @@ fn self_signed(dir: &Path) -> (PathBuf, PathBuf) {
 #[test]
 fn token_and_tls() {
     let f = fixture();
+    let v = venv();
     let tls_dir = tempfile::tempdir().unwrap();
     let (cert, key) = self_signed(tls_dir.path());
     let rt = runtime();
@@ -418,4 +608,243 @@ fn token_and_tls() {
     ]);
     assert_clean_failure(&out, 1, "cannot reach pntr-server");
     stop(&rt, running);
+    v.assert_home_untouched();
+}
+
+/// The typed API, run in the venv: argv = address, token, the scene's Point files. Prints a JSON
+/// report; the checks that need the Rust side (ground truth) are made there.
+const API_SCRIPT: &str = r#"
+import json, sys
+import numpy as np
+import pntr_client as pc
+from pntr_client.hpointloc import read_point
+
+addr, token, paths = sys.argv[1], sys.argv[2], sys.argv[3:]
+frames = []  # (point, i, rgb, depth)
+for path in paths:
+    point = int(path.rsplit("_point", 1)[1].split(".")[0])
+    frames += [(point, i, rgb, depth) for i, rgb, depth, _, _ in read_point(path)]
+rgb0, depth0 = frames[0][2], frames[0][3]
+report = {}
+
+def expect_value_error(what, fn, *needles):
+    try:
+        fn()
+    except ValueError as e:
+        msg = str(e)
+        assert all(n in msg for n in needles), f"{what}: {msg!r} lacks {needles}"
+        report.setdefault("value_errors", {})[what] = msg
+        return
+    raise AssertionError(f"{what}: no ValueError")
+
+def summary(a):
+    assert isinstance(a, pc.Answer)
+    assert a.status in ("LOCALIZED", "NOT_LOCALIZED"), a.status
+    assert a.localized == (a.status == "LOCALIZED")
+    r = {"status": a.status, "mode": a.mode, "confidence": a.confidence, "inliers": a.inliers,
+         "min_confidence": a.min_confidence, "request_id": a.request_id, "map_id": a.map_id,
+         "reason": a.reason, "stage_ms": a.stage_ms, "matched_image_id": a.matched_image_id}
+    if a.localized:
+        assert isinstance(a.pose, np.ndarray) and a.pose.shape == (4, 4) and a.pose.dtype == np.float64
+        assert not a.pose.flags.writeable
+        r["pose"] = a.pose.tolist()
+        if a.covariance is not None:
+            assert a.covariance.shape == (6, 6) and a.covariance.dtype == np.float64
+            r["covariance"] = a.covariance.tolist()
+    else:
+        assert a.pose is None and a.reason
+    return r
+
+with pc.Client(addr, token=token, timeout_s=120) as c:
+    info = c.map_info()
+    assert isinstance(info, pc.MapInfo)
+    report["map_info"] = {"map_id": info.map_id, "images": info.images, "loaded": list(info.loaded_map_ids)}
+
+    # One call per frame.
+    answers = []
+    for point, i, rgb, depth in frames:
+        a = c.localize(rgb, depth, request_id=f"p{point}q{i}")
+        answers.append(a)
+        report.setdefault("localize", []).append(dict(summary(a), point=point, i=i))
+
+    # A stream of the same frames, as Frames and dicts, answered in order.
+    stream = [pc.Frame(rgb, depth, request_id=f"s{k}") if k % 2 == 0 else
+              {"rgb": rgb, "depth": depth, "request_id": f"s{k}"}
+              for k, (_, _, rgb, depth) in enumerate(frames)]
+    report["stream"] = [summary(a) for a in c.localize_stream(iter(stream))]
+
+    # A malformed frame in a stream: the answers before it, then ValueError naming it.
+    got = []
+    def bad_stream():
+        for a in c.localize_stream([pc.Frame(rgb0, depth0, request_id="ok0"),
+                                    {"rgb": rgb0.astype(np.float32), "depth": depth0}]):
+            got.append(a.request_id)
+    expect_value_error("stream frame 1 float rgb", bad_stream, "frame 1", "uint8")
+    assert got == ["ok0"], got
+
+    # Malformed inputs, caught before sending.
+    expect_value_error("rgb float", lambda: c.localize(rgb0.astype(np.float32), depth0), "rgb", "uint8")
+    expect_value_error("rgb grey", lambda: c.localize(rgb0[..., 0], depth0), "rgb", "HxWx3")
+    expect_value_error("depth millimetres",
+                       lambda: c.localize(rgb0, (depth0 * 1000).astype(np.uint16)), "millimetres", "metres")
+    expect_value_error("size mismatch", lambda: c.localize(rgb0, depth0[:100, :120]), "depth", "same size")
+    expect_value_error("intrinsics count", lambda: c.localize(rgb0, depth0, intrinsics=(128.0, 128.0, 127.5)),
+                       "intrinsics", "3 values")
+    expect_value_error("prior without region", lambda: pc.Prior(np.eye(4)), "radius_m", "covariance")
+    expect_value_error("prior bad pose", lambda: pc.Prior(np.ones((4, 4)), radius_m=1.0), "prior.pose")
+
+    # Server-side refusals as typed errors.
+    try:
+        c.localize(rgb0, depth0, map_id="nosuch")
+        raise AssertionError("unknown map answered")
+    except pc.NotFoundError as e:
+        report["not_found"] = {"code": e.code, "details": e.details}
+
+    # Priors, on the first frame that localized without one: its position with a radius, then the
+    # answer itself as the prior (pose and radius; and pose and covariance, whose 3-sigma region
+    # may hold no map image, so the server may fall back to global retrieval).
+    k = next(k for k, a in enumerate(answers) if a.localized)
+    base, rgb, depth = answers[k], frames[k][2], frames[k][3]
+    p = pc.Prior(base.pose[:3, 3].copy(), radius_m=3.0)
+    report["prior_position"] = summary(c.localize(rgb, depth, prior=p, request_id="prior-position"))
+    report["prior_answer"] = summary(c.localize(rgb, depth, prior=base.as_prior(radius_m=3.0),
+                                                request_id="prior-answer"))
+    if base.covariance is not None:
+        report["prior_covariance"] = summary(c.localize(rgb, depth, prior=base.as_prior(),
+                                                        request_id="prior-covariance"))
+
+for t in ("wrong", None):
+    with pc.Client(addr, token=t) as bad:
+        try:
+            bad.localize(rgb0, depth0)
+            raise AssertionError("answered without the right token")
+        except pc.PntrError as e:
+            report.setdefault("bad_token", []).append(
+                {"token": t, "code": e.code, "type": type(e).__name__, "message": str(e),
+                 "unauthenticated": isinstance(e, pc.UnauthenticatedError)})
+print(json.dumps(report))
+"#;
+
+/// The rotation angle between two rotation matrices, degrees.
+fn angle_deg(a: &Matrix4<f64>, b: &Matrix4<f64>) -> f64 {
+    let r = a.fixed_view::<3, 3>(0, 0).transpose() * b.fixed_view::<3, 3>(0, 0);
+    ((r.trace() - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+fn matrix(v: &Value) -> Matrix4<f64> {
+    let rows: Vec<Vec<f64>> = v.as_array().unwrap().iter().map(f64s).collect();
+    assert_eq!(rows.len(), 4);
+    Matrix4::from_fn(|r, c| rows[r][c])
+}
+
+#[test]
+fn typed_api_against_a_real_server() {
+    let f = fixture();
+    let v = venv();
+    let rt = runtime();
+    let mut s = Settings::local(vec![f.map.clone()], pntr_tests::models());
+    s.token = Some("api-t0ken".into());
+    let running = serve(&rt, s);
+    let addr = running.addr.to_string();
+    let points: Vec<PathBuf> = (0..3)
+        .map(|p| pntr_dataset::layout::point_path(f.dir.path(), SCENE, p))
+        .collect();
+    let out = v
+        .command("python")
+        .args(["-c", API_SCRIPT, &addr, "api-t0ken"])
+        .args(&points)
+        .output()
+        .unwrap();
+    stop(&rt, running);
+    assert!(
+        out.status.success(),
+        "the API script failed:\n{}",
+        text(&out.stderr)
+    );
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!("not JSON ({e}):\n{}", text(&out.stdout));
+    });
+    eprintln!("value errors: {:#}", r["value_errors"]);
+    assert_eq!(r["map_info"]["map_id"], "all", "{}", r["map_info"]);
+
+    // Localize: 4x4 world_from_camera poses close to the Rust reader's ground truth.
+    let answers = r["localize"].as_array().unwrap();
+    assert_eq!(answers.len(), f.queries);
+    let mut good = 0;
+    for a in answers {
+        let key = (
+            a["point"].as_u64().unwrap() as u32,
+            a["i"].as_u64().unwrap() as usize,
+        );
+        assert_eq!(
+            a["request_id"].as_str().unwrap(),
+            format!("p{}q{}", key.0, key.1)
+        );
+        assert_eq!(a["map_id"], "all");
+        let stages = a["stage_ms"].as_object().unwrap();
+        assert!(stages["extraction"].as_f64().unwrap() > 0.0, "{a}");
+        assert!(stages["total"].as_f64().unwrap() > 0.0, "{a}");
+        if a["status"] != "LOCALIZED" {
+            continue;
+        }
+        let conf = a["confidence"].as_f64().unwrap();
+        assert!(conf >= a["min_confidence"].as_f64().unwrap(), "{a}");
+        assert_eq!(a["mode"], "GLOBAL", "no prior was sent: {a}");
+        let cov = &a["covariance"];
+        assert_eq!(cov.as_array().map(Vec::len), Some(6), "{a}");
+        for k in 0..6 {
+            assert!(cov[k][k].as_f64().unwrap() >= 0.0, "{a}");
+        }
+        let pose = matrix(&a["pose"]);
+        let truth = f.truth[&key].to_homogeneous();
+        let te = (pose.fixed_view::<3, 1>(0, 3) - truth.fixed_view::<3, 1>(0, 3)).norm();
+        let re = angle_deg(&pose, &truth);
+        eprintln!("{key:?}: {te:.3} m, {re:.2} deg");
+        if te < 0.25 && re < 10.0 {
+            good += 1;
+        }
+    }
+    assert!(
+        3 * good >= 2 * answers.len(),
+        "{good} of {} answers within 0.25 m and 10 degrees",
+        answers.len()
+    );
+
+    // The stream answered every frame, in order.
+    let stream = r["stream"].as_array().unwrap();
+    let ids: Vec<&str> = stream
+        .iter()
+        .map(|a| a["request_id"].as_str().unwrap())
+        .collect();
+    let want: Vec<String> = (0..f.queries).map(|k| format!("s{k}")).collect();
+    assert_eq!(ids, want);
+    let streamed_ok = stream.iter().filter(|a| a["status"] == "LOCALIZED").count();
+    assert!(3 * streamed_ok >= 2 * stream.len(), "{stream:?}");
+
+    // Errors.
+    assert_eq!(r["not_found"]["code"], "NOT_FOUND", "{}", r["not_found"]);
+    for e in r["bad_token"].as_array().unwrap() {
+        assert_eq!(e["code"], "UNAUTHENTICATED", "{e}");
+        assert_eq!(e["type"], "UnauthenticatedError", "{e}");
+        assert_eq!(e["unauthenticated"], true, "{e}");
+        assert!(!e["message"].as_str().unwrap().contains("api-t0ken"), "{e}");
+    }
+    assert_eq!(r["value_errors"].as_object().unwrap().len(), 8);
+
+    // Priors: answered through the prior region, and still verified.
+    for name in ["prior_position", "prior_answer"] {
+        let a = &r[name];
+        eprintln!("{name}: {} mode {}", a["status"], a["mode"]);
+        assert_eq!(a["status"], "LOCALIZED", "{name}: {a}");
+        assert_eq!(a["mode"], "PRIOR", "{name}: {a}");
+    }
+    let a = &r["prior_covariance"];
+    assert!(!a.is_null(), "a LOCALIZED answer carries a covariance");
+    eprintln!("prior_covariance: {} mode {}", a["status"], a["mode"]);
+    assert_eq!(a["status"], "LOCALIZED", "{a}");
+    assert!(a["mode"] == "PRIOR" || a["mode"] == "GLOBAL", "{a}");
+    v.assert_home_untouched();
 }

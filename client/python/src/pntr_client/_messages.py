@@ -1,0 +1,250 @@
+"""Between numpy and the wire: input checks, LocalizeRequest building, response conversion."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from pntr_client._geometry import matrix_to_quaternion, pose_matrix
+from pntr_client._proto import localizer_pb2 as pb2
+from pntr_client._values import Answer, Frame, MapInfo, Prior
+
+# The camera the server assumes when a request has no intrinsics (HPointLoc), and the only size it
+# accepts then.
+HPOINTLOC_SIZE = (256, 256)
+_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id")
+
+
+def check_rgb(rgb: Any, where: str = "") -> npt.NDArray[np.uint8]:
+    """`rgb` as a C-contiguous HxWx3 uint8 array; ValueError naming the mistake otherwise."""
+    a = np.asarray(rgb)
+    s = tuple(a.shape)
+    if a.ndim == 2:
+        raise ValueError(
+            f"{where}rgb has shape {s}: expected HxWx3 (a colour image); for a grey image use "
+            f"np.stack([grey] * 3, axis=-1)"
+        )
+    if a.ndim == 3 and s[2] == 4:
+        raise ValueError(f"{where}rgb has shape {s} (RGBA?): expected HxWx3; drop the alpha channel: rgb[..., :3]")
+    if a.ndim == 3 and s[0] == 3 and s[2] != 3:
+        raise ValueError(f"{where}rgb has shape {s} (channels first?): expected HxWx3; use rgb.transpose(1, 2, 0)")
+    if a.ndim != 3 or s[2] != 3:
+        raise ValueError(f"{where}rgb has shape {s}: expected HxWx3 (height, width, R G B)")
+    if a.dtype != np.uint8:
+        hint = (
+            "; for values in 0..1 use (rgb * 255).round().astype(np.uint8)"
+            if np.issubdtype(a.dtype, np.floating)
+            else ""
+        )
+        raise ValueError(f"{where}rgb has dtype {a.dtype}: expected uint8 (0..255){hint}")
+    if a.size == 0:
+        raise ValueError(f"{where}rgb is empty (shape {s})")
+    return np.ascontiguousarray(a)
+
+
+def check_depth(depth: Any, rgb_shape: tuple[int, ...], where: str = "") -> npt.NDArray[np.float32]:
+    """`depth` as a C-contiguous HxW little-endian float32 array in metres, the size of the rgb image.
+
+    Any floating dtype is accepted (converted to float32); an HxWx1 array is squeezed. ValueError for
+    integer depth (uint16 is named as millimetres), a wrong shape, a size differing from rgb's, or no
+    valid pixel at all (every value 0, negative or not finite).
+    """
+    a = np.asarray(depth)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    s = tuple(a.shape)
+    if a.ndim != 2:
+        raise ValueError(f"{where}depth has shape {s}: expected HxW (one value per pixel, metres)")
+    if a.dtype == np.uint16:
+        raise ValueError(
+            f"{where}depth has dtype uint16, which looks like millimetres (e.g. a 16UC1 or RealSense "
+            f"image): convert it to float32 metres first: depth.astype(np.float32) / 1000"
+        )
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"{where}depth has dtype {a.dtype}: expected float32 metres")
+    h, w = rgb_shape[:2]
+    if s != (h, w):
+        raise ValueError(
+            f"{where}depth is {s[0]}x{s[1]} (HxW) but rgb is {h}x{w}: depth must be pixel-aligned "
+            f"with rgb and of the same size (register it to the colour camera)"
+        )
+    d = np.ascontiguousarray(a, dtype="<f4")
+    with np.errstate(invalid="ignore"):
+        if not np.any(np.isfinite(d) & (d > 0.0)):
+            raise ValueError(f"{where}depth has no valid pixel (every value is 0, negative or not finite)")
+    return d
+
+
+def check_intrinsics(
+    intrinsics: Sequence[float] | None, rgb_shape: tuple[int, ...], where: str = ""
+) -> pb2.Intrinsics | None:
+    """The Intrinsics message for (fx, fy, cx, cy[, k1, k2, p1, p2[, k3]]), or None for the HPointLoc
+    camera (allowed only for 256x256 frames); ValueError naming the mistake."""
+    h, w = rgb_shape[:2]
+    if intrinsics is None:
+        if (h, w) != HPOINTLOC_SIZE:
+            raise ValueError(
+                f"{where}intrinsics=None means the HPointLoc camera, which the server accepts only for "
+                f"256x256 frames; pass intrinsics=(fx, fy, cx, cy) for this {h}x{w} (HxW) frame"
+            )
+        return None
+    if np.ndim(intrinsics) != 1:
+        raise ValueError(
+            f"{where}intrinsics must be a flat sequence (fx, fy, cx, cy[, k1, k2, p1, p2[, k3]]), got "
+            f"shape {np.shape(intrinsics)}; from a 3x3 camera matrix K use (K[0, 0], K[1, 1], K[0, 2], K[1, 2])"
+        )
+    try:
+        v = [float(x) for x in intrinsics]
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}intrinsics must be numbers, got {intrinsics!r}") from None
+    if len(v) not in (4, 8, 9):
+        raise ValueError(
+            f"{where}intrinsics has {len(v)} values: expected (fx, fy, cx, cy) in pixels, optionally "
+            f"followed by 4 or 5 distortion coefficients (k1, k2, p1, p2[, k3])"
+        )
+    if not all(math.isfinite(x) for x in v):
+        raise ValueError(f"{where}intrinsics hold a value that is not finite: {v}")
+    if v[0] <= 0.0 or v[1] <= 0.0:
+        raise ValueError(f"{where}intrinsics: fx and fy must be positive (pixels), got fx={v[0]}, fy={v[1]}")
+    return pb2.Intrinsics(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:])
+
+
+def prior_message(prior: Prior) -> pb2.Prior:
+    """The Prior message of a `Prior` (already validated by its constructor)."""
+    pose = prior.pose
+    w, x, y, z = matrix_to_quaternion(pose[:3, :3])
+    msg = pb2.Prior(
+        pose=pb2.Pose(
+            translation=pb2.Vector3(x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3])),
+            rotation=pb2.Quaternion(w=w, x=x, y=y, z=z),
+        ),
+        radius_m=prior.radius_m or 0.0,
+    )
+    if prior.covariance is not None:
+        msg.covariance.extend(float(c) for c in prior.covariance.ravel())
+    return msg
+
+
+def make_request(
+    rgb: npt.NDArray[np.uint8],
+    depth: npt.NDArray[np.float32],
+    intrinsics: Sequence[float] | None = None,
+    map_id: str = "",
+    prior: Prior | None = None,
+    request_id: str = "",
+    *,
+    where: str = "",
+) -> pb2.LocalizeRequest:
+    """A LocalizeRequest (RAW_RGB8 colour, FLOAT32_METERS depth) after checking every input.
+
+    Args:
+        rgb: HxWx3 uint8, R G B.
+        depth: HxW float32 metres, pixel-aligned with rgb (0 / negative / NaN / inf = missing).
+        intrinsics: (fx, fy, cx, cy) pixels, optionally + (k1, k2, p1, p2[, k3]); None = HPointLoc camera.
+        map_id: the map to localize in; "" = the server's only map.
+        prior: optional `Prior`.
+        request_id: optional id echoed in the answer.
+        where: prefix of error messages (e.g. "frame 3: ").
+
+    Raises ValueError naming the first mistake found.
+    """
+    rgb_a = check_rgb(rgb, where)
+    depth_a = check_depth(depth, rgb_a.shape, where)
+    k = check_intrinsics(intrinsics, rgb_a.shape, where)
+    if prior is not None and not isinstance(prior, Prior):
+        raise ValueError(
+            f"{where}prior must be a pntr_client.Prior(pose, covariance=None, radius_m=None), got "
+            f"{type(prior).__name__} (an Answer becomes one with answer.as_prior(radius_m))"
+        )
+    if not isinstance(map_id, str) or not isinstance(request_id, str):
+        raise ValueError(f"{where}map_id and request_id must be strings")
+    h, w = rgb_a.shape[:2]
+    req = pb2.LocalizeRequest(
+        map_id=map_id,
+        request_id=request_id,
+        rgb=pb2.Image(width=w, height=h, encoding=pb2.RAW_RGB8, data=rgb_a.tobytes()),
+        depth=pb2.Depth(width=w, height=h, encoding=pb2.FLOAT32_METERS, data=depth_a.tobytes()),
+    )
+    if k is not None:
+        req.intrinsics.CopyFrom(k)
+    if prior is not None:
+        req.prior.CopyFrom(prior_message(prior))
+    return req
+
+
+def as_frame(frame: Any, index: int) -> Frame:
+    """A `Frame` from a `Frame` or a dict with its keys; ValueError for anything else."""
+    if isinstance(frame, Frame):
+        return frame
+    if isinstance(frame, Mapping):
+        unknown = [k for k in frame if k not in _FRAME_KEYS]
+        if unknown:
+            raise ValueError(f"frame {index}: unknown key(s) {unknown} (expected some of {list(_FRAME_KEYS)})")
+        missing = [k for k in ("rgb", "depth") if k not in frame]
+        if missing:
+            raise ValueError(f"frame {index}: missing {missing}")
+        return Frame(**frame)
+    raise ValueError(f"frame {index} is a {type(frame).__name__}: expected a pntr_client.Frame or a dict")
+
+
+def _enum_name(enum: Any, value: int) -> str:
+    try:
+        return str(enum.Name(value))
+    except ValueError:  # a value newer than these stubs
+        return str(value)
+
+
+def answer_from_response(resp: pb2.LocalizeResponse) -> Answer:
+    """The `Answer` of a LocalizeResponse."""
+    status = _enum_name(pb2.Status, resp.status)
+    pose = None
+    if status == "LOCALIZED" and resp.HasField("pose"):
+        t, q = resp.pose.translation, resp.pose.rotation
+        pose = pose_matrix((t.x, t.y, t.z), (q.w, q.x, q.y, q.z))
+    cov = None
+    if len(resp.covariance) == 36:
+        cov = np.asarray(resp.covariance, dtype=np.float64).reshape(6, 6)
+    return Answer(
+        status=status,
+        pose=pose,
+        confidence=resp.confidence,
+        covariance=cov,
+        inliers=resp.inliers,
+        stage_ms={t.stage: t.seconds * 1e3 for t in resp.timings},
+        reason=resp.reason,
+        matched_image_id=resp.matched_image_id,
+        map_id=resp.map_id,
+        request_id=resp.request_id,
+        min_confidence=resp.min_confidence,
+        mode=_enum_name(pb2.Mode, resp.mode),
+        matched_point=resp.matched_point,
+        retrieved_image_ids=tuple(resp.retrieved_image_ids),
+    )
+
+
+def map_info_from_message(m: pb2.MapInfo) -> MapInfo:
+    """The `MapInfo` of a MapInfo message."""
+    k = None
+    if m.HasField("intrinsics"):
+        i = m.intrinsics
+        k = (i.fx, i.fy, i.cx, i.cy, *i.distortion)
+    return MapInfo(
+        map_id=m.map_id,
+        images=m.images,
+        points=m.points,
+        scenes=tuple(m.scenes),
+        preset=m.preset,
+        extractor=m.extractor,
+        matcher=m.matcher,
+        global_descriptor=m.global_descriptor,
+        camera_axes=m.camera_axes,
+        intrinsics=k,
+        image_width=m.image_width,
+        image_height=m.image_height,
+        build_seconds=m.build_seconds,
+        loaded_map_ids=tuple(m.loaded_map_ids),
+    )

@@ -1,0 +1,220 @@
+"""The client's value types: what goes in (`Frame`, `Prior`) and what comes back (`Answer`, `MapInfo`).
+
+Conventions: poses are 4x4 float64 `world_from_camera` matrices (they map points from the camera's
+frame into the map's world frame, with the camera axes of the map's dataset, e.g. Habitat axes x
+right, y up, z backwards for HPointLoc maps), metres; covariances are 6x6 row-major in ROS order
+(x, y, z, rotation about x, y, z), metres² and radians²; times are milliseconds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from pntr_client._geometry import Quaternion, check_pose, matrix_to_quaternion
+
+LOCALIZED = "LOCALIZED"
+NOT_LOCALIZED = "NOT_LOCALIZED"
+
+
+def _frozen(a: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def check_covariance(covariance: npt.ArrayLike, what: str) -> npt.NDArray[np.float64]:
+    """A read-only 6x6 float64 covariance from 36 values (6x6 or flat row-major); ValueError otherwise."""
+    try:
+        c = np.asarray(covariance, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what} must be a 6x6 array (metres², radians²): {e}") from None
+    if c.shape == (36,):
+        c = c.reshape(6, 6)
+    if c.shape != (6, 6):
+        raise ValueError(f"{what} has shape {c.shape}: expected 6x6 (x, y, z, rotation about x, y, z)")
+    if not np.all(np.isfinite(c)):
+        raise ValueError(f"{what} holds a value that is not finite")
+    if np.any(np.diag(c) < 0.0):
+        raise ValueError(f"{what} has a negative variance on its diagonal: {np.diag(c).tolist()}")
+    return _frozen(c)
+
+
+@dataclass(frozen=True, eq=False)
+class Prior:
+    """Where the camera roughly is (odometry, the last fix): the server then searches the map images
+    inside a sphere around `pose`'s position first, and falls back to the whole map when none of them
+    verifies (`Answer.mode` says which path answered). A prior never makes a pose LOCALIZED by itself.
+
+    Attributes:
+        pose: 4x4 float64 world_from_camera in the map's frame (metres). A (3,) position is accepted
+            and stored with the identity rotation (only the position is used to choose map images).
+        covariance: optional 6x6 pose covariance (metres², radians²; 36 flat values are accepted).
+            Without `radius_m` the region's radius is three standard deviations of the position.
+        radius_m: optional radius of the region, metres, > 0; takes precedence over `covariance`.
+
+    At least one of `radius_m` and `covariance` is needed; invalid values raise ValueError.
+    """
+
+    pose: npt.NDArray[np.float64]
+    covariance: npt.NDArray[np.float64] | None = None
+    radius_m: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "pose", _frozen(check_pose(self.pose, "prior.pose")))
+        if self.covariance is not None:
+            object.__setattr__(self, "covariance", check_covariance(self.covariance, "prior.covariance"))
+        if self.radius_m is not None:
+            r = float(self.radius_m)
+            if not (math.isfinite(r) and r > 0.0):
+                raise ValueError(f"prior.radius_m must be a finite number > 0 (metres), got {self.radius_m}")
+            object.__setattr__(self, "radius_m", r)
+        if self.radius_m is None:
+            if self.covariance is None:
+                raise ValueError(
+                    "a prior needs radius_m > 0 or a 6x6 covariance (metres², radians²) to size its search region"
+                )
+            if float(np.max(np.diag(self.covariance)[:3])) <= 0.0:
+                raise ValueError(
+                    "prior.covariance has no position variance (x, y, z all 0), so the region would "
+                    "have no size: give radius_m"
+                )
+
+    @property
+    def position(self) -> npt.NDArray[np.float64]:
+        """The prior's position (3,), metres: the centre of the search region."""
+        return self.pose[:3, 3]
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One RGB-D frame for `Client.localize_stream` (a dict with the same keys works too).
+
+    Attributes:
+        rgb: HxWx3 uint8 colour image, R G B order.
+        depth: HxW float32 depth in metres (planar depth along the optical axis), pixel-aligned with
+            `rgb`; 0, negative, NaN or infinite pixels are missing depth.
+        intrinsics: (fx, fy, cx, cy) in pixels, optionally followed by 4 or 5 distortion
+            coefficients (k1, k2, p1, p2[, k3]); None means the HPointLoc camera (256x256 frames only).
+        prior: optional `Prior` for this frame.
+        request_id: optional id echoed in the answer (the server makes one when empty).
+    """
+
+    rgb: npt.NDArray[np.uint8]
+    depth: npt.NDArray[np.float32]
+    intrinsics: Sequence[float] | None = None
+    prior: Prior | None = None
+    request_id: str = ""
+
+
+@dataclass(frozen=True, eq=False)
+class Answer:
+    """The server's answer for one frame.
+
+    Attributes:
+        status: "LOCALIZED" or "NOT_LOCALIZED".
+        pose: 4x4 float64 world_from_camera (metres) when LOCALIZED, else None.
+        confidence: calibrated probability in [0, 1] that the best pose found is within 1 m and 10
+            degrees of the truth (reported for NOT_LOCALIZED answers too; 0 when no pose was found).
+        covariance: 6x6 float64 covariance of `pose` (metres², radians², ROS order, map frame) when
+            the server sends it (LOCALIZED answers), else None.
+        inliers: registration inliers of the matched map image.
+        stage_ms: server time per stage, milliseconds, in the server's order (e.g. "queue",
+            "resampling", "extraction", "retrieval", "matching", "registration", "verification", "total").
+        reason: why the frame is NOT_LOCALIZED; empty when LOCALIZED.
+        matched_image_id: the map image the pose was registered against (LOCALIZED only).
+        map_id: the map that answered.
+        request_id: the request's id (the caller's, or one the server made).
+        min_confidence: the server's LOCALIZED threshold on `confidence`.
+        mode: which path answered: "GLOBAL", "PRIOR", "TRACKING" ("MODE_UNSPECIFIED" from a server
+            that does not report it).
+        matched_point: HPointLoc Point index of `matched_image_id` (LOCALIZED only).
+        retrieved_image_ids: retrieval candidates, best first.
+    """
+
+    status: str
+    pose: npt.NDArray[np.float64] | None
+    confidence: float
+    covariance: npt.NDArray[np.float64] | None
+    inliers: int
+    stage_ms: dict[str, float]
+    reason: str
+    matched_image_id: str = ""
+    map_id: str = ""
+    request_id: str = ""
+    min_confidence: float = 0.0
+    mode: str = "MODE_UNSPECIFIED"
+    matched_point: int = 0
+    retrieved_image_ids: tuple[str, ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        if self.pose is not None:
+            object.__setattr__(self, "pose", _frozen(self.pose))
+        if self.covariance is not None:
+            object.__setattr__(self, "covariance", _frozen(self.covariance))
+
+    @property
+    def localized(self) -> bool:
+        """True when the status is LOCALIZED (and so `pose` is set)."""
+        return self.status == LOCALIZED and self.pose is not None
+
+    @property
+    def translation(self) -> npt.NDArray[np.float64] | None:
+        """The camera's position in the map (3,), metres, or None when not LOCALIZED."""
+        return None if self.pose is None else self.pose[:3, 3]
+
+    @property
+    def rotation_wxyz(self) -> Quaternion | None:
+        """The pose's rotation as a unit quaternion (w, x, y, z) with w >= 0, or None."""
+        return None if self.pose is None else matrix_to_quaternion(self.pose[:3, :3])
+
+    def as_prior(self, radius_m: float | None = None) -> Prior:
+        """This answer's pose (and covariance) as the `Prior` of the next frame.
+
+        `radius_m` sizes the search region; without it the region comes from the answer's covariance
+        (three standard deviations of the position), which is small: pass a radius covering how far
+        the camera may have moved since. Raises ValueError when the answer has no pose, or neither a
+        radius nor a covariance.
+        """
+        if self.pose is None:
+            raise ValueError(f"as_prior: this answer is {self.status} and has no pose to use as a prior")
+        return Prior(self.pose, covariance=self.covariance, radius_m=radius_m)
+
+
+@dataclass(frozen=True)
+class MapInfo:
+    """A map the server holds (`Client.map_info`).
+
+    Attributes:
+        map_id: the map's id.
+        images: database images in the map.
+        points: distinct (scene, Point) pairs the images come from.
+        scenes: scene names the map covers.
+        preset: the preset the map was built with and the server runs (e.g. "fast").
+        extractor, matcher: local feature extractor and matcher of that preset.
+        global_descriptor: retrieval descriptor (vlad, bow, onnx).
+        camera_axes: camera axes of the map's poses and of `Answer.pose` ("habitat" for HPointLoc).
+        intrinsics: the database images' camera (fx, fy, cx, cy, *distortion), pixels, or None.
+        image_width, image_height: the database images' size, pixels.
+        build_seconds: how long building the map took, seconds.
+        loaded_map_ids: every map id the server holds.
+    """
+
+    map_id: str
+    images: int
+    points: int
+    scenes: tuple[str, ...]
+    preset: str
+    extractor: str
+    matcher: str
+    global_descriptor: str
+    camera_axes: str
+    intrinsics: tuple[float, ...] | None
+    image_width: int
+    image_height: int
+    build_seconds: float
+    loaded_map_ids: tuple[str, ...]
