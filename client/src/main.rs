@@ -11,6 +11,7 @@ mod map_cmd;
 mod plot;
 mod register_cmd;
 mod remote;
+mod replay_cmd;
 mod synth_cmd;
 
 use std::path::PathBuf;
@@ -44,6 +45,9 @@ enum Command {
     Localize(localize_cmd::LocalizeArgs),
     /// Load-test a running pntr-server with a dataset's query frames.
     Bench(bench_cmd::BenchArgs),
+    /// Stream a recorded drive (TUM RGB-D folder) through a running pntr-server's LocalizeStream and
+    /// measure the trajectory (ATE, RPE), the share localized and the latency.
+    Replay(replay_cmd::ReplayArgs),
     /// List the scenes and Points of a dataset and check that every file reads.
     Info {
         /// Dataset root (the folder holding HPointLoc_dataset, or that folder).
@@ -84,6 +88,7 @@ fn main() {
         Command::BuildDb(args) => map_cmd::build_db(&args),
         Command::Localize(args) => localize_cmd::run(&args),
         Command::Bench(args) => bench_cmd::run(&args),
+        Command::Replay(args) => replay_cmd::run(&args),
         Command::Eval(args) => map_cmd::eval(&args),
         Command::Calibrate(args) => calibrate_cmd::run(&args),
         Command::Info { dataset, json } => synth_cmd::info(&dataset, json),

@@ -13,7 +13,7 @@ use pntr_pipeline::map::{self, Map};
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
-use pntr_pipeline::prior::{LocalizeOptions, Mode};
+use pntr_pipeline::prior::LocalizeOptions;
 use pntr_retrieval::onnx_global::OnnxGlobal;
 
 /// Arguments of `pntr build-db`.
@@ -321,10 +321,10 @@ pub fn evaluate_in_process(
         opts,
         &mut |q, prior| {
             seed += 1;
-            let opts = LocalizeOptions {
-                region: prior.copied(),
-                region_mode: Mode::Prior,
-            };
+            let opts = prior
+                .copied()
+                .map(LocalizeOptions::prior)
+                .unwrap_or_default();
             match &effects {
                 None => Ok(Answer::of(&pipeline.localize_with(q, &opts)?, &map)),
                 Some(fx) => {

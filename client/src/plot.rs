@@ -438,6 +438,101 @@ fn sanitize(s: &str) -> String {
         .collect()
 }
 
+fn draw_trajectories<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    map: &[[f64; 3]],
+    truth: &[[f64; 3]],
+    estimate: &[[f64; 3]],
+    title: &str,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE)?;
+    let all: Vec<[f64; 3]> = map.iter().chain(truth).chain(estimate).copied().collect();
+    let (a, b) = ground_axes(if map.len() >= 3 { map } else { &all });
+    let (mut x0, mut x1, mut y0, mut y1) = all.iter().fold(
+        (
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+        ),
+        |(x0, x1, y0, y1), p| (x0.min(p[a]), x1.max(p[a]), y0.min(p[b]), y1.max(p[b])),
+    );
+    if !x0.is_finite() {
+        (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+    }
+    let half = 0.5 * (x1 - x0).max(y1 - y0).max(1.0) + 0.5;
+    let (cx, cy) = (0.5 * (x0 + x1), 0.5 * (y0 + y1));
+    let root = root.titled(title, (FONT, 16))?;
+    let axis = ["x", "y", "z"];
+    let mut chart = ChartBuilder::on(&root)
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(cx - half..cx + half, cy - half..cy + half)?;
+    chart
+        .configure_mesh()
+        .x_desc(format!("{} (m)", axis[a]))
+        .y_desc(format!("{} (m)", axis[b]))
+        .label_style((FONT, 14))
+        .draw()?;
+    if !map.is_empty() {
+        chart
+            .draw_series(map.iter().map(|p| {
+                Rectangle::new(
+                    [(p[a] - 0.06, p[b] - 0.06), (p[a] + 0.06, p[b] + 0.06)],
+                    BLACK.mix(0.5).filled(),
+                )
+            }))?
+            .label("map images (database cameras)")
+            .legend(|(x, y)| Rectangle::new([(x, y - 4), (x + 8, y + 4)], BLACK.mix(0.5).filled()));
+    }
+    let green = RGBColor(0, 150, 60);
+    chart
+        .draw_series(LineSeries::new(
+            truth.iter().map(|p| (p[a], p[b])),
+            green.stroke_width(3),
+        ))?
+        .label("ground truth")
+        .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], green.stroke_width(3)));
+    chart
+        .draw_series(
+            estimate
+                .iter()
+                .map(|p| Circle::new((p[a], p[b]), 2, BLUE.filled())),
+        )?
+        .label("LOCALIZED answers")
+        .legend(|(x, y)| Circle::new((x + 4, y), 3, BLUE.filled()));
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperLeft)
+        .label_font((FONT, 13))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()?;
+    Ok(())
+}
+
+/// Write `trajectory.png` / `.svg` into `dir`: the ground-truth path and the LOCALIZED answers from
+/// above, over the map's camera positions `map` (all map frame, metres).
+pub fn trajectory_plot(
+    map: &[[f64; 3]],
+    truth: &[[f64; 3]],
+    estimate: &[[f64; 3]],
+    dir: &Path,
+    title: &str,
+) -> Result<Vec<PathBuf>> {
+    save_both(
+        dir,
+        "trajectory",
+        MAP_SIZE,
+        |r| draw_trajectories(r, map, truth, estimate, title),
+        |r| draw_trajectories(r, map, truth, estimate, title),
+    )
+}
+
 /// One sweep level for [`bench_plot`].
 #[derive(Debug, Clone, Copy)]
 pub struct SweepPoint {

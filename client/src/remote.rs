@@ -86,7 +86,12 @@ pub fn request(
     mut req: proto::LocalizeRequest,
 ) -> Result<tonic::Request<proto::LocalizeRequest>> {
     req.map_id = c.map_id.clone();
-    let mut r = tonic::Request::new(req);
+    authorized(c, req)
+}
+
+/// Any request message (a single one or a stream) with the token attached.
+pub fn authorized<T>(c: &ConnectArgs, message: T) -> Result<tonic::Request<T>> {
+    let mut r = tonic::Request::new(message);
     if let Some(t) = &c.token {
         r.metadata_mut().insert(
             "authorization",

@@ -61,6 +61,12 @@ pub struct SynthArgs {
     /// Lens distortion of the query camera, `k1,k2,p1,p2,k3` (OpenCV / ROS plumb_bob).
     #[arg(long, value_name = "K1,K2,P1,P2,K3", allow_hyphen_values = true)]
     pub query_distortion: Option<String>,
+    /// Also render, per scene, a robot driving for this many seconds (0.5 m/s, 10 Hz, through the
+    /// query camera, from Point to Point through the doors) into `OUT/sequences/<scene>/` in the TUM
+    /// RGB-D layout: rgb/, depth/ (16-bit PNG, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt
+    /// (world_from_camera in the map's frame and camera axes), calibration.txt.
+    #[arg(long, value_name = "SECONDS")]
+    pub trajectory_seconds: Option<f64>,
 }
 
 /// Parse a camera size `WxH` (`--camera`, `--query-camera`).
@@ -133,6 +139,11 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
     if args.gzip_level > 9 {
         bail!("--gzip-level must be within 0..9");
     }
+    if let Some(t) = args.trajectory_seconds {
+        if !(t.is_finite() && t > 0.0 && t <= 3600.0) {
+            bail!("--trajectory-seconds must be within (0, 3600], not {t}");
+        }
+    }
     let textures = match &args.textures {
         Some(dir) => pntr_synth::load_textures(dir)?,
         None => Vec::new(),
@@ -145,6 +156,7 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
         points_per_scene: args.points_per_scene,
         queries_per_point: args.queries_per_point,
         seed: args.seed,
+        trajectory_seconds: args.trajectory_seconds,
         tilt_sigma_deg: args.tilt_sigma_deg,
         textures,
         write: WriteOptions {
@@ -155,7 +167,7 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
 
 fn generate(cfg: &SynthConfig, out: &Path) -> Result<Summary> {
     let planned = pntr_synth::plan_all(cfg);
-    let total = pntr_synth::planned_frames(&planned);
+    let total = pntr_synth::planned_frames(&planned) + pntr_synth::planned_sequence_frames(cfg);
     let bar = ProgressBar::new(total);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} frames ({per_sec}, eta {eta})")
@@ -184,6 +196,7 @@ fn summary_json(s: &Summary) -> serde_json::Value {
             "rooms": sc.rooms,
             "boxes": sc.boxes,
             "size_m": [sc.size_m.0, sc.size_m.1],
+            "sequence_frames": sc.sequence_frames,
         })).collect::<Vec<_>>(),
     })
 }
@@ -205,6 +218,17 @@ fn print_summary(s: &Summary) {
             sc.boxes,
             sc.size_m.0,
             sc.size_m.1
+        );
+    }
+    for sc in s.scenes.iter().filter(|sc| sc.sequence_frames > 0) {
+        println!(
+            "{}: a drive of {} frames in {}",
+            sc.name,
+            sc.sequence_frames,
+            s.root
+                .join(pntr_synth::SEQUENCES_DIR)
+                .join(&sc.name)
+                .display()
         );
     }
     println!(

@@ -30,6 +30,7 @@ mod error;
 mod last_words;
 pub mod layout;
 mod reader;
+pub mod tum;
 mod writer;
 
 pub use error::DatasetError;

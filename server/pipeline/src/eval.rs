@@ -746,3 +746,102 @@ mod tests {
         assert_eq!(r.len(), 8);
     }
 }
+
+/// Errors of an estimated trajectory against the ground truth, both in the map frame (absolute
+/// localization: no alignment is fitted, unlike a SLAM evaluation).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct TrajectoryErrors {
+    /// Frames with an estimate and a ground-truth pose.
+    pub compared: usize,
+    /// Absolute trajectory error: RMSE of the position errors, metres.
+    pub ate_rmse_m: f64,
+    /// Largest position error, metres.
+    pub max_error_m: f64,
+    /// Frames whose position is more than 1 m off.
+    pub over_1m: usize,
+    /// Relative pose error between consecutive estimated frames (both estimated): RMSE of the
+    /// translation part, metres.
+    pub rpe_trans_rmse_m: f64,
+    /// ... and of the rotation angle, degrees.
+    pub rpe_rot_rmse_deg: f64,
+    /// Consecutive pairs the relative error is measured on.
+    pub rpe_pairs: usize,
+}
+
+/// One frame of a trajectory: the estimate (`None` when not localized) and the ground truth (`None`
+/// when unknown), both `world_from_camera`.
+pub type EstimateAndTruth = (Option<Isometry3<f64>>, Option<Isometry3<f64>>);
+
+/// ATE and RPE (Sturm et al., the TUM RGB-D benchmark) of `frames`: per frame in time order, the
+/// estimate (`None` when not localized) and the ground truth (`None` when unknown). NaN when nothing
+/// can be compared.
+pub fn trajectory_errors(
+    frames: &[EstimateAndTruth],
+) -> TrajectoryErrors {
+    let mut sq = 0.0;
+    let mut out = TrajectoryErrors::default();
+    for (est, gt) in frames {
+        if let (Some(e), Some(g)) = (est, gt) {
+            let d = (e.translation.vector - g.translation.vector).norm();
+            sq += d * d;
+            out.compared += 1;
+            out.max_error_m = out.max_error_m.max(d);
+            out.over_1m += (d > 1.0) as usize;
+        }
+    }
+    out.ate_rmse_m = (sq / out.compared as f64).sqrt();
+    let (mut st, mut sr) = (0.0, 0.0);
+    for w in frames.windows(2) {
+        if let ((Some(e0), Some(g0)), (Some(e1), Some(g1))) = (w[0], w[1]) {
+            let delta = (g0.inverse() * g1).inverse() * (e0.inverse() * e1);
+            st += delta.translation.vector.norm_squared();
+            sr += delta.rotation.angle().to_degrees().powi(2);
+            out.rpe_pairs += 1;
+        }
+    }
+    out.rpe_trans_rmse_m = (st / out.rpe_pairs as f64).sqrt();
+    out.rpe_rot_rmse_deg = (sr / out.rpe_pairs as f64).sqrt();
+    if out.compared == 0 {
+        out.max_error_m = f64::NAN;
+    }
+    out
+}
+
+#[cfg(test)]
+mod trajectory_tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn ate_and_rpe_of_known_offsets() {
+        let gt = |i: usize| {
+            Isometry3::from_parts(
+                Translation3::new(0.05 * i as f64, 1.25, 0.0),
+                UnitQuaternion::from_euler_angles(0.0, 0.01 * i as f64, 0.0),
+            )
+        };
+        // A constant 3 cm offset along x: ATE 0.03, no relative error; one frame lost, one 2 m off.
+        let mut frames: Vec<_> = (0..10)
+            .map(|i| {
+                let mut e = gt(i);
+                e.translation.vector.x += 0.03;
+                (Some(e), Some(gt(i)))
+            })
+            .collect();
+        let t = trajectory_errors(&frames);
+        assert!((t.ate_rmse_m - 0.03).abs() < 1e-12, "{t:?}");
+        assert!(
+            t.rpe_trans_rmse_m < 1e-9 && t.rpe_rot_rmse_deg < 1e-6,
+            "{t:?}"
+        );
+        assert_eq!((t.compared, t.rpe_pairs, t.over_1m), (10, 9, 0));
+        frames[4].0 = None;
+        frames[7].0.as_mut().unwrap().translation.vector.z += 2.0;
+        let t = trajectory_errors(&frames);
+        assert_eq!((t.compared, t.rpe_pairs, t.over_1m), (9, 7, 1));
+        assert!(t.max_error_m > 2.0 && t.ate_rmse_m > 0.6, "{t:?}");
+        assert!(t.rpe_trans_rmse_m > 0.5, "{t:?}");
+        let none = trajectory_errors(&[(None, Some(gt(0)))]);
+        assert!(none.ate_rmse_m.is_nan() && none.max_error_m.is_nan());
+    }
+}

@@ -287,10 +287,12 @@ impl Pipeline {
     }
 
     /// Localise one query, trying the map images inside `opts.region` first (a caller's prior or a
-    /// stream's last pose): retrieval ranks only those images, and the rest of the pipeline is the
-    /// same. When the region holds no map image, or none of its candidates verifies, global retrieval
-    /// over the whole map answers (the features are extracted once; the stage times add up both
-    /// attempts). [`Localization::mode`] says which path produced the answer.
+    /// stream's last pose): retrieval ranks only those images (`opts.region_candidates` of them),
+    /// and the rest of the pipeline is the same. When the region holds no map image, or none of its
+    /// candidates verifies, global retrieval over the whole map answers (the features are extracted
+    /// once; the stage times add up both attempts); in tracking mode a global pose outside the
+    /// region is refused (NOT_LOCALIZED: a tracked camera cannot jump). [`Localization::mode`] says
+    /// which path produced the answer.
     pub fn localize_with(
         &self,
         q: &Query,
@@ -320,7 +322,8 @@ impl Pipeline {
             .collect();
         let inside = opts.region.map(|r| self.images_within(&r));
         if let Some(ids) = inside.filter(|ids| !ids.is_empty()) {
-            let hits = self.map.retriever.search_among(&desc, shortlist, &ids)?;
+            let k = opts.region_candidates.unwrap_or(shortlist);
+            let hits = self.map.retriever.search_among(&desc, k, &ids)?;
             times.retrieval += t1.elapsed().as_secs_f64();
             let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
             if loc.status == Status::Localized {
@@ -334,7 +337,26 @@ impl Pipeline {
         let t2 = Instant::now();
         let hits = self.map.retriever.search(&desc, shortlist)?;
         times.retrieval += t2.elapsed().as_secs_f64();
-        self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)
+        let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
+        // A tracked camera cannot jump: a global answer outside the tracking region (where the
+        // camera can be, given its last verified pose) is a look-alike, not the robot's position.
+        match (opts.region, opts.region_mode, loc.pose) {
+            (Some(region), Mode::Tracking, Some(pose))
+                if !region.contains(&pose.translation.vector) =>
+            {
+                let off = (pose.translation.vector - region.center_m).norm();
+                Ok(Localization {
+                    status: Status::NotLocalized,
+                    reason: Some(format!(
+                        "tracking: the best pose is {off:.1} m from the stream's last pose, outside the {:.1} m it can have moved (send relocalize to accept a jump)",
+                        region.radius_m
+                    )),
+                    pose: None,
+                    ..loc
+                })
+            }
+            _ => Ok(loc),
+        }
     }
 
     /// Match, register and verify the retrieval candidates `hits` of the (resampled) query `q` with

@@ -25,6 +25,8 @@ pub const TRACKING_BASE_RADIUS_M: f64 = 1.0;
 pub const TRACKING_SPEED_MPS: f64 = 1.5;
 /// A stream's last pose older than this, seconds, no longer makes a tracking region.
 pub const TRACKING_MAX_AGE_S: f64 = 5.0;
+/// Candidates matched while tracking (the last pose leaves few plausible views).
+pub const TRACKING_CANDIDATES: usize = 2;
 /// Edge of the spatial index's cells, metres (about a room).
 const CELL_M: f64 = 2.0;
 
@@ -201,6 +203,29 @@ pub struct LocalizeOptions {
     pub region: Option<Region>,
     /// What the region is: [`Mode::Prior`] (the caller's) or [`Mode::Tracking`] (a stream's last pose).
     pub region_mode: Mode,
+    /// Candidates to match among the region's images (`None`: the preset's shortlist).
+    pub region_candidates: Option<usize>,
+}
+
+impl LocalizeOptions {
+    /// Search `region` first as a caller's prior.
+    pub fn prior(region: Region) -> Self {
+        Self {
+            region: Some(region),
+            region_mode: Mode::Prior,
+            region_candidates: None,
+        }
+    }
+
+    /// Search `region` first as a stream's tracking region: [`TRACKING_CANDIDATES`] candidates, and a
+    /// global answer outside the region is refused.
+    pub fn tracking(region: Region) -> Self {
+        Self {
+            region: Some(region),
+            region_mode: Mode::Tracking,
+            region_candidates: Some(TRACKING_CANDIDATES),
+        }
+    }
 }
 
 #[cfg(test)]

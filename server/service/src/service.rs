@@ -9,7 +9,7 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
-use pntr_pipeline::prior::{tracking_region, LocalizeOptions, Mode, Region};
+use pntr_pipeline::prior::{tracking_region, LocalizeOptions, Region};
 use tokio::sync::oneshot;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
@@ -322,14 +322,8 @@ impl LocalizerService {
         let map = engine.resolve(&msg.map_id)?;
         // The caller's prior wins over the stream's own tracking region.
         let options = match (decode::prior(&msg)?, tracking) {
-            (Some(region), _) => LocalizeOptions {
-                region: Some(region),
-                region_mode: Mode::Prior,
-            },
-            (None, Some(region)) => LocalizeOptions {
-                region: Some(region),
-                region_mode: Mode::Tracking,
-            },
+            (Some(region), _) => LocalizeOptions::prior(region),
+            (None, Some(region)) => LocalizeOptions::tracking(region),
             (None, None) => LocalizeOptions::default(),
         };
         let map_id = engine.maps[map].id.clone();
@@ -527,7 +521,10 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     } else {
                         request_id(&msg.request_id, &MetadataMap::new())
                     };
-                    let region = track.as_ref().and_then(|t| t.region(&msg.map_id));
+                    let region = track
+                        .as_ref()
+                        .filter(|_| !msg.relocalize)
+                        .and_then(|t| t.region(&msg.map_id));
                     let result = match id {
                         Ok(id) => this
                             .one(msg, id.clone(), deadline, region)

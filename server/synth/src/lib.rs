@@ -17,6 +17,7 @@ pub mod protocol;
 pub mod render;
 pub mod scene;
 pub mod texture;
+pub mod trajectory;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -56,6 +57,9 @@ pub struct SynthConfig {
     /// Camera of the queries (the database camera by default): a robot's camera against a map
     /// made with another.
     pub query_camera: Intrinsics,
+    /// Also render, per scene, a robot's drive of this many seconds ([`trajectory`]: 0.5 m/s,
+    /// 10 Hz, through the query camera) into `sequences/<scene>/` in the TUM RGB-D layout.
+    pub trajectory_seconds: Option<f64>,
 }
 
 impl Default for SynthConfig {
@@ -71,6 +75,7 @@ impl Default for SynthConfig {
             write: WriteOptions::default(),
             db_camera: Intrinsics::hpointloc(),
             query_camera: Intrinsics::hpointloc(),
+            trajectory_seconds: None,
         }
     }
 }
@@ -94,6 +99,8 @@ pub struct SceneSummary {
     pub boxes: usize,
     /// Apartment size (x, z), metres.
     pub size_m: (f32, f32),
+    /// Frames of the drive written to `sequences/<scene>/` (0 without `trajectory_seconds`).
+    pub sequence_frames: usize,
 }
 
 /// What a synthesis run produced.
@@ -292,6 +299,10 @@ pub fn synthesize(
             source,
         })?;
         let _ = std::fs::remove_dir_all(&old);
+        let sequence_frames = match cfg.trajectory_seconds {
+            Some(seconds) => render_drive(cfg, root, si, ps, &renderer, seconds, &count)?,
+            None => 0,
+        };
         summaries.push(SceneSummary {
             name: name.clone(),
             points: ps.points.len(),
@@ -301,6 +312,7 @@ pub fn synthesize(
             rooms: ps.scene.rooms.len(),
             boxes: ps.scene.boxes.len(),
             size_m: (ps.scene.width_m, ps.scene.depth_m),
+            sequence_frames,
         });
     }
     Ok(Summary {
@@ -308,6 +320,70 @@ pub fn synthesize(
         frames: frames.load(Ordering::Relaxed),
         seconds: start.elapsed().as_secs_f64(),
         root: root.to_path_buf(),
+    })
+}
+
+/// Folder of the sequences `synthesize` writes with `trajectory_seconds`: `root/sequences`.
+pub const SEQUENCES_DIR: &str = "sequences";
+
+/// Render the drive of scene `si` and write it to `root/sequences/<scene>/` (TUM layout); returns the
+/// number of frames.
+fn render_drive(
+    cfg: &SynthConfig,
+    root: &Path,
+    si: usize,
+    ps: &PlannedScene,
+    renderer: &Renderer,
+    seconds: f64,
+    on_frame: &(dyn Fn() + Sync),
+) -> Result<usize, SynthError> {
+    if !(seconds.is_finite() && seconds > 0.0) {
+        return Err(SynthError::Config(format!(
+            "trajectory seconds must be positive, not {seconds}"
+        )));
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(
+        cfg.seed ^ 0x7472_616a ^ (si as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
+    );
+    let drive = trajectory::plan_drive(
+        &ps.scene,
+        &ps.points,
+        seconds,
+        trajectory::DEFAULT_RATE_HZ,
+        trajectory::DEFAULT_SPEED_MPS,
+        &mut rng,
+    );
+    let frames: Vec<pntr_dataset::tum::SequenceFrame> = drive
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let f = renderer.render(
+                &p.world_from_camera,
+                &cfg.query_camera,
+                frame_seed(cfg.seed, si, 1 << 19, i),
+            );
+            on_frame();
+            pntr_dataset::tum::SequenceFrame {
+                timestamp: p.t,
+                rgb: f.rgb,
+                depth: f.depth,
+                world_from_camera: p.world_from_camera,
+            }
+        })
+        .collect();
+    let dir = root.join(SEQUENCES_DIR).join(&ps.scene.name);
+    std::fs::create_dir_all(root.join(SEQUENCES_DIR)).map_err(|source| SynthError::Io {
+        path: root.join(SEQUENCES_DIR),
+        source,
+    })?;
+    pntr_dataset::tum::write_sequence(&dir, &frames, &cfg.query_camera)?;
+    Ok(frames.len())
+}
+
+/// Frames the drives of a run will render (for progress bars).
+pub fn planned_sequence_frames(cfg: &SynthConfig) -> u64 {
+    cfg.trajectory_seconds.map_or(0, |s| {
+        cfg.scenes as u64 * (s * trajectory::DEFAULT_RATE_HZ).round().max(1.0) as u64
     })
 }
 

@@ -1,0 +1,316 @@
+//! `pntr replay`: stream a recorded drive through a running server's `LocalizeStream`, as a robot
+//! would, and measure the trajectory it gets back (ATE, RPE), the share localized and by which path,
+//! and the latency.
+//!
+//! Frames go one at a time, each after the previous answer, at the sequence's own pace (`--rate`
+//! to change it): the server tracks from the stream's last LOCALIZED pose. `--no-prior` asks for
+//! global localization of every frame (`relocalize`), the baseline; `--prior-radius M` also sends
+//! each frame an explicit prior of M metres around the previous answer (a robot's odometry).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use nalgebra::Isometry3;
+use pntr_dataset::tum::{ground_truth_line, TumSequence};
+use pntr_pipeline::eval::trajectory_errors;
+use pntr_pipeline::prior::Region;
+use pntr_service::proto;
+use pntr_service::tokio;
+use pntr_service::wire;
+use serde_json::json;
+
+use crate::remote::{authorized, channel, client, ConnectArgs};
+
+/// Arguments of `pntr replay`.
+#[derive(clap::Args, Debug)]
+pub struct ReplayArgs {
+    /// Where the server is, and how to authenticate.
+    #[command(flatten)]
+    pub connect: ConnectArgs,
+    /// The recorded drive: a folder in the TUM RGB-D layout (rgb.txt, depth.txt, optional
+    /// groundtruth.txt and calibration.txt).
+    #[arg(long)]
+    pub sequence: PathBuf,
+    /// Frames per second to send at (default: the sequence's own timestamps).
+    #[arg(long)]
+    pub rate: Option<f64>,
+    /// Localize every frame globally (the stream keeps no tracking region): the baseline.
+    #[arg(long)]
+    pub no_prior: bool,
+    /// Also send each frame an explicit prior of this radius, metres, around the previous answer.
+    #[arg(long, value_name = "METRES", conflicts_with = "no_prior")]
+    pub prior_radius: Option<f64>,
+    /// The camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]` when the sequence has no calibration.txt.
+    #[arg(long, value_name = "FX,FY,CX,CY")]
+    pub intrinsics: Option<String>,
+    /// Replay at most this many frames (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub frames: usize,
+    /// Estimated trajectory in TUM format (`timestamp tx ty tz qx qy qz qw`), LOCALIZED frames only.
+    #[arg(long)]
+    pub trajectory: PathBuf,
+    /// The JSON report.
+    #[arg(long)]
+    pub json: PathBuf,
+    /// Also draw both trajectories from above over the map's Points (PNG and SVG) into this folder.
+    #[arg(long, value_name = "DIR")]
+    pub plot: Option<PathBuf>,
+}
+
+/// One answered frame.
+struct Answered {
+    timestamp: f64,
+    estimate: Option<Isometry3<f64>>,
+    truth: Option<Isometry3<f64>>,
+    mode: String,
+    latency_ms: f64,
+    stages: Vec<(String, f64)>,
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    sorted[((p / 100.0) * (sorted.len() - 1) as f64).round() as usize]
+}
+
+/// The database camera positions of the sequence's scene when it sits in a `pntr synth` output
+/// (`ROOT/sequences/<scene>` beside `ROOT/HPointLoc_dataset/<scene>`); empty otherwise.
+fn map_positions(sequence: &Path) -> Vec<[f64; 3]> {
+    let (Some(scene), Some(root)) = (
+        sequence
+            .file_name()
+            .map(|s| s.to_string_lossy().to_string()),
+        sequence.parent().and_then(Path::parent),
+    ) else {
+        return Vec::new();
+    };
+    let Ok(index) = pntr_dataset::DatasetIndex::open(root) else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    for s in index.scenes.iter().filter(|s| s.name == scene) {
+        for p in &s.points {
+            if let Ok(r) = p.open() {
+                out.extend(
+                    r.poses(pntr_dataset::Role::Database)
+                        .iter()
+                        .map(|pose| -> [f64; 3] { pose.translation.vector.into() }),
+                );
+            }
+        }
+    }
+    out
+}
+
+/// `pntr replay`.
+pub fn run(args: &ReplayArgs) -> Result<()> {
+    if let Some(r) = args.rate {
+        if !(r.is_finite() && r > 0.0) {
+            bail!("--rate must be a positive number of frames per second, not {r}");
+        }
+    }
+    if let Some(r) = args.prior_radius {
+        if !(r.is_finite() && r > 0.0 && r <= pntr_pipeline::prior::MAX_RADIUS_M) {
+            bail!(
+                "--prior-radius must be in (0, {}] metres, not {r}",
+                pntr_pipeline::prior::MAX_RADIUS_M
+            );
+        }
+    }
+    let seq = TumSequence::open(&args.sequence)
+        .with_context(|| format!("--sequence {}", args.sequence.display()))?;
+    let camera = match (&args.intrinsics, seq.intrinsics) {
+        (Some(s), _) => crate::localize_cmd::parse_intrinsics(std::slice::from_ref(s))?,
+        (None, Some(k)) => wire::intrinsics_message(&k),
+        (None, None) => bail!(
+            "{}: no calibration.txt; pass the camera with --intrinsics fx,fy,cx,cy",
+            args.sequence.display()
+        ),
+    };
+    let n = if args.frames == 0 {
+        seq.frames.len()
+    } else {
+        args.frames.min(seq.frames.len())
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let mut c = client(rt.block_on(channel(&args.connect))?);
+    let bar = ProgressBar::new(n as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames ({per_sec}, eta {eta})")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let (tx, rx) = tokio::sync::mpsc::channel::<proto::LocalizeRequest>(1);
+    let mut request = authorized(
+        &args.connect,
+        pntr_service::tokio_stream::wrappers::ReceiverStream::new(rx),
+    )?;
+    request.set_timeout(Duration::from_secs(3600 * 24));
+    let mut answers = rt
+        .block_on(c.localize_stream(request))
+        .context("opening LocalizeStream")?
+        .into_inner();
+    let t0 = seq.frames[0].timestamp;
+    let start = Instant::now();
+    let mut out: Vec<Answered> = Vec::with_capacity(n);
+    let mut last: Option<Isometry3<f64>> = None;
+    let mut localized = 0usize;
+    for i in 0..n {
+        let f = &seq.frames[i];
+        let due = match args.rate {
+            Some(r) => i as f64 / r,
+            None => f.timestamp - t0,
+        };
+        let wait = due - start.elapsed().as_secs_f64();
+        if wait > 0.0 {
+            std::thread::sleep(Duration::from_secs_f64(wait));
+        }
+        let (rgb, depth) = seq.load(i)?;
+        let mut req = wire::raw_request(&rgb, &depth, None);
+        req.intrinsics = Some(camera.clone());
+        req.map_id = args.connect.map_id.clone();
+        req.request_id = format!("{:.6}", f.timestamp);
+        req.relocalize = args.no_prior;
+        if let (Some(r), Some(p)) = (args.prior_radius, last) {
+            req.prior = Some(wire::prior_message(&Region::new(p.translation.vector, r)?));
+        }
+        let sent = Instant::now();
+        rt.block_on(tx.send(req))
+            .map_err(|_| anyhow::anyhow!("the server closed the stream"))?;
+        let r = rt
+            .block_on(answers.message())
+            .with_context(|| format!("frame {i} (t = {:.6})", f.timestamp))?
+            .with_context(|| format!("the server ended the stream before frame {i}"))?;
+        let latency_ms = sent.elapsed().as_secs_f64() * 1e3;
+        let estimate = (r.status == proto::Status::Localized as i32)
+            .then(|| wire::pose(r.pose.as_ref()))
+            .flatten();
+        if estimate.is_some() {
+            localized += 1;
+            last = estimate;
+        }
+        out.push(Answered {
+            timestamp: f.timestamp,
+            estimate,
+            truth: f.world_from_camera,
+            mode: proto::Mode::try_from(r.mode)
+                .map(|m| m.as_str_name().to_string())
+                .unwrap_or_else(|_| "UNKNOWN".into()),
+            latency_ms,
+            stages: crate::remote::stage_seconds(&r),
+        });
+        bar.set_message(format!(
+            "{:.1}% localized",
+            100.0 * localized as f64 / (i + 1) as f64
+        ));
+        bar.inc(1);
+    }
+    drop(tx);
+    let wall = start.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+
+    let mut traj = String::from("# estimated trajectory (world_from_camera), LOCALIZED frames\n# timestamp tx ty tz qx qy qz qw\n");
+    for a in &out {
+        if let Some(e) = &a.estimate {
+            traj += &ground_truth_line(a.timestamp, e);
+            traj.push('\n');
+        }
+    }
+    crate::map_cmd::write_text(&args.trajectory, &traj)?;
+    let pairs: Vec<_> = out.iter().map(|a| (a.estimate, a.truth)).collect();
+    let errors = trajectory_errors(&pairs);
+    let mut lat: Vec<f64> = out.iter().map(|a| a.latency_ms).collect();
+    lat.sort_by(f64::total_cmp);
+    let mut modes: BTreeMap<String, usize> = BTreeMap::new();
+    for a in &out {
+        *modes.entry(a.mode.clone()).or_default() += 1;
+    }
+    let mut stage_sums: BTreeMap<String, f64> = BTreeMap::new();
+    for a in &out {
+        for (s, v) in &a.stages {
+            *stage_sums.entry(s.clone()).or_default() += v * 1e3;
+        }
+    }
+    let stage_ms: BTreeMap<String, f64> = stage_sums
+        .into_iter()
+        .map(|(k, v)| (k, v / out.len().max(1) as f64))
+        .collect();
+    let tracked = out
+        .iter()
+        .filter(|a| a.estimate.is_some() && (a.mode == "TRACKING" || a.mode == "PRIOR"))
+        .count();
+    let frames = out.len().max(1) as f64;
+    let report = json!({
+        "frames": out.len(),
+        "localized_share": localized as f64 / frames,
+        "tracking_share": tracked as f64 / frames,
+        "ate_rmse_m": errors.ate_rmse_m,
+        "rpe_trans_rmse_m": errors.rpe_trans_rmse_m,
+        "rpe_rot_rmse_deg": errors.rpe_rot_rmse_deg,
+        "fps": out.len() as f64 / wall.max(1e-9),
+        "latency_ms": {"p50": percentile(&lat, 50.0), "p90": percentile(&lat, 90.0), "p99": percentile(&lat, 99.0)},
+        "stage_ms": stage_ms,
+        "max_error_m": errors.max_error_m,
+        "frames_over_1m": errors.over_1m,
+        "frames_with_ground_truth": errors.compared,
+        "modes": modes,
+        "prior": if args.no_prior { "none (relocalize every frame)".to_string() }
+            else if let Some(r) = args.prior_radius { format!("previous answer, {r} m radius, and the stream's tracking") }
+            else { "the stream's tracking".to_string() },
+        "sequence": args.sequence.display().to_string(),
+    });
+    crate::map_cmd::write_json(&args.json, &report)?;
+    println!(
+        "{} frames: {:.1}% localized ({:.1}% by tracking or prior), ATE {:.3} m, RPE {:.3} m / {:.2} deg, max error {:.3} m ({} over 1 m); latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms; {:.1} frames/s",
+        out.len(),
+        100.0 * localized as f64 / frames,
+        100.0 * tracked as f64 / frames,
+        errors.ate_rmse_m,
+        errors.rpe_trans_rmse_m,
+        errors.rpe_rot_rmse_deg,
+        errors.max_error_m,
+        errors.over_1m,
+        percentile(&lat, 50.0),
+        percentile(&lat, 90.0),
+        percentile(&lat, 99.0),
+        out.len() as f64 / wall.max(1e-9)
+    );
+    eprintln!(
+        "trajectory written to {}, report to {}",
+        args.trajectory.display(),
+        args.json.display()
+    );
+    if let Some(dir) = &args.plot {
+        let truth: Vec<[f64; 3]> = out
+            .iter()
+            .filter_map(|a| a.truth.map(|t| t.translation.vector.into()))
+            .collect();
+        let est: Vec<[f64; 3]> = out
+            .iter()
+            .filter_map(|a| a.estimate.map(|t| t.translation.vector.into()))
+            .collect();
+        let title = format!(
+            "{}: {} frames, {:.1}% localized, ATE {:.3} m",
+            args.sequence.display(),
+            out.len(),
+            100.0 * localized as f64 / frames,
+            errors.ate_rmse_m
+        );
+        let files = crate::plot::trajectory_plot(
+            &map_positions(&args.sequence),
+            &truth,
+            &est,
+            dir,
+            &title,
+        )?;
+        eprintln!("{} pictures written to {}", files.len(), dir.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,203 @@
+//! A robot's drive end to end: `pntr synth --trajectory-seconds` writes a TUM RGB-D sequence beside
+//! the dataset, `pntr build-db` maps the dataset, and `pntr replay` streams the drive through a real
+//! `pntr-server` (in this process, 127.0.0.1, ephemeral port), with tracking and without.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+mod support;
+
+use pntr_service::config::Settings;
+use pntr_service::tokio;
+
+fn pntr(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .env_remove("PNTR_TOKEN")
+        .output()
+        .expect("pntr runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn lines(path: &Path) -> Vec<Vec<f64>> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+        .collect()
+}
+
+#[test]
+fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_str().unwrap();
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+    let out = ok(&pntr(&[
+        "synth",
+        "--out",
+        root,
+        "--points-per-scene",
+        "6",
+        "--queries-per-point",
+        "1",
+        "--seed",
+        "21",
+        "--trajectory-seconds",
+        "5",
+        "--json",
+    ]));
+    let summary: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(summary["scenes"][0]["sequence_frames"], 50, "{summary}");
+    // The TUM layout: 16-bit depth at 5000 per metre, ground truth of every frame, the camera.
+    let seq = dir.path().join("sequences/synth000");
+    let gt = lines(&seq.join("groundtruth.txt"));
+    assert_eq!(gt.len(), 50);
+    assert!(gt.iter().all(|l| l.len() == 8));
+    assert!((gt[1][0] - gt[0][0] - 0.1).abs() < 1e-6, "10 Hz");
+    let speed = ((gt[49][1] - gt[48][1]).powi(2) + (gt[49][3] - gt[48][3]).powi(2)).sqrt() / 0.1;
+    assert!(speed <= 0.5 + 1e-6, "{speed} m/s");
+    let calib = &lines(&seq.join("calibration.txt"))[0];
+    assert_eq!(calib.len(), 4, "fx fy cx cy");
+    for (v, want) in calib.iter().zip([128.0, 128.0, 127.5, 127.5]) {
+        assert!((v - want).abs() < 1e-9, "{calib:?}");
+    }
+    let depth = image::open(seq.join("depth/0.000000.png")).unwrap();
+    assert!(matches!(depth, image::DynamicImage::ImageLuma16(_)));
+    let rgb_list = std::fs::read_to_string(seq.join("rgb.txt")).unwrap();
+    assert!(rgb_list.contains("0.100000 rgb/0.100000.png"), "{rgb_list}");
+
+    let map = dir.path().join("m.pntrmap");
+    ok(&pntr(&[
+        "build-db",
+        "--dataset",
+        root,
+        "--out",
+        map.to_str().unwrap(),
+        "--models",
+        models,
+    ]));
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let settings = Settings::local(vec![map], models.into());
+    let mut server = rt.block_on(async {
+        let s = pntr_service::start(settings).await.unwrap();
+        s.ready().await.unwrap();
+        s
+    });
+    let addr = server.addr.to_string();
+    let mut reports = Vec::new();
+    for (name, extra) in [("tracking", None), ("global", Some("--no-prior"))] {
+        let traj = dir.path().join(format!("{name}.txt"));
+        let report = dir.path().join(format!("{name}.json"));
+        let plots = dir.path().join(format!("{name}-plots"));
+        let mut args = vec![
+            "replay",
+            "--addr",
+            &addr,
+            "--sequence",
+            seq.to_str().unwrap(),
+            "--rate",
+            "50",
+            "--trajectory",
+            traj.to_str().unwrap(),
+            "--json",
+            report.to_str().unwrap(),
+            "--plot",
+            plots.to_str().unwrap(),
+        ];
+        args.extend(extra);
+        let printed = ok(&pntr(&args));
+        assert!(
+            printed.contains("50 frames") && printed.contains("ATE"),
+            "{printed}"
+        );
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        for k in [
+            "frames",
+            "localized_share",
+            "tracking_share",
+            "ate_rmse_m",
+            "rpe_trans_rmse_m",
+            "rpe_rot_rmse_deg",
+            "fps",
+            "latency_ms",
+            "stage_ms",
+        ] {
+            assert!(!r[k].is_null(), "{k} missing: {r}");
+        }
+        for p in ["p50", "p90", "p99"] {
+            assert!(r["latency_ms"][p].as_f64().unwrap() > 0.0, "{r}");
+        }
+        assert_eq!(r["frames"], 50);
+        // The estimated trajectory: LOCALIZED frames only, TUM order, near the ground truth.
+        let est = lines(&traj);
+        let localized = r["localized_share"].as_f64().unwrap();
+        assert_eq!(est.len(), (localized * 50.0).round() as usize, "{r}");
+        assert!(localized >= 0.5, "{name}: {r}");
+        // Tracking must not drift into a wrong pose; global localization of drive frames (the
+        // baseline) can still be fooled by a look-alike, which BENCHMARKS.md reports.
+        for e in est.iter().filter(|_| name == "tracking") {
+            let g = gt
+                .iter()
+                .find(|g| (g[0] - e[0]).abs() < 1e-6)
+                .expect("a ground-truth time");
+            let d = ((e[1] - g[1]).powi(2) + (e[2] - g[2]).powi(2) + (e[3] - g[3]).powi(2)).sqrt();
+            assert!(d < 1.0, "{name}: frame at {} is {d} m off", e[0]);
+        }
+        if name == "tracking" {
+            assert!(r["ate_rmse_m"].as_f64().unwrap() < 0.2, "{name}: {r}");
+            assert_eq!(r["frames_over_1m"], 0, "{r}");
+        }
+        support::assert_picture(
+            &plots,
+            "trajectory",
+            (900, 900),
+            &[
+                "ground truth",
+                "LOCALIZED answers",
+                "map images (database cameras)",
+            ],
+        );
+        reports.push(r);
+    }
+    // Tracking answers most frames through the stream's state; --no-prior none.
+    assert!(
+        reports[0]["tracking_share"].as_f64().unwrap() >= 0.4,
+        "{}",
+        reports[0]
+    );
+    assert_eq!(reports[1]["tracking_share"], 0.0);
+    assert_eq!(reports[1]["modes"]["GLOBAL"], 50);
+
+    // A folder that is not a sequence is named with what was expected.
+    let bad = pntr(&[
+        "replay",
+        "--addr",
+        &addr,
+        "--sequence",
+        root,
+        "--trajectory",
+        dir.path().join("x.txt").to_str().unwrap(),
+        "--json",
+        dir.path().join("x.json").to_str().unwrap(),
+    ]);
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(err.contains("rgb.txt"), "{err}");
+    server.shutdown();
+    rt.block_on(server.wait()).unwrap();
+}
