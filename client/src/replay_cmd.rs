@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
+use pntr_dataset::bag::{Bag, Topics};
 use pntr_dataset::tum::{ground_truth_line, TumSequence};
 use pntr_pipeline::eval::trajectory_errors;
 use pntr_pipeline::prior::Region;
@@ -31,9 +32,22 @@ pub struct ReplayArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
     /// The recorded drive: a folder in the TUM RGB-D layout (rgb.txt, depth.txt, optional
-    /// groundtruth.txt and calibration.txt).
+    /// groundtruth.txt and calibration.txt), or a ROS 2 bag (`.mcap`).
     #[arg(long)]
     pub sequence: PathBuf,
+    /// ROS 2 bag: the colour topic (sensor_msgs/Image, rgb8/bgr8/rgba8/bgra8).
+    #[arg(long, default_value = "/camera/color/image_raw")]
+    pub rgb_topic: String,
+    /// ROS 2 bag: the depth topic, aligned to the colour camera (16UC1 millimetres or 32FC1 metres).
+    #[arg(long, default_value = "/camera/aligned_depth_to_color/image_raw")]
+    pub depth_topic: String,
+    /// ROS 2 bag: the colour camera's sensor_msgs/CameraInfo topic.
+    #[arg(long, default_value = "/camera/color/camera_info")]
+    pub info_topic: String,
+    /// ROS 2 bag: a geometry_msgs/PoseStamped topic with the ground truth (world_from_camera in the
+    /// map's frame and camera axes), for ATE and RPE.
+    #[arg(long)]
+    pub pose_topic: Option<String>,
     /// Frames per second to send at (default: the sequence's own timestamps).
     #[arg(long)]
     pub rate: Option<f64>,
@@ -58,6 +72,68 @@ pub struct ReplayArgs {
     /// Also draw both trajectories from above over the map's Points (PNG and SVG) into this folder.
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
+}
+
+/// A recorded drive: a TUM RGB-D folder or a ROS 2 bag.
+enum Recording {
+    Tum(TumSequence),
+    Bag(Bag),
+}
+
+impl Recording {
+    fn open(args: &ReplayArgs) -> Result<Self> {
+        let is_bag = args.sequence.is_file()
+            && args
+                .sequence
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        Ok(if is_bag {
+            let topics = Topics {
+                rgb: args.rgb_topic.clone(),
+                depth: args.depth_topic.clone(),
+                info: args.info_topic.clone(),
+                pose: args.pose_topic.clone(),
+            };
+            Recording::Bag(Bag::open(&args.sequence, &topics)?)
+        } else {
+            Recording::Tum(TumSequence::open(&args.sequence)?)
+        })
+    }
+
+    fn len(&self) -> usize {
+        match self {
+            Recording::Tum(s) => s.frames.len(),
+            Recording::Bag(b) => b.len(),
+        }
+    }
+
+    fn intrinsics(&self) -> Option<pntr_core::Intrinsics> {
+        match self {
+            Recording::Tum(s) => s.intrinsics,
+            Recording::Bag(b) => b.intrinsics,
+        }
+    }
+
+    fn timestamp(&self, i: usize) -> f64 {
+        match self {
+            Recording::Tum(s) => s.frames[i].timestamp,
+            Recording::Bag(b) => b.timestamp(i),
+        }
+    }
+
+    fn ground_truth(&self, i: usize) -> Option<Isometry3<f64>> {
+        match self {
+            Recording::Tum(s) => s.frames[i].world_from_camera,
+            Recording::Bag(b) => b.ground_truth(i),
+        }
+    }
+
+    fn load(&self, i: usize) -> Result<(pntr_core::RgbImage, pntr_core::DepthMap)> {
+        Ok(match self {
+            Recording::Tum(s) => s.load(i)?,
+            Recording::Bag(b) => b.load(i)?,
+        })
+    }
 }
 
 /// One answered frame.
@@ -121,20 +197,20 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             );
         }
     }
-    let seq = TumSequence::open(&args.sequence)
-        .with_context(|| format!("--sequence {}", args.sequence.display()))?;
-    let camera = match (&args.intrinsics, seq.intrinsics) {
+    let seq =
+        Recording::open(args).with_context(|| format!("--sequence {}", args.sequence.display()))?;
+    let camera = match (&args.intrinsics, seq.intrinsics()) {
         (Some(s), _) => crate::localize_cmd::parse_intrinsics(std::slice::from_ref(s))?,
         (None, Some(k)) => wire::intrinsics_message(&k),
         (None, None) => bail!(
-            "{}: no calibration.txt; pass the camera with --intrinsics fx,fy,cx,cy",
+            "{}: no calibration.txt or camera info; pass the camera with --intrinsics fx,fy,cx,cy",
             args.sequence.display()
         ),
     };
     let n = if args.frames == 0 {
-        seq.frames.len()
+        seq.len()
     } else {
-        args.frames.min(seq.frames.len())
+        args.frames.min(seq.len())
     };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -157,16 +233,16 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .block_on(c.localize_stream(request))
         .context("opening LocalizeStream")?
         .into_inner();
-    let t0 = seq.frames[0].timestamp;
+    let t0 = seq.timestamp(0);
     let start = Instant::now();
     let mut out: Vec<Answered> = Vec::with_capacity(n);
     let mut last: Option<Isometry3<f64>> = None;
     let mut localized = 0usize;
     for i in 0..n {
-        let f = &seq.frames[i];
+        let timestamp = seq.timestamp(i);
         let due = match args.rate {
             Some(r) => i as f64 / r,
-            None => f.timestamp - t0,
+            None => timestamp - t0,
         };
         let wait = due - start.elapsed().as_secs_f64();
         if wait > 0.0 {
@@ -176,7 +252,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         let mut req = wire::raw_request(&rgb, &depth, None);
         req.intrinsics = Some(camera.clone());
         req.map_id = args.connect.map_id.clone();
-        req.request_id = format!("{:.6}", f.timestamp);
+        req.request_id = format!("{:.6}", timestamp);
         req.relocalize = args.no_prior;
         if let (Some(r), Some(p)) = (args.prior_radius, last) {
             req.prior = Some(wire::prior_message(&Region::new(p.translation.vector, r)?));
@@ -186,7 +262,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             .map_err(|_| anyhow::anyhow!("the server closed the stream"))?;
         let r = rt
             .block_on(answers.message())
-            .with_context(|| format!("frame {i} (t = {:.6})", f.timestamp))?
+            .with_context(|| format!("frame {i} (t = {:.6})", timestamp))?
             .with_context(|| format!("the server ended the stream before frame {i}"))?;
         let latency_ms = sent.elapsed().as_secs_f64() * 1e3;
         let estimate = (r.status == proto::Status::Localized as i32)
@@ -197,9 +273,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             last = estimate;
         }
         out.push(Answered {
-            timestamp: f.timestamp,
+            timestamp: timestamp,
             estimate,
-            truth: f.world_from_camera,
+            truth: seq.ground_truth(i),
             mode: proto::Mode::try_from(r.mode)
                 .map(|m| m.as_str_name().to_string())
                 .unwrap_or_else(|_| "UNKNOWN".into()),

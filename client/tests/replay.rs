@@ -1,6 +1,7 @@
 //! A robot's drive end to end: `pntr synth --trajectory-seconds` writes a TUM RGB-D sequence beside
 //! the dataset, `pntr build-db` maps the dataset, and `pntr replay` streams the drive through a real
-//! `pntr-server` (in this process, 127.0.0.1, ephemeral port), with tracking and without.
+//! `pntr-server` (in this process, 127.0.0.1, ephemeral port), with tracking and without, and again
+//! from a ROS 2 bag (MCAP) the test writes from the same frames.
 
 use std::path::Path;
 use std::process::{Command, Output};
@@ -182,6 +183,70 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     );
     assert_eq!(reports[1]["tracking_share"], 0.0);
     assert_eq!(reports[1]["modes"]["GLOBAL"], 50);
+
+    // The same drive as a ROS 2 bag (MCAP; colour rgb8, depth 16UC1 millimetres, camera info,
+    // ground truth as PoseStamped), written here and replayed the same way.
+    let tum = pntr_dataset::tum::TumSequence::open(&seq).unwrap();
+    let loaded: Vec<_> = (0..20).map(|i| tum.load(i).unwrap()).collect();
+    let frames: Vec<pntr_dataset::bag::BagFrame<'_>> = loaded
+        .iter()
+        .enumerate()
+        .map(|(i, (rgb, depth))| {
+            (
+                100.0 + tum.frames[i].timestamp,
+                rgb,
+                depth,
+                tum.frames[i].world_from_camera,
+            )
+        })
+        .collect();
+    let topics = pntr_dataset::bag::Topics {
+        pose: Some("/ground_truth".into()),
+        ..Default::default()
+    };
+    let bag = dir.path().join("drive.mcap");
+    pntr_dataset::bag::write_bag(&bag, &frames, &tum.intrinsics.unwrap(), &topics).unwrap();
+    let report = dir.path().join("bag.json");
+    let printed = ok(&pntr(&[
+        "replay",
+        "--addr",
+        &addr,
+        "--sequence",
+        bag.to_str().unwrap(),
+        "--pose-topic",
+        "/ground_truth",
+        "--rate",
+        "50",
+        "--trajectory",
+        dir.path().join("bag.txt").to_str().unwrap(),
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    assert!(printed.contains("20 frames"), "{printed}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert!(r["localized_share"].as_f64().unwrap() >= 0.5, "{r}");
+    assert_eq!(r["frames_over_1m"], 0, "{r}");
+    assert!(r["frames_with_ground_truth"].as_u64().unwrap() >= 10, "{r}");
+    // A topic the bag lacks is named beside the topics it has.
+    let wrong = pntr(&[
+        "replay",
+        "--addr",
+        &addr,
+        "--sequence",
+        bag.to_str().unwrap(),
+        "--rgb-topic",
+        "/rgb",
+        "--trajectory",
+        dir.path().join("x.txt").to_str().unwrap(),
+        "--json",
+        dir.path().join("x.json").to_str().unwrap(),
+    ]);
+    assert!(!wrong.status.success());
+    let err = String::from_utf8_lossy(&wrong.stderr);
+    assert!(
+        err.contains("/rgb") && err.contains("/camera/color/image_raw"),
+        "{err}"
+    );
 
     // A folder that is not a sequence is named with what was expected.
     let bad = pntr(&[

@@ -26,6 +26,7 @@
 //! - Poses come out as `world_from_camera` in Habitat camera axes, exactly as stored; conversion to
 //!   OpenCV axes is an explicit call into `pntr_core`.
 
+pub mod bag;
 mod error;
 mod last_words;
 pub mod layout;

@@ -775,9 +775,7 @@ pub type EstimateAndTruth = (Option<Isometry3<f64>>, Option<Isometry3<f64>>);
 /// ATE and RPE (Sturm et al., the TUM RGB-D benchmark) of `frames`: per frame in time order, the
 /// estimate (`None` when not localized) and the ground truth (`None` when unknown). NaN when nothing
 /// can be compared.
-pub fn trajectory_errors(
-    frames: &[EstimateAndTruth],
-) -> TrajectoryErrors {
+pub fn trajectory_errors(frames: &[EstimateAndTruth]) -> TrajectoryErrors {
     let mut sq = 0.0;
     let mut out = TrajectoryErrors::default();
     for (est, gt) in frames {

@@ -237,30 +237,48 @@ impl Drop for StreamGauge {
     }
 }
 
-/// What a stream remembers between frames: where its last LOCALIZED answer put the camera.
+/// What a stream remembers between frames: where its last LOCALIZED answer put the camera, and
+/// whether that fix is confirmed. A global fix is confirmed only by a second LOCALIZED answer within
+/// the tracking region of the first (two independent retrievals agree), so one look-alike answer
+/// cannot start tracking in the wrong place; answers found by tracking or a prior inherit it.
 struct Track {
     map_id: String,
     position_m: Vector3<f64>,
     at: Instant,
+    confirmed: bool,
 }
 
 impl Track {
-    /// The state after a LOCALIZED answer (`None` for any other answer: the last fix stays).
-    fn from_answer(r: &proto::LocalizeResponse) -> Option<Self> {
+    /// The state after answer `r`, given the state before (`None` for an answer that is not
+    /// LOCALIZED: the last fix stays).
+    fn after(previous: Option<&Track>, r: &proto::LocalizeResponse) -> Option<Self> {
         if r.status != proto::Status::Localized as i32 {
             return None;
         }
         let t = r.pose.as_ref()?.translation.as_ref()?;
+        let position_m = Vector3::new(t.x, t.y, t.z);
+        let global = r.mode == proto::Mode::Global as i32;
+        let agrees = previous.is_some_and(|p| {
+            p.map_id == r.map_id
+                && tracking_region(p.position_m, p.at.elapsed().as_secs_f64())
+                    .is_some_and(|region| region.contains(&position_m))
+        });
         Some(Self {
             map_id: r.map_id.clone(),
-            position_m: Vector3::new(t.x, t.y, t.z),
+            position_m,
             at: Instant::now(),
+            confirmed: if global {
+                agrees
+            } else {
+                previous.is_none_or(|p| p.confirmed)
+            },
         })
     }
 
-    /// The tracking region for the next frame of map `map_id` (empty: the server's only map).
+    /// The tracking region for the next frame of map `map_id` (empty: the server's only map); none
+    /// before the fix is confirmed.
     fn region(&self, map_id: &str) -> Option<Region> {
-        if !map_id.is_empty() && map_id != self.map_id {
+        if !self.confirmed || (!map_id.is_empty() && map_id != self.map_id) {
             return None;
         }
         tracking_region(self.position_m, self.at.elapsed().as_secs_f64())
@@ -539,7 +557,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         }
                     };
                     if let Ok(r) = &result {
-                        if let Some(t) = Track::from_answer(r) {
+                        if let Some(t) = Track::after(track.as_ref(), r) {
                             track = Some(t);
                         }
                     }
