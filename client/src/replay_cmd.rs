@@ -273,7 +273,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             last = estimate;
         }
         out.push(Answered {
-            timestamp: timestamp,
+            timestamp,
             estimate,
             truth: seq.ground_truth(i),
             mode: proto::Mode::try_from(r.mode)

@@ -710,9 +710,9 @@ mod tests {
         assert_eq!(bag.len(), 3);
         let back = bag.intrinsics.unwrap();
         assert_eq!((back.fx, back.cx, back.width), (k.fx, k.cx, 4));
-        for i in 0..3 {
+        for (i, want_rgb) in rgbs.iter().enumerate() {
             let (rgb, d) = bag.load(i).unwrap();
-            assert_eq!(rgb.data, rgbs[i].data);
+            assert_eq!(rgb.data, want_rgb.data);
             // Millimetres: invalid values become 0, 70 m saturates at 65.535 m.
             let want = [0.0, 1.0, 2.5, 10.0, 0.0, 0.0, 0.0, 65.535];
             for (a, b) in d.data.iter().zip(want) {
