@@ -14,6 +14,8 @@
 //!   [`calibration`]: the fitted model that turns them into the probability of a right pose.
 //! - [`prior`]: a rough pose from the robot (odometry, the last fix) as a search region, and the
 //!   spatial index over the map's camera positions that serves it.
+//! - [`odometry`]: a stream's next frame registered against its keyframe (the last verified frame),
+//!   anchored to a map fix, so a driving robot stays localized between views the map covers.
 //! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
 //!   separate, labelled mode).
 
@@ -22,6 +24,7 @@ pub mod camera;
 pub mod eval;
 pub mod map;
 pub mod mapfile;
+pub mod odometry;
 pub mod pipeline;
 pub mod preset;
 pub mod prior;

@@ -33,6 +33,7 @@ use serde::Serialize;
 use crate::calibration::{choose, Calibration};
 use crate::camera::to_map_scale;
 use crate::map::Map;
+use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
 use crate::verify::{dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb};
@@ -121,6 +122,12 @@ pub struct Localization {
     pub times: StageTimes,
     /// Which path answered: global retrieval, or the map images inside a prior or tracking region.
     pub mode: Mode,
+    /// True when the pose came from registering the frame against the stream's keyframe
+    /// ([`crate::odometry`]; `mode` is then [`Mode::Tracking`]).
+    pub odometry: bool,
+    /// The keyframe the stream's next frame tracks from, when asked for
+    /// ([`LocalizeOptions::want_keyframe`]) and LOCALIZED.
+    pub keyframe: Option<Arc<Keyframe>>,
 }
 
 /// A candidate pose that verification scored.
@@ -136,6 +143,14 @@ pub struct Verified {
     pub confidence: f64,
     /// Map indices of the verified candidates whose pose disagrees with it (0.5 m, 10 deg).
     pub rivals: Vec<usize>,
+}
+
+/// The query as the tracking paths see it: features, back-projected keypoints (OpenCV query frame)
+/// and the thumbnail (made only for streams).
+struct Frame<'a> {
+    features: &'a Features,
+    points: &'a [Option<Vector3<f64>>],
+    thumb: Option<&'a Thumb>,
 }
 
 /// Registration of one candidate.
@@ -293,6 +308,11 @@ impl Pipeline {
     /// once; the stage times add up both attempts); in tracking mode a global pose outside the
     /// region is refused (NOT_LOCALIZED: a tracked camera cannot jump). [`Localization::mode`] says
     /// which path produced the answer.
+    ///
+    /// With `opts.keyframe` (a stream's last verified frame) the frame is first registered against it
+    /// ([`crate::odometry`]; after the map instead when `opts.map_first`), and an accepted hop inside
+    /// the region answers LOCALIZED in [`Mode::Tracking`] with [`Localization::odometry`] set, without
+    /// retrieval. With `opts.want_keyframe` a LOCALIZED answer carries the keyframe for the next frame.
     pub fn localize_with(
         &self,
         q: &Query,
@@ -310,7 +330,6 @@ impl Pipeline {
         let fq = self.stage.extractor.extract(&q.rgb)?;
         let t1 = Instant::now();
         times.extraction = (t1 - tr).as_secs_f64();
-        let desc = self.map.retriever.describer.describe(&q.rgb, &fq)?;
         // A query that sees less than a map image describes the place less surely: widen the
         // shortlist with its coverage deficit (at most twice the preset's).
         let shortlist = (self.preset.candidates as f64 * resampled.coverage_ratio.min(2.0)).round();
@@ -320,17 +339,37 @@ impl Pipeline {
             .iter()
             .map(|p| p[0].is_finite().then(|| vec3(*p)))
             .collect();
+        let thumb = (opts.keyframe.is_some() || opts.want_keyframe)
+            .then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
+        let frame = Frame {
+            features: &fq,
+            points: &q_pts,
+            thumb: thumb.as_ref(),
+        };
+        // A tracked stream: the keyframe first, unless its map fix is old enough to re-anchor.
+        let mut odometry_refusal = None;
+        if let (Some(key), false) = (&opts.keyframe, opts.map_first) {
+            match self.odometry_answer(key, &frame, opts, &mut times, t0)? {
+                Ok(loc) => return Ok(loc),
+                Err(why) => odometry_refusal = Some(why),
+            }
+        }
+        let td = Instant::now();
+        let desc = self.map.retriever.describer.describe(&q.rgb, &fq)?;
+        times.retrieval += td.elapsed().as_secs_f64();
         let inside = opts.region.map(|r| self.images_within(&r));
         if let Some(ids) = inside.filter(|ids| !ids.is_empty()) {
             let k = opts.region_candidates.unwrap_or(shortlist);
+            let ts = Instant::now();
             let hits = self.map.retriever.search_among(&desc, k, &ids)?;
-            times.retrieval += t1.elapsed().as_secs_f64();
+            times.retrieval += ts.elapsed().as_secs_f64();
             let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
             if loc.status == Status::Localized {
-                return Ok(Localization {
+                let loc = Localization {
                     mode: opts.region_mode,
                     ..loc
-                });
+                };
+                return self.settle(loc, &frame, opts, t0);
             }
             times = loc.times;
         }
@@ -340,12 +379,12 @@ impl Pipeline {
         let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the
         // camera can be, given its last verified pose) is a look-alike, not the robot's position.
-        match (opts.region, opts.region_mode, loc.pose) {
+        let loc = match (opts.region, opts.region_mode, loc.pose) {
             (Some(region), Mode::Tracking, Some(pose))
                 if !region.contains(&pose.translation.vector) =>
             {
                 let off = (pose.translation.vector - region.center_m).norm();
-                Ok(Localization {
+                Localization {
                     status: Status::NotLocalized,
                     reason: Some(format!(
                         "tracking: the best pose is {off:.1} m from the stream's last pose, outside the {:.1} m it can have moved (send relocalize to accept a jump)",
@@ -353,9 +392,145 @@ impl Pipeline {
                     )),
                     pose: None,
                     ..loc
-                })
+                }
             }
-            _ => Ok(loc),
+            _ => loc,
+        };
+        if loc.status == Status::Localized {
+            return self.settle(loc, &frame, opts, t0);
+        }
+        // The map did not answer: the keyframe, if it was not tried yet.
+        let mut times = loc.times;
+        if let (Some(key), true) = (&opts.keyframe, opts.map_first) {
+            match self.odometry_answer(key, &frame, opts, &mut times, t0)? {
+                Ok(found) => return Ok(found),
+                Err(why) => odometry_refusal = Some(why),
+            }
+        }
+        let reason = match (loc.reason, odometry_refusal) {
+            (Some(r), Some(o)) => Some(format!("{r}; odometry: {o}")),
+            (r, o) => r.or(o.map(|o| format!("odometry: {o}"))),
+        };
+        Ok(Localization {
+            reason,
+            times,
+            ..loc
+        })
+    }
+
+    /// Register the frame against a stream's keyframe ([`crate::odometry`]): a LOCALIZED TRACKING
+    /// answer, or why not. The hop's time counts as registration.
+    fn odometry_answer(
+        &self,
+        key: &Arc<Keyframe>,
+        frame: &Frame,
+        opts: &LocalizeOptions,
+        times: &mut StageTimes,
+        t0: Instant,
+    ) -> Result<Result<Localization, String>, PipelineError> {
+        let th = Instant::now();
+        let thumb = frame.thumb.expect("made when a keyframe is given");
+        let hop = odometry::register(
+            key,
+            frame.features,
+            frame.points,
+            thumb,
+            &self.cheap,
+            &self.teaser,
+        )?;
+        times.registration += th.elapsed().as_secs_f64();
+        let Some(hop) = hop else {
+            return Ok(Err("no valid registration with the keyframe".into()));
+        };
+        if let Some(why) = &hop.refused {
+            return Ok(Err(why.clone()));
+        }
+        if let Some(region) = opts.region {
+            let at = hop.world_from_query.translation.vector;
+            if !region.contains(&at) {
+                return Ok(Err(format!(
+                    "the pose is {:.1} m from the last one, outside the {:.1} m the camera can have moved",
+                    (at - region.center_m).norm(),
+                    region.radius_m
+                )));
+            }
+        }
+        times.total = t0.elapsed().as_secs_f64();
+        let pose = convert_axes(
+            &hop.world_from_query,
+            CameraAxes::OpenCv,
+            CameraAxes::Habitat,
+        );
+        let keyframe = opts.want_keyframe.then(|| {
+            odometry::next_keyframe(key, &hop, frame.features, frame.points, thumb.clone())
+        });
+        Ok(Ok(Localization {
+            status: Status::Localized,
+            reason: None,
+            pose: Some(pose),
+            estimate: Some(pose),
+            confidence: key.confidence,
+            evidence: Some(hop.evidence),
+            covariance: hop.covariance.map(Box::new),
+            verified: Vec::new(),
+            inliers: hop.inliers,
+            correspondences: hop.pairs,
+            image: key.image,
+            retrieved: Vec::new(),
+            times: *times,
+            mode: Mode::Tracking,
+            odometry: true,
+            keyframe,
+        }))
+    }
+
+    /// A LOCALIZED map answer `loc` of a tracked stream whose keyframe was not tried yet (a
+    /// re-anchoring frame): when the keyframe also registers and the two poses disagree (0.5 m, 10
+    /// deg), the camera cannot have jumped, so the map answer is a look-alike and odometry answers;
+    /// otherwise the map answer stands and the frame becomes the anchored keyframe.
+    fn settle(
+        &self,
+        loc: Localization,
+        frame: &Frame,
+        opts: &LocalizeOptions,
+        t0: Instant,
+    ) -> Result<Localization, PipelineError> {
+        if let (Some(key), true, Some(pose)) = (&opts.keyframe, opts.map_first, loc.pose) {
+            let mut times = loc.times;
+            if let Ok(hop) = self.odometry_answer(key, frame, opts, &mut times, t0)? {
+                let hop_pose = hop.pose.expect("odometry answers are LOCALIZED");
+                if !poses_agree(&hop_pose, &pose, 0.5, 10.0) {
+                    return Ok(hop);
+                }
+            }
+            let loc = Localization { times, ..loc };
+            return Ok(self.with_keyframe(loc, frame, opts));
+        }
+        Ok(self.with_keyframe(loc, frame, opts))
+    }
+
+    /// `loc` with the keyframe a stream tracks from next: this frame, at its verified map pose.
+    fn with_keyframe(
+        &self,
+        loc: Localization,
+        frame: &Frame,
+        opts: &LocalizeOptions,
+    ) -> Localization {
+        let (Some(pose), Some(thumb), true) = (loc.pose, frame.thumb, opts.want_keyframe) else {
+            return loc;
+        };
+        let keyframe = Keyframe::anchored(
+            frame.features,
+            frame.points,
+            thumb.clone(),
+            convert_axes(&pose, CameraAxes::Habitat, CameraAxes::OpenCv),
+            loc.covariance.as_deref().copied(),
+            loc.confidence,
+            loc.image,
+        );
+        Localization {
+            keyframe: Some(Arc::new(keyframe)),
+            ..loc
         }
     }
 
@@ -509,6 +684,8 @@ impl Pipeline {
                 retrieved: hits,
                 times,
                 mode: Mode::Global,
+                odometry: false,
+                keyframe: None,
             });
         };
         let world_from_query = self
@@ -542,6 +719,8 @@ impl Pipeline {
             retrieved: hits,
             times,
             mode: Mode::Global,
+            odometry: false,
+            keyframe: None,
         })
     }
 

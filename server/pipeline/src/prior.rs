@@ -8,10 +8,12 @@
 //! region where nothing verifies falls back to global retrieval ([`crate::pipeline::Pipeline::localize_with`]).
 
 use std::collections::HashMap;
+use std::sync::Arc;
 
 use nalgebra::Vector3;
 use serde::Serialize;
 
+use crate::odometry::Keyframe;
 use crate::PipelineError;
 
 /// Largest radius a region may have, metres (a "prior" bigger than a campus is no prior).
@@ -197,7 +199,7 @@ impl PoseIndex {
 }
 
 /// How to localise one query beyond the frame itself.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 pub struct LocalizeOptions {
     /// Try the map images inside this region first.
     pub region: Option<Region>,
@@ -205,6 +207,15 @@ pub struct LocalizeOptions {
     pub region_mode: Mode,
     /// Candidates to match among the region's images (`None`: the preset's shortlist).
     pub region_candidates: Option<usize>,
+    /// A stream's keyframe: the frame is registered against it ([`crate::odometry`]) before or after
+    /// the map is tried (see `map_first`).
+    pub keyframe: Option<Arc<Keyframe>>,
+    /// Try the map (region, then global) before the keyframe: the stream's map fix is getting old and
+    /// the chain should be re-anchored.
+    pub map_first: bool,
+    /// Return the keyframe the next frame of the stream should track from
+    /// ([`crate::pipeline::Localization::keyframe`]).
+    pub want_keyframe: bool,
 }
 
 impl LocalizeOptions {
@@ -213,7 +224,7 @@ impl LocalizeOptions {
         Self {
             region: Some(region),
             region_mode: Mode::Prior,
-            region_candidates: None,
+            ..Self::default()
         }
     }
 
@@ -224,6 +235,7 @@ impl LocalizeOptions {
             region: Some(region),
             region_mode: Mode::Tracking,
             region_candidates: Some(TRACKING_CANDIDATES),
+            ..Self::default()
         }
     }
 }

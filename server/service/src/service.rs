@@ -9,7 +9,8 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use nalgebra::Vector3;
-use pntr_pipeline::prior::{tracking_region, LocalizeOptions, Region};
+use pntr_pipeline::odometry::Keyframe;
+use pntr_pipeline::prior::{tracking_region, LocalizeOptions, Region, TRACKING_MAX_AGE_S};
 use tokio::sync::oneshot;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
@@ -237,51 +238,107 @@ impl Drop for StreamGauge {
     }
 }
 
-/// What a stream remembers between frames: where its last LOCALIZED answer put the camera, and
-/// whether that fix is confirmed. A global fix is confirmed only by a second LOCALIZED answer within
-/// the tracking region of the first (two independent retrievals agree), so one look-alike answer
-/// cannot start tracking in the wrong place; answers found by tracking or a prior inherit it.
+/// A stream re-anchors (tries the map before its keyframe) once its last map fix is this old, seconds.
+pub const REANCHOR_AFTER_S: f64 = 0.5;
+/// A map fix this long, seconds, after the stream's last LOCALIZED answer starts an unconfirmed track.
+pub const RECONFIRM_AFTER_S: f64 = 1.0;
+
+/// What a stream remembers between frames: where its last LOCALIZED answer put the camera, whether
+/// that fix is confirmed, the keyframe the next frame registers against ([`pntr_pipeline::odometry`])
+/// and when the chain was last verified against the map. A global fix is confirmed only by a second
+/// LOCALIZED answer within the tracking region of the first (two independent retrievals agree), so one
+/// look-alike answer cannot start tracking in the wrong place; answers found by tracking or a prior
+/// inherit it. One keyframe (about 1 MB with XFeat) per open stream, freed with the stream.
 struct Track {
     map_id: String,
     position_m: Vector3<f64>,
     at: Instant,
     confirmed: bool,
+    keyframe: Option<Arc<Keyframe>>,
+    anchored_at: Instant,
+}
+
+/// What the stream needs from an answer besides the response: the next keyframe, and whether the
+/// pose came from the keyframe rather than the map.
+#[derive(Debug, Default)]
+struct Followup {
+    keyframe: Option<Arc<Keyframe>>,
+    odometry: bool,
+}
+
+/// What the stream's state offers the next frame (all empty for a unary call).
+#[derive(Debug, Default)]
+struct Tracking {
+    /// The frame belongs to a stream (which keeps a keyframe).
+    stream: bool,
+    region: Option<Region>,
+    keyframe: Option<Arc<Keyframe>>,
+    map_first: bool,
 }
 
 impl Track {
     /// The state after answer `r`, given the state before (`None` for an answer that is not
     /// LOCALIZED: the last fix stays).
-    fn after(previous: Option<&Track>, r: &proto::LocalizeResponse) -> Option<Self> {
+    fn after(previous: Option<&Track>, r: &proto::LocalizeResponse, f: Followup) -> Option<Self> {
         if r.status != proto::Status::Localized as i32 {
             return None;
         }
         let t = r.pose.as_ref()?.translation.as_ref()?;
         let position_m = Vector3::new(t.x, t.y, t.z);
         let global = r.mode == proto::Mode::Global as i32;
-        let agrees = previous.is_some_and(|p| {
-            p.map_id == r.map_id
-                && tracking_region(p.position_m, p.at.elapsed().as_secs_f64())
+        let same_map = previous.is_some_and(|p| p.map_id == r.map_id);
+        let agrees = same_map
+            && previous.is_some_and(|p| {
+                tracking_region(p.position_m, p.at.elapsed().as_secs_f64())
                     .is_some_and(|region| region.contains(&position_m))
-        });
+            });
+        let recent =
+            same_map && previous.is_some_and(|p| p.at.elapsed().as_secs_f64() <= RECONFIRM_AFTER_S);
+        let now = Instant::now();
         Some(Self {
             map_id: r.map_id.clone(),
             position_m,
-            at: Instant::now(),
-            confirmed: if global {
+            at: now,
+            // Odometry continues the chain it registered against. A map fix inherits the track's
+            // confirmation only right after its last answer: after a gap the tracking region has
+            // grown enough to hold look-alikes, so the fix must be confirmed again by a second one.
+            confirmed: if f.odometry {
+                previous.is_none_or(|p| p.confirmed)
+            } else if !recent {
+                false
+            } else if global {
                 agrees
             } else {
                 previous.is_none_or(|p| p.confirmed)
             },
+            keyframe: f.keyframe,
+            anchored_at: match previous {
+                Some(p) if f.odometry && same_map => p.anchored_at,
+                _ => now,
+            },
         })
     }
 
-    /// The tracking region for the next frame of map `map_id` (empty: the server's only map); none
-    /// before the fix is confirmed.
-    fn region(&self, map_id: &str) -> Option<Region> {
+    /// What the next frame of map `map_id` (empty: the server's only map) tracks with: nothing before
+    /// the fix is confirmed; the keyframe while the chain's last map fix is younger than
+    /// [`TRACKING_MAX_AGE_S`], the map first once it is older than [`REANCHOR_AFTER_S`].
+    fn next(&self, map_id: &str) -> Tracking {
         if !self.confirmed || (!map_id.is_empty() && map_id != self.map_id) {
-            return None;
+            return Tracking {
+                stream: true,
+                ..Tracking::default()
+            };
         }
-        tracking_region(self.position_m, self.at.elapsed().as_secs_f64())
+        let anchor_age_s = self.anchored_at.elapsed().as_secs_f64();
+        Tracking {
+            stream: true,
+            region: tracking_region(self.position_m, self.at.elapsed().as_secs_f64()),
+            keyframe: self
+                .keyframe
+                .clone()
+                .filter(|_| anchor_age_s <= TRACKING_MAX_AGE_S),
+            map_first: anchor_age_s >= REANCHOR_AFTER_S,
+        }
     }
 }
 
@@ -303,8 +360,8 @@ impl LocalizerService {
         msg: proto::LocalizeRequest,
         request_id: String,
         deadline: Option<Instant>,
-        tracking: Option<Region>,
-    ) -> Result<proto::LocalizeResponse, Status> {
+        tracking: Tracking,
+    ) -> Result<(proto::LocalizeResponse, Followup), Status> {
         let mut in_flight = InFlight::new();
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
         let result = self
@@ -313,7 +370,7 @@ impl LocalizerService {
             .await;
         let _entered = span.enter();
         match &result {
-            Ok(r) if r.status == proto::Status::Localized as i32 => {
+            Ok((r, _)) if r.status == proto::Status::Localized as i32 => {
                 in_flight.count("LOCALIZED", Code::Ok)
             }
             Ok(_) => in_flight.count("NOT_LOCALIZED", Code::Ok),
@@ -333,16 +390,28 @@ impl LocalizerService {
         &self,
         msg: proto::LocalizeRequest,
         deadline: Option<Instant>,
-        tracking: Option<Region>,
+        tracking: Tracking,
         span: tracing::Span,
-    ) -> Result<proto::LocalizeResponse, Status> {
+    ) -> Result<(proto::LocalizeResponse, Followup), Status> {
         let engine = self.state.loaded()?.clone();
         let map = engine.resolve(&msg.map_id)?;
-        // The caller's prior wins over the stream's own tracking region.
-        let options = match (decode::prior(&msg)?, tracking) {
-            (Some(region), _) => LocalizeOptions::prior(region),
-            (None, Some(region)) => LocalizeOptions::tracking(region),
-            (None, None) => LocalizeOptions::default(),
+        // The caller's prior wins over the stream's own state (its region and its keyframe); a
+        // stream's LOCALIZED answer still leaves a keyframe for the next frame.
+        let options = match (decode::prior(&msg)?, tracking.region) {
+            (Some(region), _) => LocalizeOptions {
+                want_keyframe: tracking.stream,
+                ..LocalizeOptions::prior(region)
+            },
+            (None, Some(region)) => LocalizeOptions {
+                keyframe: tracking.keyframe,
+                map_first: tracking.map_first,
+                want_keyframe: tracking.stream,
+                ..LocalizeOptions::tracking(region)
+            },
+            (None, None) => LocalizeOptions {
+                want_keyframe: tracking.stream,
+                ..LocalizeOptions::default()
+            },
         };
         let map_id = engine.maps[map].id.clone();
         span.record("map_id", map_id.as_str());
@@ -429,7 +498,7 @@ impl LocalizerService {
             queue_ms = queued.as_secs_f64() * 1e3,
             "localized"
         );
-        Ok(proto::LocalizeResponse {
+        let response = proto::LocalizeResponse {
             status: if localized {
                 proto::Status::Localized
             } else {
@@ -462,7 +531,12 @@ impl LocalizerService {
             },
             min_confidence: engine.min_confidence,
             mode: wire::mode_message(loc.mode) as i32,
-        })
+        };
+        let followup = Followup {
+            keyframe: loc.keyframe.clone().filter(|_| localized),
+            odometry: loc.odometry,
+        };
+        Ok((response, followup))
     }
 }
 
@@ -492,8 +566,9 @@ impl proto::localizer_server::Localizer for LocalizerService {
             }
         };
         let mut out = self
-            .one(msg, id.clone(), deadline, None)
+            .one(msg, id.clone(), deadline, Tracking::default())
             .await
+            .map(|(r, _)| r)
             .map_err(|mut e| {
                 if let Ok(v) = MetadataValue::try_from(id.as_str()) {
                     e.metadata_mut().insert("x-request-id", v);
@@ -522,7 +597,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
             async move {
                 let _open = StreamGauge::new();
                 let mut n = 0u64;
-                // Tracking state, the whole of what a stream keeps: the last verified position.
+                // Tracking state, the whole of what a stream keeps: the last verified position and
+                // the keyframe.
                 let mut track: Option<Track> = None;
                 loop {
                     let msg = match input.message().await {
@@ -539,28 +615,34 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     } else {
                         request_id(&msg.request_id, &MetadataMap::new())
                     };
-                    let region = track
-                        .as_ref()
-                        .filter(|_| !msg.relocalize)
-                        .and_then(|t| t.region(&msg.map_id));
-                    let result = match id {
-                        Ok(id) => this
-                            .one(msg, id.clone(), deadline, region)
-                            .await
-                            .map(|mut r| {
-                                r.request_id = id;
-                                r
-                            }),
-                        Err(e) => {
-                            count("ERROR", e.code());
-                            Err(e)
-                        }
+                    // A relocalizing frame is localized globally, as a unary call would be.
+                    let tracking = match &track {
+                        _ if msg.relocalize => Tracking::default(),
+                        Some(t) => t.next(&msg.map_id),
+                        None => Tracking {
+                            stream: true,
+                            ..Tracking::default()
+                        },
                     };
-                    if let Ok(r) = &result {
-                        if let Some(t) = Track::after(track.as_ref(), r) {
+                    let result =
+                        match id {
+                            Ok(id) => this.one(msg, id.clone(), deadline, tracking).await.map(
+                                |(mut r, f)| {
+                                    r.request_id = id;
+                                    (r, f)
+                                },
+                            ),
+                            Err(e) => {
+                                count("ERROR", e.code());
+                                Err(e)
+                            }
+                        };
+                    let result = result.map(|(r, f)| {
+                        if let Some(t) = Track::after(track.as_ref(), &r, f) {
                             track = Some(t);
                         }
-                    }
+                        r
+                    });
                     let failed = result.is_err();
                     if tx.send(result).await.is_err() || failed {
                         break; // the client went away, or an error ends the stream
@@ -652,5 +734,99 @@ mod tests {
         assert_eq!(request_id("", &m).unwrap(), "from-meta");
         assert!(request_id("has space", &m).is_err());
         assert!(request_id(&"x".repeat(200), &m).is_err());
+    }
+
+    fn answer(x: f64, mode: proto::Mode) -> proto::LocalizeResponse {
+        proto::LocalizeResponse {
+            status: proto::Status::Localized as i32,
+            pose: Some(proto::Pose {
+                translation: Some(proto::Vector3 { x, y: 0.0, z: 0.0 }),
+                rotation: Some(proto::Quaternion {
+                    x: 0.0,
+                    y: 0.0,
+                    z: 0.0,
+                    w: 1.0,
+                }),
+            }),
+            map_id: "m".into(),
+            mode: mode as i32,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_track_is_confirmed_by_agreement_and_anchored_by_map_fixes() {
+        let odometry = |odometry| Followup {
+            odometry,
+            ..Followup::default()
+        };
+        // A first global fix is not tracked until a second agrees.
+        let first = Track::after(None, &answer(0.0, proto::Mode::Global), odometry(false)).unwrap();
+        assert!(!first.confirmed);
+        assert!(first.next("").region.is_none());
+        let far = Track::after(
+            Some(&first),
+            &answer(9.0, proto::Mode::Global),
+            odometry(false),
+        );
+        assert!(
+            !far.unwrap().confirmed,
+            "a disagreeing fix confirms nothing"
+        );
+        let t = Track::after(
+            Some(&first),
+            &answer(0.3, proto::Mode::Global),
+            odometry(false),
+        )
+        .unwrap();
+        assert!(t.confirmed);
+        let next = t.next("m");
+        assert!(next.stream && next.region.is_some() && !next.map_first);
+        assert!(
+            t.next("other").region.is_none(),
+            "another map is not tracked"
+        );
+        // Odometry keeps the chain's anchor time; a map fix renews it.
+        let kept = Track::after(
+            Some(&t),
+            &answer(0.35, proto::Mode::Tracking),
+            odometry(true),
+        );
+        let kept = kept.unwrap();
+        assert!(kept.confirmed);
+        assert_eq!(
+            kept.anchored_at, t.anchored_at,
+            "odometry does not re-anchor"
+        );
+        let renewed = Track::after(
+            Some(&kept),
+            &answer(0.4, proto::Mode::Tracking),
+            odometry(false),
+        );
+        assert!(renewed.unwrap().anchored_at > t.anchored_at);
+        // After a gap a map fix must be confirmed again, odometry continues.
+        let mut stale = Track::after(
+            Some(&kept),
+            &answer(0.5, proto::Mode::Tracking),
+            odometry(false),
+        );
+        let stale = stale.as_mut().unwrap();
+        stale.at -= Duration::from_secs_f64(RECONFIRM_AFTER_S + 0.5);
+        let late = Track::after(
+            Some(stale),
+            &answer(1.5, proto::Mode::Tracking),
+            odometry(false),
+        );
+        assert!(!late.unwrap().confirmed);
+        let late = Track::after(
+            Some(stale),
+            &answer(1.5, proto::Mode::Tracking),
+            odometry(true),
+        );
+        assert!(late.unwrap().confirmed);
+        // A frame that is not LOCALIZED leaves the state as it was.
+        let mut refused = answer(5.0, proto::Mode::Global);
+        refused.status = proto::Status::NotLocalized as i32;
+        assert!(Track::after(Some(&kept), &refused, odometry(false)).is_none());
     }
 }

@@ -1,0 +1,243 @@
+//! Frame-to-frame tracking for streams: the next frame registered against the stream's keyframe.
+//!
+//! A robot's frames at 10-30 Hz overlap by most of their view, far more than any frame overlaps a map
+//! image taken from a Point a metre away and looking elsewhere. So while a stream is tracked, the
+//! server keeps its last LOCALIZED frame (keypoints, descriptors, their 3D points, a thumbnail and the
+//! pose) as a [`Keyframe`], and a new frame is first matched and registered against it:
+//! `world_from_query = world_from_keyframe * keyframe_from_query`. This is RGB-D odometry chained to
+//! the map, the tracking thread of keyframe SLAM systems (ORB-SLAM's reference keyframe) without the
+//! map building:
+//!
+//! - A keyframe is born only from an answer verified against the map ([`Keyframe::anchored`]), and
+//!   an odometry answer keeps the keyframe (no chaining frame to frame, so error is not added at
+//!   every frame) until the overlap falls below [`REFRESH_OVERLAP`] or the inliers below
+//!   [`REFRESH_INLIERS`]; then the frame itself becomes the next keyframe, one hop further from its
+//!   map fix ([`Keyframe::hops`]).
+//! - An odometry pose is LOCALIZED only when the registration holds ([`MIN_INLIERS`],
+//!   [`MIN_INLIER_RATIO`]), the dense depth and grey levels of the two frames agree
+//!   ([`MIN_DEPTH_AGREE`], [`MIN_GRAY_CORRELATION`], at most [`MAX_FREE_SPACE_VIOLATION`] seen
+//!   through) and the pose lies in the tracking region (a camera cannot jump). The stream (the
+//!   service) stops using the keyframe when its map fix is too old, and asks for the map to be tried
+//!   first again after a short while, so the chain is re-anchored; a map answer that disagrees with
+//!   an accepted hop is taken for a look-alike (the pipeline's `settle`).
+//! - Confidence and covariance come from the map fix: the fix's calibrated confidence, and its
+//!   covariance plus the covariance of each hop's registration, rotated into the map frame (the
+//!   first-order sum, ignoring the lever arm of rotation uncertainty).
+
+use std::sync::Arc;
+
+use nalgebra::{Isometry3, Vector3};
+use pntr_features::{Features, Matcher};
+use pntr_registration::covariance::{point_to_point_covariance, rotate_covariance};
+use pntr_registration::teaser::{solve, TeaserParams};
+use pntr_registration::Rigid;
+
+use crate::verify::{dense_evidence, Evidence, Thumb};
+
+/// Fewest registration inliers for an odometry pose.
+pub const MIN_INLIERS: usize = 30;
+/// Smallest share of the matched pairs with depth that are inliers.
+pub const MIN_INLIER_RATIO: f64 = 0.3;
+/// Smallest dense depth agreement between the frame and its keyframe (0..1; right hops on our
+/// synthetic drives: 0.94 and above).
+pub const MIN_DEPTH_AGREE: f64 = 0.8;
+/// Smallest grey-level correlation on the agreeing samples (-1..1; right hops: 0.91 and above). Depth
+/// alone cannot see a camera sliding along a flat wall; the wall's texture can.
+pub const MIN_GRAY_CORRELATION: f64 = 0.7;
+/// Largest share of the frame's samples that see through the keyframe's surfaces.
+pub const MAX_FREE_SPACE_VIOLATION: f64 = 0.1;
+/// The frame becomes the next keyframe when it sees less of the keyframe than this share...
+pub const REFRESH_OVERLAP: f64 = 0.7;
+/// ... or registers with fewer inliers than this.
+pub const REFRESH_INLIERS: usize = 80;
+/// Floor of the point noise in a hop's covariance, metres.
+const MIN_SIGMA_M: f64 = 0.01;
+
+/// What a stream tracks from: one earlier frame with its verified pose.
+#[derive(Clone)]
+pub struct Keyframe {
+    /// Keypoints and descriptors of the frame (at the map's pixel scale).
+    pub features: Features,
+    /// 3D point of each keypoint in the frame's OpenCV camera frame, metres (`None`: no depth).
+    pub points: Vec<Option<Vector3<f64>>>,
+    /// Thumbnail for the dense check.
+    pub thumb: Thumb,
+    /// `world_from_camera` of the frame, map frame, OpenCV camera axes.
+    pub world_from_camera: Isometry3<f64>,
+    /// 6x6 covariance of that pose, map frame, ROS order (metres², radians²).
+    pub covariance: Option<[f64; 36]>,
+    /// Calibrated confidence of the map fix the chain starts from.
+    pub confidence: f64,
+    /// Map index of the database image of that fix.
+    pub image: Option<usize>,
+    /// Keyframes between this one and its map fix (0: the fix itself).
+    pub hops: u32,
+}
+
+impl std::fmt::Debug for Keyframe {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "Keyframe({} keypoints, hops {}, at {:?})",
+            self.features.keypoints.len(),
+            self.hops,
+            self.world_from_camera.translation.vector.as_slice()
+        )
+    }
+}
+
+impl Keyframe {
+    /// A keyframe from a frame verified against the map.
+    pub fn anchored(
+        features: &Features,
+        points: &[Option<Vector3<f64>>],
+        thumb: Thumb,
+        world_from_camera: Isometry3<f64>,
+        covariance: Option<[f64; 36]>,
+        confidence: f64,
+        image: Option<usize>,
+    ) -> Self {
+        Self {
+            features: features.clone(),
+            points: points.to_vec(),
+            thumb,
+            world_from_camera,
+            covariance,
+            confidence,
+            image,
+            hops: 0,
+        }
+    }
+
+    /// Bytes held (approximately): what one tracked stream costs the server.
+    pub fn heap_bytes(&self) -> usize {
+        let f = &self.features;
+        f.keypoints.len() * (8 + 4 + 32)
+            + f.descriptors.len() * 4
+            + f.binary.len() * 32
+            + self.thumb.depth_mm.len() * 3
+    }
+}
+
+/// An odometry registration of a frame against a keyframe.
+#[derive(Debug, Clone)]
+pub struct Hop {
+    /// `world_from_camera` of the frame, map frame, OpenCV axes.
+    pub world_from_query: Isometry3<f64>,
+    /// Registration inliers.
+    pub inliers: usize,
+    /// Matched pairs with depth on both sides.
+    pub pairs: usize,
+    /// The dense check against the keyframe.
+    pub evidence: Evidence,
+    /// Covariance of the pose (the keyframe's plus this hop's), map frame, ROS order.
+    pub covariance: Option<[f64; 36]>,
+    /// Why the hop is refused, `None` when it holds.
+    pub refused: Option<String>,
+}
+
+impl Hop {
+    /// True when the frame should replace its keyframe (it sees too little of it).
+    pub fn refreshes(&self) -> bool {
+        self.evidence.overlap < REFRESH_OVERLAP || self.inliers < REFRESH_INLIERS
+    }
+}
+
+/// Match the frame (`features`, back-projected `points`, `thumb`) against `key` with `matcher`,
+/// register the 3D pairs (TEASER-class, [`pntr_registration::teaser`]) and check the dense depth of
+/// both frames. `None` when the registration fails outright; otherwise the hop, refused or not.
+///
+/// # Errors
+/// The matcher's errors.
+pub fn register(
+    key: &Keyframe,
+    features: &Features,
+    points: &[Option<Vector3<f64>>],
+    thumb: &Thumb,
+    matcher: &dyn Matcher,
+    teaser: &TeaserParams,
+) -> Result<Option<Hop>, pntr_features::FeatureError> {
+    let m = matcher.match_features(features, &key.features)?;
+    let (mut src, mut dst) = (Vec::new(), Vec::new());
+    for &(a, b) in &m.pairs {
+        let (Some(Some(s)), Some(Some(d))) = (points.get(a as usize), key.points.get(b as usize))
+        else {
+            continue;
+        };
+        src.push(*s);
+        dst.push(*d);
+    }
+    let r = solve(&src, &dst, teaser);
+    if !r.valid {
+        return Ok(None);
+    }
+    let key_from_query = Rigid::to_isometry(&r.transform);
+    let evidence = dense_evidence(thumb, &key.thumb, &key_from_query, &[]);
+    let inliers = r.inliers.len();
+    let ratio = inliers as f64 / src.len().max(1) as f64;
+    let refused = if inliers < MIN_INLIERS {
+        Some(format!("{inliers} inliers, fewer than {MIN_INLIERS}"))
+    } else if ratio < MIN_INLIER_RATIO {
+        Some(format!("inlier ratio {ratio:.2} below {MIN_INLIER_RATIO}"))
+    } else if evidence.depth_agree < MIN_DEPTH_AGREE {
+        Some(format!(
+            "depth agreement {:.2} below {MIN_DEPTH_AGREE}",
+            evidence.depth_agree
+        ))
+    } else if evidence.gray_correlation < MIN_GRAY_CORRELATION {
+        Some(format!(
+            "grey correlation {:.2} below {MIN_GRAY_CORRELATION}",
+            evidence.gray_correlation
+        ))
+    } else if evidence.free_space_violation > MAX_FREE_SPACE_VIOLATION {
+        Some(format!(
+            "free-space violation {:.2} above {MAX_FREE_SPACE_VIOLATION}",
+            evidence.free_space_violation
+        ))
+    } else {
+        None
+    };
+    let inlier_src: Vec<_> = r.inliers.iter().map(|&i| src[i]).collect();
+    let inlier_dst: Vec<_> = r.inliers.iter().map(|&i| dst[i]).collect();
+    let covariance = key.covariance.and_then(|base| {
+        let local = point_to_point_covariance(&inlier_src, &inlier_dst, &r.transform, MIN_SIGMA_M)?;
+        let world = rotate_covariance(&local, &key.world_from_camera.rotation.to_rotation_matrix());
+        let mut out = base;
+        for (i, v) in out.iter_mut().enumerate() {
+            *v += world[(i / 6, i % 6)];
+        }
+        Some(out)
+    });
+    Ok(Some(Hop {
+        world_from_query: key.world_from_camera * key_from_query,
+        inliers,
+        pairs: src.len(),
+        evidence,
+        covariance,
+        refused,
+    }))
+}
+
+/// The keyframe after an accepted `hop` of the frame (`features`, `points`, `thumb`): the same one,
+/// or the frame itself one hop further when it [`Hop::refreshes`].
+pub fn next_keyframe(
+    key: &Arc<Keyframe>,
+    hop: &Hop,
+    features: &Features,
+    points: &[Option<Vector3<f64>>],
+    thumb: Thumb,
+) -> Arc<Keyframe> {
+    if !hop.refreshes() {
+        return Arc::clone(key);
+    }
+    Arc::new(Keyframe {
+        features: features.clone(),
+        points: points.to_vec(),
+        thumb,
+        world_from_camera: hop.world_from_query,
+        covariance: hop.covariance,
+        confidence: key.confidence,
+        image: key.image,
+        hops: key.hops + 1,
+    })
+}

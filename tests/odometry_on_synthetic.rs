@@ -1,0 +1,138 @@
+//! A stream's frames registered against its keyframe (`pntr_pipeline::odometry`), on a generated drive
+//! with the committed models: the tracked drive stays localized and accurate between map views, and a
+//! keyframe that does not fit the frame never produces a pose.
+
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+use pntr_dataset::tum::TumSequence;
+use pntr_pipeline::odometry::Keyframe;
+use pntr_pipeline::pipeline::{Localization, Pipeline, Query, Status};
+use pntr_pipeline::preset::Preset;
+use pntr_pipeline::prior::{LocalizeOptions, Mode, Region};
+
+fn drive(root: &std::path::Path, seed: u64) -> (Pipeline, TumSequence) {
+    let cfg = pntr_synth::SynthConfig {
+        points_per_scene: 6,
+        queries_per_point: 1,
+        seed,
+        trajectory_seconds: Some(8.0),
+        ..Default::default()
+    };
+    pntr_synth::synthesize(&cfg, root, pntr_synth::plan_all(&cfg), &|| {}).expect("synthesize");
+    let index = pntr_dataset::DatasetIndex::open(root).expect("dataset");
+    let map = pntr_tests::build_map(&index, "xfeat-mnn", "drive");
+    let preset = Preset::named("xfeat-mnn").unwrap();
+    let stage = preset
+        .feature_config(pntr_tests::models())
+        .build()
+        .expect("models load");
+    let pipeline = Pipeline::new(Arc::new(map), stage, preset).expect("pipeline");
+    let seq = TumSequence::open(&root.join(pntr_synth::SEQUENCES_DIR).join("synth000"))
+        .expect("the drive's TUM folder");
+    (pipeline, seq)
+}
+
+fn query(seq: &TumSequence, i: usize) -> Query {
+    let (rgb, depth) = seq.load(i).expect("frame");
+    Query {
+        rgb,
+        depth,
+        intrinsics: seq.intrinsics.expect("calibration.txt"),
+    }
+}
+
+fn position(loc: &Localization) -> Option<Vector3<f64>> {
+    loc.pose.map(|p| p.translation.vector)
+}
+
+#[test]
+fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no_pose() {
+    for seed in [41u64, 42] {
+        let dir = tempfile::tempdir().unwrap();
+        let (pipeline, seq) = drive(dir.path(), seed);
+        let n = seq.frames.len();
+        assert_eq!(n, 80);
+        let truth = |i: usize| seq.frames[i].world_from_camera.expect("ground truth");
+        // The service's loop without its clock: the keyframe first, the map when it does not hold.
+        let mut keyframe: Option<Arc<Keyframe>> = None;
+        let mut last: Option<Vector3<f64>> = None;
+        let (mut localized, mut by_odometry, mut worst_m, mut squares) =
+            (0usize, 0usize, 0.0f64, 0.0);
+        let mut first_keyframe = None;
+        for i in 0..n {
+            // Every fifth frame re-anchors (the map first), as the service does after 0.5 s.
+            let opts = LocalizeOptions {
+                keyframe: keyframe.clone(),
+                want_keyframe: true,
+                map_first: i % 5 == 0,
+                ..match last {
+                    Some(p) => LocalizeOptions::tracking(Region::new(p, 2.0).unwrap()),
+                    None => LocalizeOptions::default(),
+                }
+            };
+            let loc = pipeline.localize_with(&query(&seq, i), &opts).unwrap();
+            let Some(p) = position(&loc) else {
+                continue;
+            };
+            localized += 1;
+            by_odometry += loc.odometry as usize;
+            if loc.odometry {
+                assert_eq!(loc.mode, Mode::Tracking);
+                assert!(loc.confidence >= pipeline.min_confidence(), "seed {seed}");
+                let cov = loc.covariance.as_ref().expect("an odometry covariance");
+                assert!((0..6).all(|k| cov[k * 7] > 0.0), "seed {seed} frame {i}");
+            }
+            let err = (p - truth(i).translation.vector).norm();
+            worst_m = worst_m.max(err);
+            squares += err * err;
+            keyframe = loc.keyframe.clone();
+            assert!(
+                keyframe.is_some(),
+                "a LOCALIZED stream answer gives a keyframe"
+            );
+            first_keyframe.get_or_insert_with(|| (i, keyframe.clone().unwrap()));
+            last = Some(p);
+        }
+        let rmse = (squares / localized.max(1) as f64).sqrt();
+        eprintln!("seed {seed}: localized {localized}/{n}, by odometry {by_odometry}, RMSE {rmse:.3} m, worst {worst_m:.3} m");
+        assert!(
+            localized as f64 >= 0.9 * n as f64,
+            "seed {seed}: {localized}/{n}"
+        );
+        assert!(
+            by_odometry as f64 >= 0.5 * n as f64,
+            "seed {seed}: {by_odometry}/{n}"
+        );
+        assert!(worst_m < 0.25, "seed {seed}: an answer {worst_m:.2} m off");
+
+        // A keyframe from the drive's start offered for its end, with the region at the end: the
+        // frame sees other walls, so the hop fails or lands outside the region; the map answers.
+        let (k, start) = first_keyframe.expect("one fix");
+        let from_start =
+            |i: usize| (truth(i).translation.vector - truth(k).translation.vector).norm();
+        let end = (0..n)
+            .max_by(|&a, &b| from_start(a).total_cmp(&from_start(b)))
+            .unwrap();
+        assert!(
+            from_start(end) > 1.5,
+            "seed {seed}: the drive stays near its start"
+        );
+        let opts = LocalizeOptions {
+            keyframe: Some(start),
+            want_keyframe: true,
+            ..LocalizeOptions::tracking(Region::new(truth(end).translation.vector, 1.0).unwrap())
+        };
+        let loc = pipeline.localize_with(&query(&seq, end), &opts).unwrap();
+        assert!(!loc.odometry, "seed {seed}: {:?}", loc.reason);
+        if loc.status == Status::Localized {
+            let err = (position(&loc).unwrap() - truth(end).translation.vector).norm();
+            assert!(err < 0.25, "seed {seed}: {err} m");
+        }
+        // Without a keyframe nothing is registered against one; unary calls get no keyframe back.
+        let loc = pipeline
+            .localize_with(&query(&seq, end), &LocalizeOptions::default())
+            .unwrap();
+        assert!(!loc.odometry && loc.keyframe.is_none());
+    }
+}
