@@ -29,7 +29,7 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Vector3};
 use pntr_features::{Features, Matcher};
 use pntr_registration::covariance::{point_to_point_covariance, rotate_covariance};
-use pntr_registration::teaser::{solve, TeaserParams};
+use pntr_registration::ransac::{ransac_rigid, RansacParams};
 use pntr_registration::Rigid;
 
 use crate::verify::{dense_evidence, Evidence, Thumb};
@@ -144,7 +144,8 @@ impl Hop {
 }
 
 /// Match the frame (`features`, back-projected `points`, `thumb`) against `key` with `matcher`,
-/// register the 3D pairs (TEASER-class, [`pntr_registration::teaser`]) and check the dense depth of
+/// register the 3D pairs (adaptive RANSAC, [`pntr_registration::ransac`]: consecutive frames share
+/// most of their keypoints, the case where it needs only a few samples) and check the dense depth of
 /// both frames. `None` when the registration fails outright; otherwise the hop, refused or not.
 ///
 /// # Errors
@@ -155,7 +156,7 @@ pub fn register(
     points: &[Option<Vector3<f64>>],
     thumb: &Thumb,
     matcher: &dyn Matcher,
-    teaser: &TeaserParams,
+    noise_bound_m: f64,
 ) -> Result<Option<Hop>, pntr_features::FeatureError> {
     let m = matcher.match_features(features, &key.features)?;
     let (mut src, mut dst) = (Vec::new(), Vec::new());
@@ -167,7 +168,15 @@ pub fn register(
         src.push(*s);
         dst.push(*d);
     }
-    let r = solve(&src, &dst, teaser);
+    let r = ransac_rigid(
+        &src,
+        &dst,
+        &RansacParams {
+            noise_bound: noise_bound_m,
+            min_inliers: MIN_INLIERS,
+            ..RansacParams::default()
+        },
+    );
     if !r.valid {
         return Ok(None);
     }

@@ -436,7 +436,7 @@ impl Pipeline {
             frame.points,
             thumb,
             &self.cheap,
-            &self.teaser,
+            self.teaser.noise_bound,
         )?;
         times.registration += th.elapsed().as_secs_f64();
         let Some(hop) = hop else {

@@ -21,6 +21,7 @@ mod kabsch;
 mod kdtree;
 pub mod pnp;
 pub mod problems;
+pub mod ransac;
 pub mod teaser;
 
 pub use kabsch::{kabsch, weighted_kabsch};
