@@ -9,7 +9,7 @@ use pntr_dataset::tum::TumSequence;
 use pntr_pipeline::odometry::Keyframe;
 use pntr_pipeline::pipeline::{Localization, Pipeline, Query, Status};
 use pntr_pipeline::preset::Preset;
-use pntr_pipeline::prior::{LocalizeOptions, Mode, Region};
+use pntr_pipeline::prior::{tracking_heading, LocalizeOptions, Mode, Region};
 
 fn drive(root: &std::path::Path, seed: u64) -> (Pipeline, TumSequence) {
     let cfg = pntr_synth::SynthConfig {
@@ -56,7 +56,7 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
         let truth = |i: usize| seq.frames[i].world_from_camera.expect("ground truth");
         // The service's loop without its clock: the keyframe first, the map when it does not hold.
         let mut keyframe: Option<Arc<Keyframe>> = None;
-        let mut last: Option<Vector3<f64>> = None;
+        let mut last: Option<nalgebra::Isometry3<f64>> = None;
         let (mut localized, mut by_odometry, mut worst_m, mut squares) =
             (0usize, 0usize, 0.0f64, 0.0);
         let mut first_keyframe = None;
@@ -66,8 +66,12 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
                 keyframe: keyframe.clone(),
                 want_keyframe: true,
                 map_first: i % 5 == 0,
+                // The service's bounds one frame (0.1 s) after the last answer.
+                heading: last.map(|p| tracking_heading(p.rotation, 0.1)),
                 ..match last {
-                    Some(p) => LocalizeOptions::tracking(Region::new(p, 2.0).unwrap()),
+                    Some(p) => {
+                        LocalizeOptions::tracking(Region::new(p.translation.vector, 2.0).unwrap())
+                    }
                     None => LocalizeOptions::default(),
                 }
             };
@@ -92,7 +96,7 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
                 "a LOCALIZED stream answer gives a keyframe"
             );
             first_keyframe.get_or_insert_with(|| (i, keyframe.clone().unwrap()));
-            last = Some(p);
+            last = loc.pose;
         }
         let rmse = (squares / localized.max(1) as f64).sqrt();
         eprintln!("seed {seed}: localized {localized}/{n}, by odometry {by_odometry}, RMSE {rmse:.3} m, worst {worst_m:.3} m");

@@ -36,6 +36,30 @@ use crate::map::Map;
 use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
+
+/// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
+/// turned more than it can have (`pose`: `world_from_camera`, map frame, map axes).
+fn off_track(pose: &Isometry3<f64>, opts: &LocalizeOptions) -> Option<String> {
+    if opts.region_mode != Mode::Tracking {
+        return None;
+    }
+    if let Some(region) = opts.region {
+        let at = pose.translation.vector;
+        if !region.contains(&at) {
+            return Some(format!(
+                "the pose is {:.1} m from the stream's last pose, outside the {:.1} m it can have moved",
+                (at - region.center_m).norm(),
+                region.radius_m
+            ));
+        }
+    }
+    let heading = opts.heading?;
+    let deg = heading.exceeded_by(&pose.rotation)?;
+    Some(format!(
+        "the pose is turned {deg:.0} deg from the stream's last pose, more than the {:.0} deg it can have turned",
+        heading.max_deg
+    ))
+}
 use crate::verify::{dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb};
 use crate::PipelineError;
 
@@ -364,7 +388,8 @@ impl Pipeline {
             let hits = self.map.retriever.search_among(&desc, k, &ids)?;
             times.retrieval += ts.elapsed().as_secs_f64();
             let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
-            if loc.status == Status::Localized {
+            let on_track = loc.pose.is_some_and(|p| off_track(&p, opts).is_none());
+            if loc.status == Status::Localized && on_track {
                 let loc = Localization {
                     mode: opts.region_mode,
                     ..loc
@@ -379,22 +404,16 @@ impl Pipeline {
         let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the
         // camera can be, given its last verified pose) is a look-alike, not the robot's position.
-        let loc = match (opts.region, opts.region_mode, loc.pose) {
-            (Some(region), Mode::Tracking, Some(pose))
-                if !region.contains(&pose.translation.vector) =>
-            {
-                let off = (pose.translation.vector - region.center_m).norm();
-                Localization {
-                    status: Status::NotLocalized,
-                    reason: Some(format!(
-                        "tracking: the best pose is {off:.1} m from the stream's last pose, outside the {:.1} m it can have moved (send relocalize to accept a jump)",
-                        region.radius_m
-                    )),
-                    pose: None,
-                    ..loc
-                }
-            }
-            _ => loc,
+        let loc = match loc.pose.and_then(|p| off_track(&p, opts)) {
+            Some(why) => Localization {
+                status: Status::NotLocalized,
+                reason: Some(format!(
+                    "tracking: {why} (send relocalize to accept a jump)"
+                )),
+                pose: None,
+                ..loc
+            },
+            None => loc,
         };
         if loc.status == Status::Localized {
             return self.settle(loc, &frame, opts, t0);
@@ -445,22 +464,15 @@ impl Pipeline {
         if let Some(why) = &hop.refused {
             return Ok(Err(why.clone()));
         }
-        if let Some(region) = opts.region {
-            let at = hop.world_from_query.translation.vector;
-            if !region.contains(&at) {
-                return Ok(Err(format!(
-                    "the pose is {:.1} m from the last one, outside the {:.1} m the camera can have moved",
-                    (at - region.center_m).norm(),
-                    region.radius_m
-                )));
-            }
-        }
-        times.total = t0.elapsed().as_secs_f64();
         let pose = convert_axes(
             &hop.world_from_query,
             CameraAxes::OpenCv,
             CameraAxes::Habitat,
         );
+        if let Some(why) = off_track(&pose, opts) {
+            return Ok(Err(why));
+        }
+        times.total = t0.elapsed().as_secs_f64();
         let keyframe = opts.want_keyframe.then(|| {
             odometry::next_keyframe(key, &hop, frame.features, frame.points, thumb.clone())
         });

@@ -10,7 +10,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3};
 use serde::Serialize;
 
 use crate::odometry::Keyframe;
@@ -27,6 +27,11 @@ pub const TRACKING_BASE_RADIUS_M: f64 = 1.0;
 pub const TRACKING_SPEED_MPS: f64 = 1.5;
 /// A stream's last pose older than this, seconds, no longer makes a tracking region.
 pub const TRACKING_MAX_AGE_S: f64 = 5.0;
+/// Largest turn of a tracked camera right after its last verified pose, degrees.
+pub const TRACKING_BASE_TURN_DEG: f64 = 30.0;
+/// How fast that bound grows with the time since the last verified pose, degrees per second (a robot
+/// turning on the spot, or a hand-held camera panning).
+pub const TRACKING_TURN_DEG_PER_S: f64 = 90.0;
 /// Candidates matched while tracking (the last pose leaves few plausible views).
 pub const TRACKING_CANDIDATES: usize = 2;
 /// Edge of the spatial index's cells, metres (about a room).
@@ -135,6 +140,34 @@ pub fn tracking_region(last_position_m: Vector3<f64>, elapsed_s: f64) -> Option<
     .ok()
 }
 
+/// The orientations a tracked camera can have: within `max_deg` of its last verified orientation.
+/// A camera cannot turn round in a fraction of a second; a room's symmetry can make a pose that does.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Heading {
+    /// Rotation of the last verified `world_from_camera` (map frame, map camera axes).
+    pub rotation: UnitQuaternion<f64>,
+    /// Largest geodesic angle from it, degrees.
+    pub max_deg: f64,
+}
+
+impl Heading {
+    /// The angle, degrees, by which `rotation` (same frame and axes) turns away from the last one,
+    /// when it is more than allowed.
+    pub fn exceeded_by(&self, rotation: &UnitQuaternion<f64>) -> Option<f64> {
+        let deg = self.rotation.angle_to(rotation).to_degrees();
+        (deg > self.max_deg).then_some(deg)
+    }
+}
+
+/// The heading bound of a stream whose last verified pose had `rotation`, `elapsed_s` seconds ago:
+/// [`TRACKING_BASE_TURN_DEG`] plus [`TRACKING_TURN_DEG_PER_S`] per second.
+pub fn tracking_heading(rotation: UnitQuaternion<f64>, elapsed_s: f64) -> Heading {
+    Heading {
+        rotation,
+        max_deg: TRACKING_BASE_TURN_DEG + TRACKING_TURN_DEG_PER_S * elapsed_s.max(0.0),
+    }
+}
+
 /// A uniform grid over the map images' camera positions: the images inside a region in time
 /// proportional to the cells the region touches, not to the map's size.
 #[derive(Debug, Clone, Default)]
@@ -207,6 +240,8 @@ pub struct LocalizeOptions {
     pub region_mode: Mode,
     /// Candidates to match among the region's images (`None`: the preset's shortlist).
     pub region_candidates: Option<usize>,
+    /// Tracking only: the orientations the camera can have; a pose outside is never answered.
+    pub heading: Option<Heading>,
     /// A stream's keyframe: the frame is registered against it ([`crate::odometry`]) before or after
     /// the map is tried (see `map_first`).
     pub keyframe: Option<Arc<Keyframe>>,

@@ -8,9 +8,11 @@ use std::pin::Pin;
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
-use nalgebra::Vector3;
+use nalgebra::{UnitQuaternion, Vector3};
 use pntr_pipeline::odometry::Keyframe;
-use pntr_pipeline::prior::{tracking_region, LocalizeOptions, Region, TRACKING_MAX_AGE_S};
+use pntr_pipeline::prior::{
+    tracking_heading, tracking_region, Heading, LocalizeOptions, Region, TRACKING_MAX_AGE_S,
+};
 use tokio::sync::oneshot;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
@@ -252,6 +254,7 @@ pub const RECONFIRM_AFTER_S: f64 = 1.0;
 struct Track {
     map_id: String,
     position_m: Vector3<f64>,
+    rotation: UnitQuaternion<f64>,
     at: Instant,
     confirmed: bool,
     keyframe: Option<Arc<Keyframe>>,
@@ -272,6 +275,7 @@ struct Tracking {
     /// The frame belongs to a stream (which keeps a keyframe).
     stream: bool,
     region: Option<Region>,
+    heading: Option<Heading>,
     keyframe: Option<Arc<Keyframe>>,
     map_first: bool,
 }
@@ -283,14 +287,19 @@ impl Track {
         if r.status != proto::Status::Localized as i32 {
             return None;
         }
-        let t = r.pose.as_ref()?.translation.as_ref()?;
-        let position_m = Vector3::new(t.x, t.y, t.z);
+        let pose = wire::pose(r.pose.as_ref())?;
+        let position_m = pose.translation.vector;
+        let rotation = pose.rotation;
         let global = r.mode == proto::Mode::Global as i32;
         let same_map = previous.is_some_and(|p| p.map_id == r.map_id);
         let agrees = same_map
             && previous.is_some_and(|p| {
-                tracking_region(p.position_m, p.at.elapsed().as_secs_f64())
+                let elapsed_s = p.at.elapsed().as_secs_f64();
+                tracking_region(p.position_m, elapsed_s)
                     .is_some_and(|region| region.contains(&position_m))
+                    && tracking_heading(p.rotation, elapsed_s)
+                        .exceeded_by(&rotation)
+                        .is_none()
             });
         let recent =
             same_map && previous.is_some_and(|p| p.at.elapsed().as_secs_f64() <= RECONFIRM_AFTER_S);
@@ -298,6 +307,7 @@ impl Track {
         Some(Self {
             map_id: r.map_id.clone(),
             position_m,
+            rotation,
             at: now,
             // Odometry continues the chain it registered against. A map fix inherits the track's
             // confirmation only right after its last answer: after a gap the tracking region has
@@ -330,9 +340,11 @@ impl Track {
             };
         }
         let anchor_age_s = self.anchored_at.elapsed().as_secs_f64();
+        let elapsed_s = self.at.elapsed().as_secs_f64();
         Tracking {
             stream: true,
-            region: tracking_region(self.position_m, self.at.elapsed().as_secs_f64()),
+            region: tracking_region(self.position_m, elapsed_s),
+            heading: Some(tracking_heading(self.rotation, elapsed_s)),
             keyframe: self
                 .keyframe
                 .clone()
@@ -403,6 +415,7 @@ impl LocalizerService {
                 ..LocalizeOptions::prior(region)
             },
             (None, Some(region)) => LocalizeOptions {
+                heading: tracking.heading,
                 keyframe: tracking.keyframe,
                 map_first: tracking.map_first,
                 want_keyframe: tracking.stream,
@@ -804,6 +817,19 @@ mod tests {
             odometry(false),
         );
         assert!(renewed.unwrap().anchored_at > t.anchored_at);
+        // A fix turned round (a symmetric room) does not confirm a track, even in the same place.
+        let mut turned = answer(0.3, proto::Mode::Global);
+        turned.pose.as_mut().unwrap().rotation = Some(proto::Quaternion {
+            w: 0.0,
+            x: 0.0,
+            y: 1.0,
+            z: 0.0,
+        });
+        assert!(
+            !Track::after(Some(&first), &turned, odometry(false))
+                .unwrap()
+                .confirmed
+        );
         // After a gap a map fix must be confirmed again, odometry continues.
         let mut stale = Track::after(
             Some(&kept),
