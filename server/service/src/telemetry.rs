@@ -146,13 +146,16 @@ pub async fn bind_metrics(addr: SocketAddr) -> std::io::Result<TcpListener> {
 }
 
 /// Logs to stderr (stdout carries the one "listening" line), filtered by `PNTR_LOG`, else `RUST_LOG`,
-/// else `info`. Safe to call more than once.
+/// else `info`; colours only on a terminal (a file, journald or `docker logs` gets plain text). Safe to
+/// call more than once.
 pub fn init_tracing() {
+    use std::io::IsTerminal;
     let filter = std::env::var("PNTR_LOG")
         .or_else(|_| std::env::var("RUST_LOG"))
         .unwrap_or_else(|_| "info".into());
     let _ = tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .try_init();
 }
