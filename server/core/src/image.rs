@@ -91,6 +91,21 @@ pub struct DepthMap {
 }
 
 impl DepthMap {
+    /// Depth in whole millimetres, row-major (the 16-bit unit of RGB-D cameras and ROS `16UC1`): 0 for
+    /// invalid pixels, rounded, saturating at 65535 (65.5 m).
+    pub fn to_millimetres(&self) -> Vec<u16> {
+        self.data
+            .iter()
+            .map(|&d| {
+                if d.is_finite() && d > 0.0 {
+                    (d * 1000.0).round().min(65535.0) as u16
+                } else {
+                    0
+                }
+            })
+            .collect()
+    }
+
     /// Wrap metres, mapping every non-finite or non-positive value to "invalid".
     pub fn from_metres(width: u32, height: u32, mut data: Vec<f32>) -> Result<Self, ImageError> {
         check_len("depth", width, height, 1, data.len())?;

@@ -15,7 +15,7 @@ use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 use serde::{Deserialize, Serialize};
 
-use crate::tum::MAX_PAIR_GAP_S;
+use crate::tum::{nearest, MAX_PAIR_GAP_S};
 use crate::DatasetError;
 
 /// Topics of a bag (RealSense's names by default).
@@ -211,16 +211,6 @@ fn decode<'a, T: Deserialize<'a>>(
             format!("topic {topic}: cannot decode the CDR message: {e}"),
         )
     })
-}
-
-/// Index of the entry of `sorted` nearest to `t`, within [`MAX_PAIR_GAP_S`].
-fn nearest<T>(sorted: &[(f64, T)], t: f64) -> Option<usize> {
-    let i = sorted.partition_point(|e| e.0 < t);
-    [i.checked_sub(1), (i < sorted.len()).then_some(i)]
-        .into_iter()
-        .flatten()
-        .min_by(|&a, &b| (sorted[a].0 - t).abs().total_cmp(&(sorted[b].0 - t).abs()))
-        .filter(|&j| (sorted[j].0 - t).abs() <= MAX_PAIR_GAP_S)
 }
 
 impl Bag {
@@ -583,16 +573,9 @@ pub fn write_bag(
         };
         put(rgb_ch, ser(&colour)?).map_err(mcap_err)?;
         let mm: Vec<u8> = depth
-            .data
-            .iter()
-            .flat_map(|&d| {
-                let v = if d.is_finite() && d > 0.0 {
-                    (d * 1000.0).round().min(65535.0) as u16
-                } else {
-                    0
-                };
-                v.to_le_bytes()
-            })
+            .to_millimetres()
+            .into_iter()
+            .flat_map(u16::to_le_bytes)
             .collect();
         let d = Image {
             header: header.clone(),

@@ -141,8 +141,8 @@ fn ground_truth(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, DatasetError>
     Ok(out)
 }
 
-/// Index of the entry of `sorted` nearest to `t`, if within [`MAX_PAIR_GAP_S`].
-fn nearest<T>(sorted: &[(f64, T)], t: f64) -> Option<usize> {
+/// Index of the entry of `sorted` (by time, seconds) nearest to `t`, if within [`MAX_PAIR_GAP_S`].
+pub(crate) fn nearest<T>(sorted: &[(f64, T)], t: f64) -> Option<usize> {
     let i = sorted.partition_point(|e| e.0 < t);
     [i.checked_sub(1), (i < sorted.len()).then_some(i)]
         .into_iter()

@@ -108,15 +108,6 @@ impl Keyframe {
             hops: 0,
         }
     }
-
-    /// Bytes held (approximately): what one tracked stream costs the server.
-    pub fn heap_bytes(&self) -> usize {
-        let f = &self.features;
-        f.keypoints.len() * (8 + 4 + 32)
-            + f.descriptors.len() * 4
-            + f.binary.len() * 32
-            + self.thumb.depth_mm.len() * 3
-    }
 }
 
 /// An odometry registration of a frame against a keyframe.

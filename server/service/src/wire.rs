@@ -87,16 +87,9 @@ pub fn png_request(
     k: Option<&Intrinsics>,
 ) -> Result<proto::LocalizeRequest, png::EncodingError> {
     let mm: Vec<u8> = depth
-        .data
-        .iter()
-        .flat_map(|&d| {
-            let v = if d.is_finite() && d > 0.0 {
-                (d * 1000.0).round().min(65535.0) as u16
-            } else {
-                0
-            };
-            v.to_be_bytes()
-        })
+        .to_millimetres()
+        .into_iter()
+        .flat_map(u16::to_be_bytes)
         .collect();
     Ok(proto::LocalizeRequest {
         rgb: Some(proto::Image {
