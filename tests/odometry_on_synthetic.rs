@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use nalgebra::Vector3;
 use pntr_dataset::tum::TumSequence;
-use pntr_pipeline::odometry::Keyframe;
+use pntr_pipeline::odometry::{self, Keyframe};
 use pntr_pipeline::pipeline::{Localization, Pipeline, Query, Status};
 use pntr_pipeline::preset::Preset;
 use pntr_pipeline::prior::{tracking_heading, LocalizeOptions, Mode, Region};
@@ -60,6 +60,7 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
         let (mut localized, mut by_odometry, mut worst_m, mut squares) =
             (0usize, 0usize, 0.0f64, 0.0);
         let mut first_keyframe = None;
+        let mut keyframes: Vec<(usize, Arc<Keyframe>)> = Vec::new();
         for i in 0..n {
             // Every fifth frame re-anchors (the map first), as the service does after 0.5 s.
             let opts = LocalizeOptions {
@@ -96,6 +97,7 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
                 "a LOCALIZED stream answer gives a keyframe"
             );
             first_keyframe.get_or_insert_with(|| (i, keyframe.clone().unwrap()));
+            keyframes.extend(keyframe.clone().map(|k| (i, k)));
             last = loc.pose;
         }
         let rmse = (squares / localized.max(1) as f64).sqrt();
@@ -122,17 +124,64 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
             from_start(end) > 1.5,
             "seed {seed}: the drive stays near its start"
         );
-        let opts = LocalizeOptions {
-            keyframe: Some(start),
+        let at_end = |keyframe: Keyframe| LocalizeOptions {
+            keyframe: Some(Arc::new(keyframe)),
             want_keyframe: true,
             ..LocalizeOptions::tracking(Region::new(truth(end).translation.vector, 1.0).unwrap())
         };
-        let loc = pipeline.localize_with(&query(&seq, end), &opts).unwrap();
+        let loc = pipeline
+            .localize_with(&query(&seq, end), &at_end((*start).clone()))
+            .unwrap();
         assert!(!loc.odometry, "seed {seed}: {:?}", loc.reason);
         if loc.status == Status::Localized {
             let err = (position(&loc).unwrap() - truth(end).translation.vector).norm();
             assert!(err < 0.25, "seed {seed}: {err} m");
         }
+        // The same keyframe remembering a frame tracked just before the end: the hop from it holds,
+        // and that frame is the keyframe from then on.
+        let near = keyframes
+            .iter()
+            .rev()
+            .find(|(i, _)| *i < end)
+            .map(|(_, k)| Arc::clone(k))
+            .expect("a keyframe before the end");
+        let latest = Keyframe {
+            latest: None,
+            ..(*near).clone()
+        };
+        let remembering = Keyframe {
+            latest: Some(Arc::new(latest.clone())),
+            ..(*start).clone()
+        };
+        let loc = pipeline
+            .localize_with(&query(&seq, end), &at_end(remembering))
+            .unwrap();
+        assert!(loc.odometry, "seed {seed}: {:?}", loc.reason);
+        let err = (position(&loc).unwrap() - truth(end).translation.vector).norm();
+        assert!(err < 0.25, "seed {seed}: {err} m");
+        let next = loc.keyframe.expect("a keyframe");
+        assert!(
+            (next.world_from_camera.translation.vector
+                - latest.world_from_camera.translation.vector)
+                .norm()
+                < 1.0,
+            "seed {seed}: the remembered frame (or the frame itself) tracks next"
+        );
+        // A chain already MAX_PATH_M long gives no more odometry poses (drift).
+        let worn = Keyframe {
+            path_m: odometry::MAX_PATH_M,
+            ..latest
+        };
+        let loc = pipeline
+            .localize_with(&query(&seq, end), &at_end(worn))
+            .unwrap();
+        assert!(!loc.odometry, "seed {seed}: a worn chain still tracked");
+        assert!(
+            loc.reason.as_deref().unwrap_or("").contains("driven")
+                || loc.status == Status::Localized,
+            "seed {seed}: {:?}",
+            loc.reason
+        );
         // Without a keyframe nothing is registered against one; unary calls get no keyframe back.
         let loc = pipeline
             .localize_with(&query(&seq, end), &LocalizeOptions::default())

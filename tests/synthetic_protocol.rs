@@ -279,3 +279,67 @@ fn default_is_val_sized_and_generation_is_deterministic() {
         var.sqrt()
     );
 }
+
+#[test]
+fn realism_changes_queries_only_and_is_deterministic() {
+    let clean = SynthConfig {
+        points_per_scene: 2,
+        queries_per_point: 3,
+        ..small_cfg(21)
+    };
+    let robot = SynthConfig {
+        realism: pntr_synth::effects::Realism::parse("robot").unwrap(),
+        ..clean.clone()
+    };
+    let lit = SynthConfig {
+        realism: pntr_synth::effects::Realism::parse("lighting").unwrap(),
+        ..clean.clone()
+    };
+    let (_a, a) = synthesize(&clean);
+    let (_b, b) = synthesize(&robot);
+    let (_c, c) = synthesize(&robot);
+    let (_d, d) = synthesize(&lit);
+    let mean =
+        |v: &View| v.rgb.data.iter().map(|&x| x as f64).sum::<f64>() / v.rgb.data.len() as f64;
+    let mut brightness_changes = Vec::new();
+    for p in 0..2 {
+        let (ra, rb, rc, rd) = (
+            a.scenes[0].points[p].open().unwrap(),
+            b.scenes[0].points[p].open().unwrap(),
+            c.scenes[0].points[p].open().unwrap(),
+            d.scenes[0].points[p].open().unwrap(),
+        );
+        // The map's views are the mapping run's: clean whatever the queries' realism.
+        let (da, db) = (
+            ra.view(Role::Database, 0).unwrap(),
+            rb.view(Role::Database, 0).unwrap(),
+        );
+        assert_eq!(da.rgb, db.rgb);
+        assert_eq!(da.depth, db.depth);
+        for q in 0..ra.count(Role::Query) {
+            let (qa, qb, qc, qd) = (
+                ra.view(Role::Query, q).unwrap(),
+                rb.view(Role::Query, q).unwrap(),
+                rc.view(Role::Query, q).unwrap(),
+                rd.view(Role::Query, q).unwrap(),
+            );
+            assert_eq!(qa.world_from_camera, qb.world_from_camera, "same poses");
+            assert_ne!(qa.rgb, qb.rgb);
+            assert_eq!(
+                (&qb.rgb, &qb.depth),
+                (&qc.rgb, &qc.depth),
+                "same seed, same frame"
+            );
+            // The robot's depth sensor loses pixels (dropouts, edges) the clean render has.
+            let valid = |v: &View| v.depth.data.iter().filter(|&&z| z > 0.0).count();
+            assert!(valid(&qb) < valid(&qa), "point {p} query {q}");
+            // Lighting alone changes colour but not geometry.
+            assert_eq!(qa.depth, qd.depth);
+            brightness_changes.push((mean(&qd) - mean(&qa)).abs());
+        }
+    }
+    assert!(
+        brightness_changes.iter().any(|&m| m > 5.0),
+        "lighting changes brightness: {brightness_changes:?}"
+    );
+}

@@ -97,8 +97,9 @@ pub struct EvalArgs {
     /// Evaluate at most this many negative queries, evenly spaced (0 = all).
     #[arg(long, default_value_t = 0)]
     pub negative_queries: usize,
-    /// Camera effects applied to every query before it is localized: `none` or `robot` (exposure,
-    /// gamma, white balance, blur, noise, JPEG, depth noise and dropouts; seeded per query).
+    /// Camera effects applied to every query before it is localized: `none`, `robot` (exposure,
+    /// gamma, white balance, blur, noise, JPEG, depth noise and dropouts; seeded per query), or a
+    /// comma-separated list of the groups `exposure`, `blur`, `noise`, `jpeg`, `depth`.
     #[arg(long, default_value = "none")]
     pub effects: String,
     /// Calibration file for the confidence (default: the one shipped in models/, embedded).
@@ -132,12 +133,23 @@ fn plot_report(args: &EvalArgs, report: &EvalReport, what: &str) -> Result<()> {
     Ok(())
 }
 
-/// The query transformation `--effects` names.
+/// The query transformation `--effects` names: `none`, `robot` (every frame effect), or a
+/// comma-separated list of frame effect groups (`exposure`, `blur`, `noise`, `jpeg`, `depth`).
 pub fn effects(name: &str) -> Result<Option<pntr_synth::effects::RobotEffects>> {
     match name {
         "none" => Ok(None),
         "robot" => Ok(Some(pntr_synth::effects::RobotEffects::default())),
-        other => anyhow::bail!("--effects {other}: unknown (none, robot)"),
+        list => {
+            let groups: Vec<&str> = list.split(',').map(str::trim).collect();
+            if groups.contains(&"lighting") {
+                anyhow::bail!(
+                    "--effects {list}: lighting needs the scene rendered again; use `pntr synth --realism lighting`"
+                );
+            }
+            pntr_synth::effects::RobotEffects::only(&groups)
+                .map(Some)
+                .map_err(|e| anyhow::anyhow!("--effects {list}: {e}"))
+        }
     }
 }
 

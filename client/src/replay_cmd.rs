@@ -60,6 +60,11 @@ pub struct ReplayArgs {
     /// The camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]` when the sequence has no calibration.txt.
     #[arg(long, value_name = "FX,FY,CX,CY")]
     pub intrinsics: Option<String>,
+    /// Camera effects applied to every frame before it is sent: `none` or `robot` (exposure, gamma,
+    /// white balance, blur, noise, JPEG, depth noise growing with range, dropouts and lost edges;
+    /// drawn anew for each frame from its index, so a run is repeatable).
+    #[arg(long, default_value = "none")]
+    pub effects: String,
     /// Replay at most this many frames (0 = all).
     #[arg(long, default_value_t = 0)]
     pub frames: usize,
@@ -72,6 +77,11 @@ pub struct ReplayArgs {
     /// Also draw both trajectories from above over the map's Points (PNG and SVG) into this folder.
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
+    /// Also write one JSON line per frame (timestamp, status, mode, reason, confidence, inliers,
+    /// matched image, position standard deviation from the covariance, latency, and with ground truth the translation and rotation errors): what
+    /// answered each frame, and why a frame was not localized.
+    #[arg(long, value_name = "OUT.jsonl")]
+    pub frames_log: Option<PathBuf>,
 }
 
 /// A recorded drive: a TUM RGB-D folder or a ROS 2 bag.
@@ -142,8 +152,45 @@ struct Answered {
     estimate: Option<Isometry3<f64>>,
     truth: Option<Isometry3<f64>>,
     mode: String,
+    status: String,
+    reason: String,
+    confidence: f64,
+    inliers: u32,
+    matched_image_id: String,
+    position_sigma_m: Option<f64>,
     latency_ms: f64,
     stages: Vec<(String, f64)>,
+}
+
+/// One JSON line per answered frame; errors are geodesic (rotation) and Euclidean (translation)
+/// against the ground truth, for LOCALIZED frames that have one.
+fn frames_log(out: &[Answered]) -> String {
+    let mut text = String::new();
+    for a in out {
+        let (error_m, error_deg) = match (a.estimate, a.truth) {
+            (Some(e), Some(t)) => (
+                Some((e.translation.vector - t.translation.vector).norm()),
+                Some(e.rotation.angle_to(&t.rotation).to_degrees()),
+            ),
+            _ => (None, None),
+        };
+        let line = json!({
+            "timestamp": a.timestamp,
+            "status": a.status,
+            "mode": a.mode,
+            "reason": a.reason,
+            "confidence": a.confidence,
+            "inliers": a.inliers,
+            "matched_image_id": a.matched_image_id,
+            "position_sigma_m": a.position_sigma_m,
+            "latency_ms": a.latency_ms,
+            "error_m": error_m,
+            "error_deg": error_deg,
+        });
+        text += &line.to_string();
+        text.push('\n');
+    }
+    text
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -197,6 +244,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             );
         }
     }
+    let effects = crate::map_cmd::effects(&args.effects)?;
     let seq =
         Recording::open(args).with_context(|| format!("--sequence {}", args.sequence.display()))?;
     let camera = match (&args.intrinsics, seq.intrinsics()) {
@@ -248,7 +296,10 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         if wait > 0.0 {
             std::thread::sleep(Duration::from_secs_f64(wait));
         }
-        let (rgb, depth) = seq.load(i)?;
+        let (mut rgb, mut depth) = seq.load(i)?;
+        if let Some(fx) = &effects {
+            fx.apply(&mut rgb, &mut depth, i as u64);
+        }
         let mut req = wire::raw_request(&rgb, &depth, None);
         req.intrinsics = Some(camera.clone());
         req.map_id = args.connect.map_id.clone();
@@ -279,6 +330,15 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             mode: proto::Mode::try_from(r.mode)
                 .map(|m| m.as_str_name().to_string())
                 .unwrap_or_else(|_| "UNKNOWN".into()),
+            status: proto::Status::try_from(r.status)
+                .map(|m| m.as_str_name().to_string())
+                .unwrap_or_else(|_| "UNKNOWN".into()),
+            reason: r.reason.clone(),
+            confidence: r.confidence,
+            inliers: r.inliers,
+            matched_image_id: r.matched_image_id.clone(),
+            position_sigma_m: (r.covariance.len() == 36)
+                .then(|| (r.covariance[0] + r.covariance[7] + r.covariance[14]).sqrt()),
             latency_ms,
             stages: crate::remote::stage_seconds(&r),
         });
@@ -300,6 +360,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         }
     }
     crate::map_cmd::write_text(&args.trajectory, &traj)?;
+    if let Some(path) = &args.frames_log {
+        crate::map_cmd::write_text(path, &frames_log(&out))?;
+    }
     let pairs: Vec<_> = out.iter().map(|a| (a.estimate, a.truth)).collect();
     let errors = trajectory_errors(&pairs);
     let mut lat: Vec<f64> = out.iter().map(|a| a.latency_ms).collect();
@@ -341,6 +404,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             else if let Some(r) = args.prior_radius { format!("previous answer, {r} m radius, and the stream's tracking") }
             else { "the stream's tracking".to_string() },
         "sequence": args.sequence.display().to_string(),
+        "effects": args.effects,
     });
     crate::map_cmd::write_json(&args.json, &report)?;
     println!(

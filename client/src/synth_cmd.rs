@@ -67,6 +67,13 @@ pub struct SynthArgs {
     /// (world_from_camera in the map's frame and camera axes), calibration.txt.
     #[arg(long, value_name = "SECONDS")]
     pub trajectory_seconds: Option<f64>,
+    /// Render queries and drives as a robot's captures, database views clean: `none`, `robot`
+    /// (everything), or a comma-separated list of `lighting` (each room's lamps at another level,
+    /// ambient and light strengths and directions per capture), `exposure` (gain, gamma, white
+    /// balance), `blur`, `noise`, `jpeg`, `depth` (noise growing with the square of the range,
+    /// dropouts, lost edges). Deterministic per seed.
+    #[arg(long, default_value = "none", value_name = "robot|none|GROUP,...")]
+    pub realism: String,
 }
 
 /// Parse a camera size `WxH` (`--camera`, `--query-camera`).
@@ -157,6 +164,8 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
         queries_per_point: args.queries_per_point,
         seed: args.seed,
         trajectory_seconds: args.trajectory_seconds,
+        realism: pntr_synth::effects::Realism::parse(&args.realism)
+            .map_err(|e| anyhow::anyhow!("--realism: {e}"))?,
         tilt_sigma_deg: args.tilt_sigma_deg,
         textures,
         write: WriteOptions {

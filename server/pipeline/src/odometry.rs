@@ -12,7 +12,10 @@
 //!   an odometry answer keeps the keyframe (no chaining frame to frame, so error is not added at
 //!   every frame) until the overlap falls below [`REFRESH_OVERLAP`] or the inliers below
 //!   [`REFRESH_INLIERS`]; then the frame itself becomes the next keyframe, one hop further from its
-//!   map fix ([`Keyframe::hops`]).
+//!   map fix ([`Keyframe::hops`]). The keyframe also remembers the last frame tracked from it
+//!   ([`Keyframe::latest`]): when a frame no longer registers with the keyframe (a turn or a doorway
+//!   between two frames), it is registered against that one, which becomes the keyframe.
+//! - The chain is at most [`MAX_PATH_M`] long from its map fix (drift grows with the distance).
 //! - An odometry pose is LOCALIZED only when the registration holds ([`MIN_INLIERS`],
 //!   [`MIN_INLIER_RATIO`]), the dense depth and grey levels of the two frames agree
 //!   ([`MIN_DEPTH_AGREE`], [`MIN_GRAY_CORRELATION`], at most [`MAX_FREE_SPACE_VIOLATION`] seen
@@ -50,6 +53,11 @@ pub const MAX_FREE_SPACE_VIOLATION: f64 = 0.1;
 pub const REFRESH_OVERLAP: f64 = 0.7;
 /// ... or registers with fewer inliers than this.
 pub const REFRESH_INLIERS: usize = 80;
+/// Longest chain of hops from a map fix, metres driven (the sum of the keyframes' steps and the
+/// last hop). Odometry drifts with the distance travelled (RGB-D odometry: about 1-2% of it), so 10 m
+/// keeps the drift under the 0.25 m of a right pose; a longer stretch without a map fix is answered
+/// NOT_LOCALIZED until the map answers again.
+pub const MAX_PATH_M: f64 = 10.0;
 /// Floor of the point noise in a hop's covariance, metres.
 const MIN_SIGMA_M: f64 = 0.01;
 
@@ -72,6 +80,13 @@ pub struct Keyframe {
     pub image: Option<usize>,
     /// Keyframes between this one and its map fix (0: the fix itself).
     pub hops: u32,
+    /// Distance along the chain from the map fix to this keyframe, metres.
+    pub path_m: f64,
+    /// The last frame tracked from this keyframe, as a keyframe one hop further: what the next
+    /// frame is registered against when it no longer registers with this one (the camera has
+    /// turned or passed a doorway between two frames, before the overlap fell below
+    /// [`REFRESH_OVERLAP`]).
+    pub latest: Option<Arc<Keyframe>>,
 }
 
 impl std::fmt::Debug for Keyframe {
@@ -106,6 +121,8 @@ impl Keyframe {
             confidence,
             image,
             hops: 0,
+            path_m: 0.0,
+            latest: None,
         }
     }
 }
@@ -123,6 +140,8 @@ pub struct Hop {
     pub evidence: Evidence,
     /// Covariance of the pose (the keyframe's plus this hop's), map frame, ROS order.
     pub covariance: Option<[f64; 36]>,
+    /// Distance along the chain from the map fix to the frame, metres.
+    pub path_m: f64,
     /// Why the hop is refused, `None` when it holds.
     pub refused: Option<String>,
 }
@@ -175,7 +194,12 @@ pub fn register(
     let evidence = dense_evidence(thumb, &key.thumb, &key_from_query, &[]);
     let inliers = r.inliers.len();
     let ratio = inliers as f64 / src.len().max(1) as f64;
-    let refused = if inliers < MIN_INLIERS {
+    let path_m = key.path_m + key_from_query.translation.vector.norm();
+    let refused = if path_m > MAX_PATH_M {
+        Some(format!(
+            "{path_m:.1} m driven since the last map fix, more than {MAX_PATH_M} m (drift)"
+        ))
+    } else if inliers < MIN_INLIERS {
         Some(format!("{inliers} inliers, fewer than {MIN_INLIERS}"))
     } else if ratio < MIN_INLIER_RATIO {
         Some(format!("inlier ratio {ratio:.2} below {MIN_INLIER_RATIO}"))
@@ -214,12 +238,14 @@ pub fn register(
         pairs: src.len(),
         evidence,
         covariance,
+        path_m,
         refused,
     }))
 }
 
-/// The keyframe after an accepted `hop` of the frame (`features`, `points`, `thumb`): the same one,
-/// or the frame itself one hop further when it [`Hop::refreshes`].
+/// The keyframe after an accepted `hop` from `key` of the frame (`features`, `points`, `thumb`): the
+/// frame itself one hop further when it [`Hop::refreshes`]; otherwise `key` again, remembering the
+/// frame as its [`Keyframe::latest`].
 pub fn next_keyframe(
     key: &Arc<Keyframe>,
     hop: &Hop,
@@ -227,10 +253,7 @@ pub fn next_keyframe(
     points: &[Option<Vector3<f64>>],
     thumb: Thumb,
 ) -> Arc<Keyframe> {
-    if !hop.refreshes() {
-        return Arc::clone(key);
-    }
-    Arc::new(Keyframe {
+    let frame = Arc::new(Keyframe {
         features: features.clone(),
         points: points.to_vec(),
         thumb,
@@ -239,5 +262,17 @@ pub fn next_keyframe(
         confidence: key.confidence,
         image: key.image,
         hops: key.hops + 1,
+        path_m: hop.path_m,
+        latest: None,
+    });
+    if hop.refreshes() {
+        return frame;
+    }
+    Arc::new(Keyframe {
+        features: key.features.clone(),
+        points: key.points.clone(),
+        thumb: key.thumb.clone(),
+        latest: Some(frame),
+        ..**key
     })
 }

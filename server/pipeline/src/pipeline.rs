@@ -149,6 +149,11 @@ pub struct Localization {
     /// True when the pose came from registering the frame against the stream's keyframe
     /// ([`crate::odometry`]; `mode` is then [`Mode::Tracking`]).
     pub odometry: bool,
+    /// A map answer that verified but lay outside the tracking region or turn bound, so it was
+    /// refused: its pose (map frame, Habitat axes) and calibrated confidence. The frame is then
+    /// NOT_LOCALIZED, or answered by odometry. A stream weighs such answers against its track (the
+    /// service's challenge rule).
+    pub off_track: Option<(Isometry3<f64>, f64)>,
     /// The keyframe the stream's next frame tracks from, when asked for
     /// ([`LocalizeOptions::want_keyframe`]) and LOCALIZED.
     pub keyframe: Option<Arc<Keyframe>>,
@@ -167,6 +172,13 @@ pub struct Verified {
     pub confidence: f64,
     /// Map indices of the verified candidates whose pose disagrees with it (0.5 m, 10 deg).
     pub rivals: Vec<usize>,
+}
+
+/// An accepted odometry hop: the keyframe it starts from, the hop, the pose (Habitat axes).
+struct Tracked {
+    key: Arc<Keyframe>,
+    hop: odometry::Hop,
+    pose: Isometry3<f64>,
 }
 
 /// The query as the tracking paths see it: features, back-projected keypoints (OpenCV query frame)
@@ -411,6 +423,10 @@ impl Pipeline {
                     "tracking: {why} (send relocalize to accept a jump)"
                 )),
                 pose: None,
+                off_track: loc
+                    .pose
+                    .filter(|_| loc.status == Status::Localized)
+                    .map(|p| (p, loc.confidence)),
                 ..loc
             },
             None => loc,
@@ -422,7 +438,12 @@ impl Pipeline {
         let mut times = loc.times;
         if let (Some(key), true) = (&opts.keyframe, opts.map_first) {
             match self.odometry_answer(key, &frame, opts, &mut times, t0)? {
-                Ok(found) => return Ok(found),
+                Ok(found) => {
+                    return Ok(Localization {
+                        off_track: loc.off_track,
+                        ..found
+                    })
+                }
                 Err(why) => odometry_refusal = Some(why),
             }
         }
@@ -437,8 +458,10 @@ impl Pipeline {
         })
     }
 
-    /// Register the frame against a stream's keyframe ([`crate::odometry`]): a LOCALIZED TRACKING
-    /// answer, or why not. The hop's time counts as registration.
+    /// Register the frame against a stream's keyframe ([`crate::odometry`]), and when that fails
+    /// against the last frame tracked from it ([`Keyframe::latest`], which then becomes the
+    /// keyframe): a LOCALIZED TRACKING answer, or why not (the keyframe's refusal). The hops' time
+    /// counts as registration.
     fn odometry_answer(
         &self,
         key: &Arc<Keyframe>,
@@ -447,8 +470,53 @@ impl Pipeline {
         times: &mut StageTimes,
         t0: Instant,
     ) -> Result<Result<Localization, String>, PipelineError> {
-        let th = Instant::now();
         let thumb = frame.thumb.expect("made when a keyframe is given");
+        let mut found = self.hop(key, frame, thumb, opts, times)?;
+        if let (Err(_), Some(latest)) = (&found, &key.latest) {
+            if let Ok(hop) = self.hop(latest, frame, thumb, opts, times)? {
+                found = Ok(hop);
+            }
+        }
+        let Tracked { key, hop, pose } = match found {
+            Ok(found) => found,
+            Err(why) => return Ok(Err(why)),
+        };
+        times.total = t0.elapsed().as_secs_f64();
+        let keyframe = opts.want_keyframe.then(|| {
+            odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
+        });
+        Ok(Ok(Localization {
+            status: Status::Localized,
+            reason: None,
+            pose: Some(pose),
+            estimate: Some(pose),
+            confidence: key.confidence,
+            evidence: Some(hop.evidence),
+            covariance: hop.covariance.map(Box::new),
+            verified: Vec::new(),
+            inliers: hop.inliers,
+            correspondences: hop.pairs,
+            image: key.image,
+            retrieved: Vec::new(),
+            times: *times,
+            mode: Mode::Tracking,
+            odometry: true,
+            off_track: None,
+            keyframe,
+        }))
+    }
+
+    /// One odometry hop of the frame from `key` when the registration holds and the pose is on
+    /// track, otherwise why not.
+    fn hop(
+        &self,
+        key: &Arc<Keyframe>,
+        frame: &Frame,
+        thumb: &Thumb,
+        opts: &LocalizeOptions,
+        times: &mut StageTimes,
+    ) -> Result<Result<Tracked, String>, PipelineError> {
+        let th = Instant::now();
         let hop = odometry::register(
             key,
             frame.features,
@@ -472,27 +540,10 @@ impl Pipeline {
         if let Some(why) = off_track(&pose, opts) {
             return Ok(Err(why));
         }
-        times.total = t0.elapsed().as_secs_f64();
-        let keyframe = opts.want_keyframe.then(|| {
-            odometry::next_keyframe(key, &hop, frame.features, frame.points, thumb.clone())
-        });
-        Ok(Ok(Localization {
-            status: Status::Localized,
-            reason: None,
-            pose: Some(pose),
-            estimate: Some(pose),
-            confidence: key.confidence,
-            evidence: Some(hop.evidence),
-            covariance: hop.covariance.map(Box::new),
-            verified: Vec::new(),
-            inliers: hop.inliers,
-            correspondences: hop.pairs,
-            image: key.image,
-            retrieved: Vec::new(),
-            times: *times,
-            mode: Mode::Tracking,
-            odometry: true,
-            keyframe,
+        Ok(Ok(Tracked {
+            key: Arc::clone(key),
+            hop,
+            pose,
         }))
     }
 
@@ -697,6 +748,7 @@ impl Pipeline {
                 times,
                 mode: Mode::Global,
                 odometry: false,
+                off_track: None,
                 keyframe: None,
             });
         };
@@ -732,6 +784,7 @@ impl Pipeline {
             times,
             mode: Mode::Global,
             odometry: false,
+            off_track: None,
             keyframe: None,
         })
     }

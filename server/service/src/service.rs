@@ -8,11 +8,9 @@ use std::pin::Pin;
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
-use nalgebra::{UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use pntr_pipeline::odometry::Keyframe;
-use pntr_pipeline::prior::{
-    tracking_heading, tracking_region, Heading, LocalizeOptions, Region, TRACKING_MAX_AGE_S,
-};
+use pntr_pipeline::prior::{tracking_heading, tracking_region, Heading, LocalizeOptions, Region};
 use tokio::sync::oneshot;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
@@ -244,13 +242,17 @@ impl Drop for StreamGauge {
 pub const REANCHOR_AFTER_S: f64 = 0.5;
 /// A map fix this long, seconds, after the stream's last LOCALIZED answer starts an unconfirmed track.
 pub const RECONFIRM_AFTER_S: f64 = 1.0;
+/// A stream follows its keyframe chain for at most this long, seconds, after its last map fix (the
+/// chain's length is bounded too: [`pntr_pipeline::odometry::MAX_PATH_M`]).
+pub const ODOMETRY_MAX_AGE_S: f64 = 60.0;
 
 /// What a stream remembers between frames: where its last LOCALIZED answer put the camera, whether
 /// that fix is confirmed, the keyframe the next frame registers against ([`pntr_pipeline::odometry`])
 /// and when the chain was last verified against the map. A global fix is confirmed only by a second
 /// LOCALIZED answer within the tracking region of the first (two independent retrievals agree), so one
 /// look-alike answer cannot start tracking in the wrong place; answers found by tracking or a prior
-/// inherit it. One keyframe (about 1 MB with XFeat) per open stream, freed with the stream.
+/// inherit it. One keyframe and the last frame tracked from it (about 1 MB each with XFeat) per open
+/// stream, freed with the stream.
 struct Track {
     map_id: String,
     position_m: Vector3<f64>,
@@ -259,6 +261,22 @@ struct Track {
     confirmed: bool,
     keyframe: Option<Arc<Keyframe>>,
     anchored_at: Instant,
+    /// When a frame last tried the map before the keyframe (re-anchoring), since `anchored_at`.
+    map_tried_at: Option<Instant>,
+    /// Calibrated confidence of the map fix the track rests on.
+    confidence: f64,
+    /// The last map answer that verified, was more confident than the track, and was refused for
+    /// lying outside the track's bounds.
+    challenger: Option<Challenger>,
+}
+
+/// A map answer refused because it lay outside a track's bounds (see [`Track::challenged`]).
+#[derive(Debug, Clone, Copy)]
+struct Challenger {
+    position_m: Vector3<f64>,
+    rotation: UnitQuaternion<f64>,
+    confidence: f64,
+    at: Instant,
 }
 
 /// What the stream needs from an answer besides the response: the next keyframe, and whether the
@@ -267,6 +285,8 @@ struct Track {
 struct Followup {
     keyframe: Option<Arc<Keyframe>>,
     odometry: bool,
+    /// The map's answer refused for lying outside the track's bounds: pose (map frame) and confidence.
+    off_track: Option<(Isometry3<f64>, f64)>,
 }
 
 /// What the stream's state offers the next frame (all empty for a unary call).
@@ -326,12 +346,67 @@ impl Track {
                 Some(p) if f.odometry && same_map => p.anchored_at,
                 _ => now,
             },
+            map_tried_at: previous
+                .filter(|_| f.odometry && same_map)
+                .and_then(|p| p.map_tried_at),
+            confidence: r.confidence,
+            challenger: previous
+                .filter(|_| same_map)
+                .and_then(|p| p.challenger)
+                .filter(|c| c.at.elapsed().as_secs_f64() <= RECONFIRM_AFTER_S),
+        })
+    }
+
+    /// A map answer that verified but lay outside the track's bounds (`pose`, map frame, with its
+    /// calibrated `confidence`). A track rests on two agreeing map fixes; when two answers more
+    /// confident than the track's fix agree with each other (within a second, inside each other's
+    /// tracking bounds) but not with the track, the track is the look-alike: the new track starts
+    /// there, confirmed (two agreeing fixes, as any track), without a keyframe. Returns that track;
+    /// otherwise remembers the answer and returns `None`.
+    fn challenged(&mut self, pose: &Isometry3<f64>, confidence: f64) -> Option<Track> {
+        if confidence <= self.confidence {
+            return None;
+        }
+        let now = Instant::now();
+        let c = Challenger {
+            position_m: pose.translation.vector,
+            rotation: pose.rotation,
+            confidence,
+            at: now,
+        };
+        let agrees = self.challenger.is_some_and(|p| {
+            let elapsed_s = p.at.elapsed().as_secs_f64();
+            elapsed_s <= RECONFIRM_AFTER_S
+                && tracking_region(p.position_m, elapsed_s)
+                    .is_some_and(|region| region.contains(&c.position_m))
+                && tracking_heading(p.rotation, elapsed_s)
+                    .exceeded_by(&c.rotation)
+                    .is_none()
+        });
+        if !agrees {
+            self.challenger = Some(c);
+            return None;
+        }
+        let earlier = self.challenger.take().map_or(confidence, |p| p.confidence);
+        Some(Track {
+            map_id: self.map_id.clone(),
+            position_m: c.position_m,
+            rotation: c.rotation,
+            at: now,
+            confirmed: true,
+            keyframe: None,
+            anchored_at: now,
+            map_tried_at: None,
+            confidence: confidence.min(earlier),
+            challenger: None,
         })
     }
 
     /// What the next frame of map `map_id` (empty: the server's only map) tracks with: nothing before
     /// the fix is confirmed; the keyframe while the chain's last map fix is younger than
-    /// [`TRACKING_MAX_AGE_S`], the map first once it is older than [`REANCHOR_AFTER_S`].
+    /// [`ODOMETRY_MAX_AGE_S`]; the map first once it is older than [`REANCHOR_AFTER_S`], at most once
+    /// per [`REANCHOR_AFTER_S`] (a place the map does not answer costs a map search only on every
+    /// few frames).
     fn next(&self, map_id: &str) -> Tracking {
         if !self.confirmed || (!map_id.is_empty() && map_id != self.map_id) {
             return Tracking {
@@ -348,8 +423,11 @@ impl Track {
             keyframe: self
                 .keyframe
                 .clone()
-                .filter(|_| anchor_age_s <= TRACKING_MAX_AGE_S),
-            map_first: anchor_age_s >= REANCHOR_AFTER_S,
+                .filter(|_| anchor_age_s <= ODOMETRY_MAX_AGE_S),
+            map_first: anchor_age_s >= REANCHOR_AFTER_S
+                && self
+                    .map_tried_at
+                    .is_none_or(|t| t.elapsed().as_secs_f64() >= REANCHOR_AFTER_S),
         }
     }
 }
@@ -548,6 +626,7 @@ impl LocalizerService {
         let followup = Followup {
             keyframe: loc.keyframe.clone().filter(|_| localized),
             odometry: loc.odometry,
+            off_track: loc.off_track,
         };
         Ok((response, followup))
     }
@@ -629,9 +708,15 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         request_id(&msg.request_id, &MetadataMap::new())
                     };
                     // A relocalizing frame is localized globally, as a unary call would be.
-                    let tracking = match &track {
+                    let tracking = match &mut track {
                         _ if msg.relocalize => Tracking::default(),
-                        Some(t) => t.next(&msg.map_id),
+                        Some(t) => {
+                            let next = t.next(&msg.map_id);
+                            if next.map_first {
+                                t.map_tried_at = Some(Instant::now());
+                            }
+                            next
+                        }
                         None => Tracking {
                             stream: true,
                             ..Tracking::default()
@@ -651,8 +736,19 @@ impl proto::localizer_server::Localizer for LocalizerService {
                             }
                         };
                     let result = result.map(|(r, f)| {
+                        let off_track = f.off_track;
                         if let Some(t) = Track::after(track.as_ref(), &r, f) {
                             track = Some(t);
+                        }
+                        if let (Some(t), Some((pose, confidence))) = (track.as_mut(), off_track) {
+                            if let Some(moved) = t.challenged(&pose, confidence) {
+                                tracing::info!(
+                                    from = ?t.position_m.as_slice(),
+                                    to = ?moved.position_m.as_slice(),
+                                    "two confident map answers outside the track moved it"
+                                );
+                                track = Some(moved);
+                            }
                         }
                         r
                     });
@@ -811,12 +907,36 @@ mod tests {
             kept.anchored_at, t.anchored_at,
             "odometry does not re-anchor"
         );
+        // An old anchor tries the map first, at most once per REANCHOR_AFTER_S.
+        let mut aging = Track::after(
+            Some(&t),
+            &answer(0.35, proto::Mode::Tracking),
+            odometry(true),
+        )
+        .unwrap();
+        aging.anchored_at -= Duration::from_secs_f64(REANCHOR_AFTER_S + 0.1);
+        assert!(aging.next("m").map_first);
+        aging.map_tried_at = Some(Instant::now());
+        assert!(!aging.next("m").map_first, "the map was just tried");
+        let hop = Track::after(
+            Some(&aging),
+            &answer(0.36, proto::Mode::Tracking),
+            odometry(true),
+        )
+        .unwrap();
+        assert_eq!(hop.map_tried_at, aging.map_tried_at, "odometry keeps it");
+        aging.map_tried_at = aging
+            .map_tried_at
+            .map(|t| t - Duration::from_secs_f64(REANCHOR_AFTER_S + 0.1));
+        assert!(aging.next("m").map_first, "and tries it again later");
         let renewed = Track::after(
             Some(&kept),
             &answer(0.4, proto::Mode::Tracking),
             odometry(false),
         );
-        assert!(renewed.unwrap().anchored_at > t.anchored_at);
+        let renewed = renewed.unwrap();
+        assert!(renewed.anchored_at > t.anchored_at);
+        assert!(renewed.map_tried_at.is_none(), "a map fix starts afresh");
         // A fix turned round (a symmetric room) does not confirm a track, even in the same place.
         let mut turned = answer(0.3, proto::Mode::Global);
         turned.pose.as_mut().unwrap().rotation = Some(proto::Quaternion {
@@ -854,5 +974,53 @@ mod tests {
         let mut refused = answer(5.0, proto::Mode::Global);
         refused.status = proto::Status::NotLocalized as i32;
         assert!(Track::after(Some(&kept), &refused, odometry(false)).is_none());
+    }
+
+    #[test]
+    fn two_confident_agreeing_answers_outside_a_track_move_it() {
+        let fix = |x: f64| proto::LocalizeResponse {
+            confidence: 0.8,
+            ..answer(x, proto::Mode::Global)
+        };
+        let first = Track::after(None, &fix(0.0), Followup::default()).unwrap();
+        let mut t = Track::after(Some(&first), &fix(0.3), Followup::default()).unwrap();
+        assert!(t.confirmed);
+        let far = |x: f64| Isometry3::translation(x, 0.0, 0.0);
+        assert!(t.challenged(&far(3.0), 0.7).is_none());
+        assert!(
+            t.challenger.is_none(),
+            "an answer less confident than the track's fix is a look-alike"
+        );
+        assert!(
+            t.challenged(&far(3.0), 0.95).is_none(),
+            "one answer is not enough"
+        );
+        // The track's odometry answers in between keep the challenger.
+        t = Track::after(
+            Some(&t),
+            &proto::LocalizeResponse {
+                confidence: 0.8,
+                ..answer(0.35, proto::Mode::Tracking)
+            },
+            Followup {
+                odometry: true,
+                ..Followup::default()
+            },
+        )
+        .unwrap();
+        assert!(t.challenger.is_some());
+        assert!(
+            t.challenged(&far(-6.0), 0.95).is_none(),
+            "two challengers that disagree move nothing"
+        );
+        let moved = t.challenged(&far(-5.9), 0.99).expect("two agree");
+        assert!(moved.confirmed && moved.keyframe.is_none());
+        assert_eq!(moved.position_m.x, -5.9);
+        assert_eq!(moved.confidence, 0.95);
+        assert!(moved
+            .next("m")
+            .region
+            .unwrap()
+            .contains(&Vector3::new(-5.8, 0.0, 0.0)));
     }
 }

@@ -6,9 +6,16 @@
 //! depth discontinuities. Every draw comes from `seed`, so the same seed perturbs a frame the same way.
 //! Database views stay clean, as a careful mapping run would be.
 
+use nalgebra::Vector3;
 use pntr_core::{DepthMap, RgbImage};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
+
+use crate::render::Lighting;
+use crate::scene::Scene;
+
+/// The effect groups `--realism` and `--effects` name, in order.
+pub const EFFECT_GROUPS: [&str; 6] = ["lighting", "exposure", "blur", "noise", "jpeg", "depth"];
 
 /// How strong each effect is; [`RobotEffects::default`] is a typical indoor robot camera.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -50,7 +57,54 @@ impl Default for RobotEffects {
 }
 
 impl RobotEffects {
-    /// Apply every effect to one frame, deterministically for `seed`.
+    /// The default effects with only the named groups on (`exposure`: gain, gamma and white
+    /// balance; `blur`; `noise`; `jpeg`; `depth`: range noise, dropouts and lost edges), the others
+    /// neutral. `lighting` is not a frame effect (see [`Realism`]) and is ignored here.
+    ///
+    /// # Errors
+    /// A name that is not one of [`EFFECT_GROUPS`].
+    pub fn only(groups: &[&str]) -> Result<Self, String> {
+        let all = Self::default();
+        let mut fx = Self {
+            gain: (1.0, 1.0),
+            gamma: (1.0, 1.0),
+            white_balance: 0.0,
+            blur_sigma_px: (0.0, 0.0),
+            noise_levels: 0.0,
+            jpeg_quality: (100, 100),
+            depth_noise_per_m2: 0.0,
+            depth_dropout: 0.0,
+            depth_edge_m: f64::INFINITY,
+        };
+        for g in groups {
+            match *g {
+                "lighting" => {}
+                "exposure" => {
+                    fx.gain = all.gain;
+                    fx.gamma = all.gamma;
+                    fx.white_balance = all.white_balance;
+                }
+                "blur" => fx.blur_sigma_px = all.blur_sigma_px,
+                "noise" => fx.noise_levels = all.noise_levels,
+                "jpeg" => fx.jpeg_quality = all.jpeg_quality,
+                "depth" => {
+                    fx.depth_noise_per_m2 = all.depth_noise_per_m2;
+                    fx.depth_dropout = all.depth_dropout;
+                    fx.depth_edge_m = all.depth_edge_m;
+                }
+                other => {
+                    return Err(format!(
+                        "unknown effect {other:?} (one of {}, or robot for all)",
+                        EFFECT_GROUPS.join(", ")
+                    ))
+                }
+            }
+        }
+        Ok(fx)
+    }
+
+    /// Apply every effect to one frame, deterministically for `seed`. A blur sigma of 0 blurs
+    /// nothing, JPEG quality 100 skips compression.
     pub fn apply(&self, rgb: &mut RgbImage, depth: &mut DepthMap, seed: u64) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fc0_ffee);
         let gain = rng.gen_range(self.gain.0..=self.gain.1);
@@ -63,8 +117,10 @@ impl RobotEffects {
         let mut planes: Vec<Vec<f64>> = (0..3)
             .map(|c| (0..w * h).map(|i| rgb.data[i * 3 + c] as f64).collect())
             .collect();
-        for p in &mut planes {
-            blur(p, w, h, sigma);
+        if sigma > 0.0 {
+            for p in &mut planes {
+                blur(p, w, h, sigma);
+            }
         }
         let noise = Normal::new(0.0, self.noise_levels).expect("finite sigma");
         for i in 0..w * h {
@@ -77,7 +133,9 @@ impl RobotEffects {
                 rgb.data[i * 3 + c] = v.round().clamp(0.0, 255.0) as u8;
             }
         }
-        jpeg_round_trip(rgb, quality);
+        if quality < 100 {
+            jpeg_round_trip(rgb, quality);
+        }
         // Depth.
         let orig = depth.data.clone();
         for r in 0..h {
@@ -103,6 +161,68 @@ impl RobotEffects {
                 };
             }
         }
+    }
+}
+
+/// What `synth --realism` puts on a robot's captures (queries and drives; database views stay as
+/// the mapping run saw them): other lighting ([`Realism::lighting_of`]: each room's lamps at another
+/// level, drawn once per scene; ambient and directional lights drawn per capture) and the camera's
+/// frame effects ([`RobotEffects`]). Deterministic for the same seeds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Realism {
+    /// Light queries otherwise than the map.
+    pub lighting: bool,
+    /// Frame effects (neutral groups do nothing).
+    pub effects: RobotEffects,
+}
+
+impl Realism {
+    /// `robot` (everything), `none` (`None`), or a comma-separated list of [`EFFECT_GROUPS`].
+    ///
+    /// # Errors
+    /// An unknown name.
+    pub fn parse(spec: &str) -> Result<Option<Self>, String> {
+        match spec.trim() {
+            "none" | "" => Ok(None),
+            "robot" => Ok(Some(Self {
+                lighting: true,
+                effects: RobotEffects::default(),
+            })),
+            list => {
+                let groups: Vec<&str> = list.split(',').map(str::trim).collect();
+                Ok(Some(Self {
+                    lighting: groups.contains(&"lighting"),
+                    effects: RobotEffects::only(&groups)?,
+                }))
+            }
+        }
+    }
+
+    /// The lighting of one capture of `scene`: the scene's own when `lighting` is off; otherwise each
+    /// room's gain drawn from `scene_seed` (0.55-1.25: lamps off, dimmed or brighter than when
+    /// mapped), and per capture from `capture_seed` the ambient level (x0.75-1.15), the lights'
+    /// strengths (x0.5-1.5) and the second light's direction (a lamp or window elsewhere).
+    pub fn lighting_of(&self, scene: &Scene, scene_seed: u64, capture_seed: u64) -> Lighting {
+        let mut l = Lighting::of(scene);
+        if !self.lighting {
+            return l;
+        }
+        let mut rooms = rand_chacha::ChaCha8Rng::seed_from_u64(scene_seed ^ 0x1a9b_7c0f);
+        l.room_gain = scene
+            .rooms
+            .iter()
+            .map(|_| rooms.gen_range(0.55f32..=1.25))
+            .collect();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(capture_seed ^ 0x11e7_0ca7);
+        l.ambient *= rng.gen_range(0.75f32..=1.15);
+        for light in &mut l.lights {
+            light.0 *= rng.gen_range(0.5f32..=1.5);
+        }
+        let yaw = rng.gen_range(0.0f32..std::f32::consts::TAU);
+        let up = rng.gen_range(0.2f32..=0.9);
+        let flat = (1.0 - up * up).sqrt();
+        l.lights[1].1 = Vector3::new(flat * yaw.cos(), up, flat * yaw.sin());
+        l
     }
 }
 
@@ -196,5 +316,41 @@ mod tests {
             .iter()
             .filter(|&&z| z > 0.0)
             .all(|&z| (z - 2.0).abs() < 0.1));
+    }
+
+    #[test]
+    fn effect_groups_switch_on_one_at_a_time() {
+        let rgb = RgbImage::new(
+            32,
+            32,
+            (0..32 * 32 * 3).map(|i| (i * 7 % 251) as u8).collect(),
+        )
+        .unwrap();
+        let depth = DepthMap::from_metres(32, 32, vec![2.0; 32 * 32]).unwrap();
+        let run = |fx: RobotEffects| {
+            let (mut r, mut d) = (rgb.clone(), depth.clone());
+            fx.apply(&mut r, &mut d, 3);
+            (r, d)
+        };
+        let (r, d) = run(RobotEffects::only(&[]).unwrap());
+        assert_eq!(
+            (r, d),
+            (rgb.clone(), depth.clone()),
+            "no group changes nothing"
+        );
+        let (r, d) = run(RobotEffects::only(&["depth"]).unwrap());
+        assert_eq!(r, rgb, "depth leaves colour alone");
+        assert_ne!(d, depth);
+        for g in ["exposure", "blur", "noise", "jpeg"] {
+            let (r, d) = run(RobotEffects::only(&[g]).unwrap());
+            assert_ne!(r, rgb, "{g}");
+            assert_eq!(d, depth, "{g} leaves depth alone");
+        }
+        assert!(RobotEffects::only(&["fog"]).unwrap_err().contains("fog"));
+        assert_eq!(Realism::parse("none").unwrap(), None);
+        let robot = Realism::parse("robot").unwrap().unwrap();
+        assert!(robot.lighting && robot.effects == RobotEffects::default());
+        let some = Realism::parse("lighting,blur").unwrap().unwrap();
+        assert!(some.lighting && some.effects.noise_levels == 0.0);
     }
 }

@@ -60,6 +60,9 @@ pub struct SynthConfig {
     /// Also render, per scene, a robot's drive of this many seconds ([`trajectory`]: 0.5 m/s,
     /// 10 Hz, through the query camera) into `sequences/<scene>/` in the TUM RGB-D layout.
     pub trajectory_seconds: Option<f64>,
+    /// A robot's captures instead of clean renders for queries and drives (`synth --realism`):
+    /// other lighting and camera effects; database views stay clean.
+    pub realism: Option<effects::Realism>,
 }
 
 impl Default for SynthConfig {
@@ -76,6 +79,7 @@ impl Default for SynthConfig {
             db_camera: Intrinsics::hpointloc(),
             query_camera: Intrinsics::hpointloc(),
             trajectory_seconds: None,
+            realism: None,
         }
     }
 }
@@ -190,16 +194,45 @@ fn frame_seed(seed: u64, scene: usize, point: usize, view: usize) -> u64 {
         ^ view as u64
 }
 
-/// Render every view of one Point: database views through `cameras.0`, queries through `cameras.1`.
+/// Render one capture: the clean render, or with `realism` a robot's (its lighting, then its frame
+/// effects). `scene` is (run seed, scene index), `seed` the frame's own.
+fn capture_frame(
+    renderer: &Renderer,
+    pose: &nalgebra::Isometry3<f64>,
+    k: &Intrinsics,
+    scene: (u64, usize),
+    seed: u64,
+    realism: Option<&effects::Realism>,
+) -> Frame {
+    let Some(realism) = realism else {
+        return renderer.render(pose, k, seed);
+    };
+    let scene_seed = scene.0 ^ (scene.1 as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let lighting = realism.lighting_of(renderer.scene(), scene_seed, seed);
+    let mut f = renderer.render_lit(pose, k, seed, &lighting);
+    realism.effects.apply(&mut f.rgb, &mut f.depth, seed);
+    f
+}
+
+/// Render every view of one Point: database views through `cameras.0`, queries through `cameras.1`
+/// (as a robot's captures with `realism`).
 pub fn render_point(
     renderer: &Renderer,
     plan: &PointPlan,
     cameras: (&Intrinsics, &Intrinsics),
     seeds: (u64, usize, usize),
+    realism: Option<&effects::Realism>,
     on_frame: &(dyn Fn() + Sync),
 ) -> PointRecord {
-    let view = |pose: &nalgebra::Isometry3<f64>, k: &Intrinsics, i: usize| {
-        let f = renderer.render(pose, k, frame_seed(seeds.0, seeds.1, seeds.2, i));
+    let view = |pose: &nalgebra::Isometry3<f64>, k: &Intrinsics, i: usize, capture: bool| {
+        let f = capture_frame(
+            renderer,
+            pose,
+            k,
+            (seeds.0, seeds.1),
+            frame_seed(seeds.0, seeds.1, seeds.2, i),
+            realism.filter(|_| capture),
+        );
         on_frame();
         View {
             world_from_camera: *pose,
@@ -213,13 +246,13 @@ pub fn render_point(
         .db
         .iter()
         .enumerate()
-        .map(|(i, p)| view(p, cameras.0, i))
+        .map(|(i, p)| view(p, cameras.0, i, false))
         .collect();
     let queries = plan
         .queries
         .iter()
         .enumerate()
-        .map(|(i, p)| view(p, cameras.1, 1000 + i))
+        .map(|(i, p)| view(p, cameras.1, 1000 + i, true))
         .collect();
     PointRecord {
         db,
@@ -282,7 +315,14 @@ pub fn synthesize(
             .par_iter()
             .enumerate()
             .try_for_each(|(pi, plan)| {
-                let mut rec = render_point(&renderer, plan, cameras, (cfg.seed, si, pi), &count);
+                let mut rec = render_point(
+                    &renderer,
+                    plan,
+                    cameras,
+                    (cfg.seed, si, pi),
+                    cfg.realism.as_ref(),
+                    &count,
+                );
                 rec.instance_categories = Some(table.clone());
                 let path = tmp_root.join(format!("{name}_point{pi}.hdf5"));
                 write_point(&path, &rec, &cfg.write)
@@ -357,10 +397,13 @@ fn render_drive(
         .par_iter()
         .enumerate()
         .map(|(i, p)| {
-            let f = renderer.render(
+            let f = capture_frame(
+                renderer,
                 &p.world_from_camera,
                 &cfg.query_camera,
+                (cfg.seed, si),
                 frame_seed(cfg.seed, si, 1 << 19, i),
+                cfg.realism.as_ref(),
             );
             on_frame();
             pntr_dataset::tum::SequenceFrame {

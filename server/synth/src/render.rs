@@ -32,6 +32,50 @@ pub struct Renderer<'s> {
     order: Vec<u32>,
 }
 
+/// How a view is lit: an ambient term, two directional lights, and a gain per room (a room's lamps).
+/// [`Lighting::of`] is the scene's own lighting, what the database views (the mapping run) see;
+/// `synth --realism` lights queries otherwise ([`crate::effects::Realism`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Lighting {
+    /// Light reaching every surface whatever its orientation (shade units; the scene's: 0.5).
+    pub ambient: f32,
+    /// Strength (shade units) and unit direction toward each directional light.
+    pub lights: [(f32, Vector3<f32>); 2],
+    /// Gain on the shade of surfaces in each room (indexed like [`Scene::rooms`], by the floor
+    /// position of the surface point); surfaces outside every room, and all when empty, get 1.
+    pub room_gain: Vec<f32>,
+}
+
+impl Lighting {
+    /// The scene's own lighting.
+    pub fn of(scene: &Scene) -> Self {
+        Self {
+            ambient: 0.5,
+            lights: [(0.35, scene.lights[0]), (0.2, scene.lights[1])],
+            room_gain: Vec::new(),
+        }
+    }
+
+    /// Shade of a surface with normal `n` at world point `p`.
+    fn shade(&self, scene: &Scene, n: &Vector3<f32>, p: &Vector3<f32>) -> f32 {
+        let shade = self.ambient
+            + self.lights[0].0 * n.dot(&self.lights[0].1).max(0.0)
+            + self.lights[1].0 * n.dot(&self.lights[1].1).max(0.0);
+        if self.room_gain.is_empty() {
+            return shade;
+        }
+        let room = scene
+            .rooms
+            .iter()
+            .position(|r| p.x >= r.x0 && p.x <= r.x1 && p.z >= r.z0 && p.z <= r.z1);
+        shade
+            * room
+                .and_then(|i| self.room_gain.get(i))
+                .copied()
+                .unwrap_or(1.0)
+    }
+}
+
 /// One rendered frame.
 pub struct Frame {
     /// Colour with sensor noise.
@@ -335,7 +379,29 @@ impl<'s> Renderer<'s> {
         k: &Intrinsics,
         noise_seed: u64,
     ) -> Frame {
-        self.render_with(world_from_camera, k, noise_seed, false)
+        self.render_with(
+            world_from_camera,
+            k,
+            noise_seed,
+            &Lighting::of(self.scene),
+            false,
+        )
+    }
+
+    /// As [`Renderer::render`] under another `lighting`.
+    pub fn render_lit(
+        &self,
+        world_from_camera: &Isometry3<f64>,
+        k: &Intrinsics,
+        noise_seed: u64,
+        lighting: &Lighting,
+    ) -> Frame {
+        self.render_with(world_from_camera, k, noise_seed, lighting, false)
+    }
+
+    /// The scene rendered.
+    pub fn scene(&self) -> &Scene {
+        self.scene
     }
 
     /// As [`Renderer::render`] but testing every box for every ray (no hierarchy).
@@ -345,7 +411,13 @@ impl<'s> Renderer<'s> {
         k: &Intrinsics,
         noise_seed: u64,
     ) -> Frame {
-        self.render_with(world_from_camera, k, noise_seed, true)
+        self.render_with(
+            world_from_camera,
+            k,
+            noise_seed,
+            &Lighting::of(self.scene),
+            true,
+        )
     }
 
     fn render_with(
@@ -353,6 +425,7 @@ impl<'s> Renderer<'s> {
         world_from_camera: &Isometry3<f64>,
         k: &Intrinsics,
         noise_seed: u64,
+        lighting: &Lighting,
         brute: bool,
     ) -> Frame {
         let cv = convert_axes(world_from_camera, CameraAxes::Habitat, CameraAxes::OpenCv);
@@ -398,9 +471,7 @@ impl<'s> Renderer<'s> {
                     let face = hit.axis * 2 + hit.positive as usize;
                     let mat = &scene.materials[b.faces[face] as usize];
                     let albedo = mat.albedo(p[ua], p[va], lu, lv);
-                    let shade = 0.5
-                        + 0.35 * n.dot(&scene.lights[0]).max(0.0)
-                        + 0.2 * n.dot(&scene.lights[1]).max(0.0);
+                    let shade = lighting.shade(scene, &n, &p);
                     colour = [albedo[0] * shade, albedo[1] * shade, albedo[2] * shade];
                     depth[px] = hit.t.min(MAX_DEPTH_M);
                     labels[px] = b.instance;
