@@ -148,7 +148,11 @@ pub fn effects(name: &str) -> Result<Option<pntr_synth::effects::RobotEffects>> 
             }
             pntr_synth::effects::RobotEffects::only(&groups)
                 .map(Some)
-                .map_err(|e| anyhow::anyhow!("--effects {list}: {e}"))
+                .map_err(|_| {
+                    anyhow::anyhow!(
+                        "--effects {list}: not none, robot, or a comma-separated list of exposure, blur, noise, jpeg, depth"
+                    )
+                })
         }
     }
 }

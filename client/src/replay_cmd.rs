@@ -60,9 +60,11 @@ pub struct ReplayArgs {
     /// The camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]` when the sequence has no calibration.txt.
     #[arg(long, value_name = "FX,FY,CX,CY")]
     pub intrinsics: Option<String>,
-    /// Camera effects applied to every frame before it is sent: `none` or `robot` (exposure, gamma,
-    /// white balance, blur, noise, JPEG, depth noise growing with range, dropouts and lost edges;
-    /// drawn anew for each frame from its index, so a run is repeatable).
+    /// Camera effects applied to every frame before it is sent: `none`, `robot` (exposure, gamma,
+    /// white balance, blur, noise, JPEG, depth noise growing with range, dropouts and lost edges), or
+    /// a comma-separated list of the groups `exposure`, `blur`, `noise`, `jpeg`, `depth`. Exposure
+    /// drifts smoothly over 3 s (30 frames), as an auto exposure does; the others are drawn for each
+    /// frame from its index, so a run is repeatable.
     #[arg(long, default_value = "none")]
     pub effects: String,
     /// Replay at most this many frames (0 = all).
@@ -74,7 +76,8 @@ pub struct ReplayArgs {
     /// The JSON report.
     #[arg(long)]
     pub json: PathBuf,
-    /// Also draw both trajectories from above over the map's Points (PNG and SVG) into this folder.
+    /// Also draw both trajectories from above over the map's camera positions (PNG and SVG) into
+    /// this folder.
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
     /// Also write one JSON line per frame (timestamp, status, mode, reason, confidence, inliers,
@@ -298,7 +301,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         }
         let (mut rgb, mut depth) = seq.load(i)?;
         if let Some(fx) = &effects {
-            fx.apply(&mut rgb, &mut depth, i as u64);
+            let look = fx.drifting_look(0, i);
+            fx.apply_with(&mut rgb, &mut depth, &look, i as u64);
         }
         let mut req = wire::raw_request(&rgb, &depth, None);
         req.intrinsics = Some(camera.clone());

@@ -69,7 +69,7 @@ pub struct SynthArgs {
     pub trajectory_seconds: Option<f64>,
     /// Render queries and drives as a robot's captures, database views clean: `none`, `robot`
     /// (everything), or a comma-separated list of `lighting` (each room's lamps at another level,
-    /// ambient and light strengths and directions per capture), `exposure` (gain, gamma, white
+    /// ambient and light strengths and directions per query, drifting over 3 s in a drive), `exposure` (gain, gamma, white
     /// balance), `blur`, `noise`, `jpeg`, `depth` (noise growing with the square of the range,
     /// dropouts, lost edges). Deterministic per seed.
     #[arg(long, default_value = "none", value_name = "robot|none|GROUP,...")]

@@ -103,14 +103,52 @@ impl RobotEffects {
         Ok(fx)
     }
 
+    /// The exposure of one capture (gain, gamma, white balance), drawn for `seed` (the same draw as
+    /// [`RobotEffects::apply`] makes).
+    pub fn look(&self, seed: u64) -> Look {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fc0_ffee);
+        Self::draw_look(self, &mut rng)
+    }
+
+    fn draw_look(&self, rng: &mut rand_chacha::ChaCha8Rng) -> Look {
+        let gain = rng.gen_range(self.gain.0..=self.gain.1);
+        let gamma = rng.gen_range(self.gamma.0..=self.gamma.1);
+        let white_balance =
+            std::array::from_fn(|_| 1.0 + rng.gen_range(-self.white_balance..=self.white_balance));
+        Look {
+            gain,
+            gamma,
+            white_balance,
+        }
+    }
+
+    /// The exposure of frame `i` of a recording: it drifts smoothly from one draw to the next over
+    /// [`DRIFT_FRAMES`] frames, as a camera's auto exposure follows the light, instead of jumping
+    /// at every frame. `base` seeds the recording.
+    pub fn drifting_look(&self, base: u64, i: usize) -> Look {
+        let (a, b, t) = drift(base, i);
+        self.look(a).lerp(&self.look(b), t)
+    }
+
     /// Apply every effect to one frame, deterministically for `seed`. A blur sigma of 0 blurs
     /// nothing, JPEG quality 100 skips compression.
     pub fn apply(&self, rgb: &mut RgbImage, depth: &mut DepthMap, seed: u64) {
+        let look = self.look(seed);
+        self.apply_with(rgb, depth, &look, seed);
+    }
+
+    /// As [`RobotEffects::apply`] with the exposure `look` given (a recording's drifting one); blur,
+    /// noise, JPEG and depth are drawn for `seed`.
+    pub fn apply_with(&self, rgb: &mut RgbImage, depth: &mut DepthMap, look: &Look, seed: u64) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_0fc0_ffee);
-        let gain = rng.gen_range(self.gain.0..=self.gain.1);
-        let gamma = rng.gen_range(self.gamma.0..=self.gamma.1);
-        let wb: [f64; 3] =
-            std::array::from_fn(|_| 1.0 + rng.gen_range(-self.white_balance..=self.white_balance));
+        // The look's draws come first in the stream; skip them so a frame's other effects are the
+        // same whichever look it gets.
+        let _ = self.draw_look(&mut rng);
+        let Look {
+            gain,
+            gamma,
+            white_balance: wb,
+        } = *look;
         let sigma = rng.gen_range(self.blur_sigma_px.0..=self.blur_sigma_px.1);
         let quality = rng.gen_range(self.jpeg_quality.0..=self.jpeg_quality.1);
         let (w, h) = (rgb.width as usize, rgb.height as usize);
@@ -164,10 +202,47 @@ impl RobotEffects {
     }
 }
 
+/// Frames over which a recording's lighting and exposure drift from one draw to the next (3 s at
+/// 10 Hz).
+pub const DRIFT_FRAMES: usize = 30;
+
+/// The two draws frame `i` of a recording seeded `base` blends, and the weight of the second.
+fn drift(base: u64, i: usize) -> (u64, u64, f64) {
+    let k = (i / DRIFT_FRAMES) as u64;
+    let seed = |k: u64| base ^ k.wrapping_add(1).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let t = (i % DRIFT_FRAMES) as f64 / DRIFT_FRAMES as f64;
+    (seed(k), seed(k + 1), t)
+}
+
+/// A capture's exposure: gain, gamma and per-channel white balance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Look {
+    /// Exposure gain.
+    pub gain: f64,
+    /// Gamma.
+    pub gamma: f64,
+    /// Per-channel (R, G, B) factors.
+    pub white_balance: [f64; 3],
+}
+
+impl Look {
+    /// `self` moved toward `other` by `t` (0..1).
+    pub fn lerp(&self, other: &Look, t: f64) -> Look {
+        let l = |a: f64, b: f64| a + (b - a) * t;
+        Look {
+            gain: l(self.gain, other.gain),
+            gamma: l(self.gamma, other.gamma),
+            white_balance: std::array::from_fn(|c| {
+                l(self.white_balance[c], other.white_balance[c])
+            }),
+        }
+    }
+}
+
 /// What `synth --realism` puts on a robot's captures (queries and drives; database views stay as
 /// the mapping run saw them): other lighting ([`Realism::lighting_of`]: each room's lamps at another
-/// level, drawn once per scene; ambient and directional lights drawn per capture) and the camera's
-/// frame effects ([`RobotEffects`]). Deterministic for the same seeds.
+/// level, drawn once per scene; ambient and directional lights drawn per query, drifting smoothly
+/// along a drive) and the camera's frame effects ([`RobotEffects`]). Deterministic for the same seeds.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Realism {
     /// Light queries otherwise than the map.
@@ -183,7 +258,7 @@ impl Realism {
     /// An unknown name.
     pub fn parse(spec: &str) -> Result<Option<Self>, String> {
         match spec.trim() {
-            "none" | "" => Ok(None),
+            "none" => Ok(None),
             "robot" => Ok(Some(Self {
                 lighting: true,
                 effects: RobotEffects::default(),
@@ -196,6 +271,20 @@ impl Realism {
                 }))
             }
         }
+    }
+
+    /// The lighting of frame `i` of a recording seeded `base` (a robot's drive): it drifts smoothly
+    /// from one draw of [`Realism::lighting_of`] to the next over [`DRIFT_FRAMES`] frames.
+    pub fn drifting_lighting(
+        &self,
+        scene: &Scene,
+        scene_seed: u64,
+        base: u64,
+        i: usize,
+    ) -> Lighting {
+        let (a, b, t) = drift(base, i);
+        self.lighting_of(scene, scene_seed, a)
+            .lerp(&self.lighting_of(scene, scene_seed, b), t as f32)
     }
 
     /// The lighting of one capture of `scene`: the scene's own when `lighting` is off; otherwise each
@@ -352,5 +441,36 @@ mod tests {
         assert!(robot.lighting && robot.effects == RobotEffects::default());
         let some = Realism::parse("lighting,blur").unwrap().unwrap();
         assert!(some.lighting && some.effects.noise_levels == 0.0);
+        assert!(Realism::parse("").is_err());
+    }
+
+    #[test]
+    fn a_recording_s_exposure_drifts_instead_of_jumping() {
+        let fx = RobotEffects::default();
+        let looks: Vec<Look> = (0..4 * DRIFT_FRAMES)
+            .map(|i| fx.drifting_look(9, i))
+            .collect();
+        let biggest_step = looks
+            .windows(2)
+            .map(|w| (w[1].gain - w[0].gain).abs())
+            .fold(0.0, f64::max);
+        let range = looks.iter().map(|l| l.gain).fold(f64::MIN, f64::max)
+            - looks.iter().map(|l| l.gain).fold(f64::MAX, f64::min);
+        assert!(
+            range > 0.1,
+            "the exposure changes over the recording: {range}"
+        );
+        assert!(
+            biggest_step <= 0.9 / DRIFT_FRAMES as f64 + 1e-9,
+            "one frame moves the gain by at most its range over {DRIFT_FRAMES} frames: {biggest_step}"
+        );
+        // A frame's own effects do not depend on the look it gets.
+        let rgb = RgbImage::new(8, 8, vec![100; 8 * 8 * 3]).unwrap();
+        let depth = DepthMap::from_metres(8, 8, vec![1.0; 64]).unwrap();
+        let (mut a, mut da) = (rgb.clone(), depth.clone());
+        fx.apply(&mut a, &mut da, 5);
+        let (mut b, mut db) = (rgb, depth);
+        fx.apply_with(&mut b, &mut db, &fx.look(5), 5);
+        assert_eq!((a, da), (b, db));
     }
 }

@@ -195,7 +195,9 @@ fn frame_seed(seed: u64, scene: usize, point: usize, view: usize) -> u64 {
 }
 
 /// Render one capture: the clean render, or with `realism` a robot's (its lighting, then its frame
-/// effects). `scene` is (run seed, scene index), `seed` the frame's own.
+/// effects). `scene` is (run seed, scene index), `seed` the frame's own; `drive` is the frame's index
+/// in a recording, whose lighting and exposure drift smoothly from frame to frame instead of being
+/// drawn for each.
 fn capture_frame(
     renderer: &Renderer,
     pose: &nalgebra::Isometry3<f64>,
@@ -203,14 +205,29 @@ fn capture_frame(
     scene: (u64, usize),
     seed: u64,
     realism: Option<&effects::Realism>,
+    drive: Option<usize>,
 ) -> Frame {
     let Some(realism) = realism else {
         return renderer.render(pose, k, seed);
     };
     let scene_seed = scene.0 ^ (scene.1 as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15);
-    let lighting = realism.lighting_of(renderer.scene(), scene_seed, seed);
+    let (lighting, look) = match drive {
+        Some(i) => {
+            let base = scene_seed ^ 0x0d71_5e00;
+            (
+                realism.drifting_lighting(renderer.scene(), scene_seed, base, i),
+                realism.effects.drifting_look(base, i),
+            )
+        }
+        None => (
+            realism.lighting_of(renderer.scene(), scene_seed, seed),
+            realism.effects.look(seed),
+        ),
+    };
     let mut f = renderer.render_lit(pose, k, seed, &lighting);
-    realism.effects.apply(&mut f.rgb, &mut f.depth, seed);
+    realism
+        .effects
+        .apply_with(&mut f.rgb, &mut f.depth, &look, seed);
     f
 }
 
@@ -232,6 +249,7 @@ pub fn render_point(
             (seeds.0, seeds.1),
             frame_seed(seeds.0, seeds.1, seeds.2, i),
             realism.filter(|_| capture),
+            None,
         );
         on_frame();
         View {
@@ -404,6 +422,7 @@ fn render_drive(
                 (cfg.seed, si),
                 frame_seed(cfg.seed, si, 1 << 19, i),
                 cfg.realism.as_ref(),
+                Some(i),
             );
             on_frame();
             pntr_dataset::tum::SequenceFrame {

@@ -56,6 +56,35 @@ impl Lighting {
         }
     }
 
+    /// `self` moved toward `other` by `t` (0..1): levels and room gains blended, directions
+    /// blended and renormalised.
+    pub fn lerp(&self, other: &Lighting, t: f32) -> Lighting {
+        let l = |a: f32, b: f32| a + (b - a) * t;
+        let dir = |a: &Vector3<f32>, b: &Vector3<f32>| {
+            let d = a + (b - a) * t;
+            if d.norm() > 1e-6 {
+                d.normalize()
+            } else {
+                *a
+            }
+        };
+        Lighting {
+            ambient: l(self.ambient, other.ambient),
+            lights: std::array::from_fn(|k| {
+                (
+                    l(self.lights[k].0, other.lights[k].0),
+                    dir(&self.lights[k].1, &other.lights[k].1),
+                )
+            }),
+            room_gain: self
+                .room_gain
+                .iter()
+                .zip(&other.room_gain)
+                .map(|(a, b)| l(*a, *b))
+                .collect(),
+        }
+    }
+
     /// Shade of a surface with normal `n` at world point `p`.
     fn shade(&self, scene: &Scene, n: &Vector3<f32>, p: &Vector3<f32>) -> f32 {
         let shade = self.ambient
