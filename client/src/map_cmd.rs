@@ -133,6 +133,15 @@ fn plot_report(args: &EvalArgs, report: &EvalReport, what: &str) -> Result<()> {
     Ok(())
 }
 
+/// The eval report as JSON with `"effects"`: what `--effects` put on the queries.
+fn with_effects(report: &EvalReport, effects: &str) -> Result<serde_json::Value> {
+    let mut json = serde_json::to_value(report)?;
+    if let Some(o) = json.as_object_mut() {
+        o.insert("effects".into(), effects.into());
+    }
+    Ok(json)
+}
+
 /// The query transformation `--effects` names: `none`, `robot` (every frame effect), or a
 /// comma-separated list of frame effect groups (`exposure`, `blur`, `noise`, `jpeg`, `depth`).
 pub fn effects(name: &str) -> Result<Option<pntr_synth::effects::RobotEffects>> {
@@ -483,7 +492,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         };
         let report = evaluate_remote(&mut remote, &scenes, &opts)?;
         print!("{}", eval::table(&report));
-        write_json(&args.json, &report)?;
+        write_json(&args.json, &with_effects(&report, &args.effects)?)?;
         eprintln!("report written to {}", args.json.display());
         return plot_report(args, &report, &format!("pntr-server at {addr}"));
     }
@@ -533,7 +542,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     };
     let report = evaluate_in_process(&pipeline, &scenes, &opts, fx)?;
     print!("{}", eval::table(&report));
-    write_json(&args.json, &report)?;
+    write_json(&args.json, &with_effects(&report, &args.effects)?)?;
     eprintln!("report written to {}", args.json.display());
     plot_report(args, &report, &format!("preset {}", preset.name))
 }

@@ -181,6 +181,10 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     ));
     let a = json(&again);
     assert_eq!(a["queries"], 6);
+    assert_eq!(
+        a["effects"], "robot",
+        "the report says what was put on the queries"
+    );
     assert!(
         (a["min_confidence"].as_f64().unwrap() - c["threshold"].as_f64().unwrap()).abs() < 1e-12
     );
