@@ -377,15 +377,23 @@ fn jpeg_round_trip(rgb: &mut RgbImage, quality: u8) {
 mod tests {
     use super::*;
 
-    #[test]
-    fn effects_are_deterministic_and_change_the_frame() {
+    /// A 32x32 frame of varied colour, all of it 2 m away.
+    fn textured_wall() -> (RgbImage, DepthMap) {
         let rgb = RgbImage::new(
             32,
             32,
             (0..32 * 32 * 3).map(|i| (i * 7 % 251) as u8).collect(),
         )
         .unwrap();
-        let depth = DepthMap::from_metres(32, 32, vec![2.0; 32 * 32]).unwrap();
+        (
+            rgb,
+            DepthMap::from_metres(32, 32, vec![2.0; 32 * 32]).unwrap(),
+        )
+    }
+
+    #[test]
+    fn effects_are_deterministic_and_change_the_frame() {
+        let (rgb, depth) = textured_wall();
         let run = |seed| {
             let (mut r, mut d) = (rgb.clone(), depth.clone());
             RobotEffects::default().apply(&mut r, &mut d, seed);
@@ -409,13 +417,7 @@ mod tests {
 
     #[test]
     fn effect_groups_switch_on_one_at_a_time() {
-        let rgb = RgbImage::new(
-            32,
-            32,
-            (0..32 * 32 * 3).map(|i| (i * 7 % 251) as u8).collect(),
-        )
-        .unwrap();
-        let depth = DepthMap::from_metres(32, 32, vec![2.0; 32 * 32]).unwrap();
+        let (rgb, depth) = textured_wall();
         let run = |fx: RobotEffects| {
             let (mut r, mut d) = (rgb.clone(), depth.clone());
             fx.apply(&mut r, &mut d, 3);
