@@ -30,14 +30,16 @@ pub struct CalibrateArgs {
     /// Only this scene of --dataset.
     #[arg(long)]
     pub scene: Option<String>,
-    /// More in-map datasets of the same places seen through other cameras (`pntr synth` with the same
-    /// seed and `--query-camera`): their queries join the fit, so confidence is calibrated for the
-    /// cameras robots bring, not only the map's. Repeatable.
+    /// More in-map datasets of the same places captured otherwise (`pntr synth` with the same seed and
+    /// `--query-camera` for other cameras, or `--realism` for other lighting and a robot's camera
+    /// effects): their queries join the fit, so confidence is calibrated for the captures robots
+    /// bring, not only the map's. Repeatable.
     #[arg(long)]
     pub camera_dataset: Vec<PathBuf>,
-    /// Dataset of places the map does not cover (out-of-map queries).
-    #[arg(long)]
-    pub negatives: PathBuf,
+    /// Dataset of places the map does not cover (out-of-map queries). Repeatable (for example the same
+    /// places as rendered and with `--realism robot`).
+    #[arg(long, required = true)]
+    pub negatives: Vec<PathBuf>,
     /// Write the calibration here (JSON; written to a temporary name, then renamed).
     #[arg(long)]
     pub out: PathBuf,
@@ -200,15 +202,18 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     }
     let index = DatasetIndex::open(&args.dataset)?;
     let (map_id, scenes) = map_cmd::select_scenes(&index, args.scene.as_deref())?;
-    let neg_index = DatasetIndex::open(&args.negatives)
-        .with_context(|| format!("--negatives {}", args.negatives.display()))?;
-    let neg_scenes: Vec<&SceneEntry> = neg_index.scenes.iter().collect();
     let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
-    if same(&args.dataset, &args.negatives) {
-        anyhow::bail!(
-            "--negatives {} is --dataset itself: negatives must be places the map does not cover",
-            args.negatives.display()
-        );
+    let mut neg_indexes = Vec::new();
+    for dir in &args.negatives {
+        if same(&args.dataset, dir) {
+            anyhow::bail!(
+                "--negatives {} is --dataset itself: negatives must be places the map does not cover",
+                dir.display()
+            );
+        }
+        let idx =
+            DatasetIndex::open(dir).with_context(|| format!("--negatives {}", dir.display()))?;
+        neg_indexes.push((dir, idx));
     }
     let models = map_cmd::models_dir(args.models.as_deref())?;
     let map = match &args.db {
@@ -265,22 +270,31 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             &mut notes,
         )?;
         other_cameras.push(format!(
-            "in-map, other camera {} ({} queries)",
+            "in-map, also {} ({} queries)",
             dir.display(),
             list.len()
         ));
     }
     let n_inmap = samples.len();
-    let neg = query_list(neg_scenes.iter().copied(), args.negative_queries)?;
-    collect(
-        &pipeline,
-        &neg,
-        None,
-        true,
-        "out-of-map queries",
-        &mut samples,
-        &mut notes,
-    )?;
+    let mut negatives = Vec::new();
+    for (dir, idx) in &neg_indexes {
+        let scenes: Vec<&SceneEntry> = idx.scenes.iter().collect();
+        let neg = query_list(scenes.iter().copied(), args.negative_queries)?;
+        collect(
+            &pipeline,
+            &neg,
+            None,
+            true,
+            &format!("out-of-map queries, {}", dir.display()),
+            &mut samples,
+            &mut notes,
+        )?;
+        negatives.push(format!(
+            "out-of-map {} ({} queries)",
+            dir.display(),
+            neg.len()
+        ));
+    }
     if let Some(path) = &args.samples {
         let mut text = String::new();
         let flat = samples
@@ -297,18 +311,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         map_cmd::write_text(path, &text)?;
     }
     let mut c = calibration::fit(&samples, args.l2, args.target_precision, &preset.name)?;
-    c.fitted_on.datasets = vec![
-        format!(
-            "in-map {} ({} queries)",
-            args.dataset.display(),
-            inmap.len()
-        ),
-        format!(
-            "out-of-map {} ({} queries)",
-            args.negatives.display(),
-            neg.len()
-        ),
-    ];
+    c.fitted_on.datasets = vec![format!(
+        "in-map {} ({} queries)",
+        args.dataset.display(),
+        inmap.len()
+    )];
+    c.fitted_on.datasets.extend(negatives);
     c.fitted_on.datasets.extend(other_cameras);
     c.fitted_on.date = today();
     c.save(&args.out)?;

@@ -147,6 +147,8 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
         db.to_str().unwrap(),
         "--negatives",
         third.to_str().unwrap(),
+        "--negatives",
+        other.to_str().unwrap(),
         "--out",
         cal.to_str().unwrap(),
         "--models",
@@ -159,9 +161,10 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     assert!(s["threshold"].as_f64().unwrap() >= 0.5, "{s}");
     let c = json(&cal);
     assert_eq!(c["format"], "pntr-calibration");
-    // The other camera's queries joined the fit.
+    // The other camera's queries and both sets of negatives joined the fit.
     let fitted = c["fitted_on"]["datasets"].to_string();
-    assert!(fitted.contains("other camera"), "{fitted}");
+    assert!(fitted.contains("narrow"), "{fitted}");
+    assert_eq!(fitted.matches("out-of-map").count(), 2, "{fitted}");
     assert_eq!(c["checksum"].as_str().unwrap().len(), 16);
     let again = dir.path().join("again.json");
     ok(&eval(

@@ -10,6 +10,8 @@
 //! - [`camera`]: any query camera brought to the map's pixel scale (resampling, undistortion), with
 //!   keypoints traced back to the query's own depth.
 //! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
+//! - [`refine`]: a registered pose polished against the map view's whole depth (point-to-plane ICP
+//!   with the keypoint inliers).
 //! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
 //!   [`calibration`]: the fitted model that turns them into the probability of a right pose.
 //! - [`prior`]: a rough pose from the robot (odometry, the last fix) as a search region, and the
@@ -28,6 +30,7 @@ pub mod odometry;
 pub mod pipeline;
 pub mod preset;
 pub mod prior;
+pub mod refine;
 pub mod verify;
 
 use std::path::PathBuf;

@@ -36,6 +36,7 @@ use crate::map::Map;
 use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
+use crate::refine::refine_dense;
 
 /// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
 /// turned more than it can have (`pose`: `world_from_camera`, map frame, map axes).
@@ -663,6 +664,17 @@ impl Pipeline {
         valid.truncate(VERIFY_CANDIDATES);
         let thumb = (!valid.is_empty()).then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
         let thumb_ref = thumb.as_ref();
+        if let Some(t) = thumb_ref {
+            for c in valid.iter_mut() {
+                let db = &self.map.images[c.image].thumb;
+                let refined = c
+                    .db_from_query
+                    .and_then(|p| refine_dense(t, db, &p, &c.inlier_src, &c.inlier_dst));
+                if refined.is_some() {
+                    c.db_from_query = refined;
+                }
+            }
+        }
         let mut scored: Vec<(Candidate, Evidence, Isometry3<f64>)> = valid
             .into_iter()
             .map(|c| {
