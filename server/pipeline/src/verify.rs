@@ -233,6 +233,12 @@ pub fn dense_check(from: &Thumb, to: &Thumb, to_from_from: &Isometry3<f64>) -> D
 }
 
 /// Both directions: query samples into the database view and database samples into the query.
+///
+/// The grey sums of the two directions are pooled as they are, so the second direction's pairs come
+/// with the roles of query and map exchanged, and the pooled correlation drops when the two images
+/// differ in brightness (an exposure change), unlike one direction's. This is the `gray_correlation`
+/// the shipped calibration was fitted on; keeping the query as the first image in both directions was
+/// measured (BENCHMARKS.md, "Robot captures") and traded recall for wrong answers without a net gain.
 pub fn dense_check_both(q: &Thumb, db: &Thumb, db_from_query: &Isometry3<f64>) -> DenseCounts {
     let mut c = dense_check(q, db, db_from_query);
     c.add(&dense_check(db, q, &db_from_query.inverse()));
