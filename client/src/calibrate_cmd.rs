@@ -204,10 +204,22 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let (map_id, scenes) = map_cmd::select_scenes(&index, args.scene.as_deref())?;
     let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
     let mut neg_indexes = Vec::new();
-    for dir in &args.negatives {
+    for (i, dir) in args.negatives.iter().enumerate() {
         if same(&args.dataset, dir) {
             anyhow::bail!(
                 "--negatives {} is --dataset itself: negatives must be places the map does not cover",
+                dir.display()
+            );
+        }
+        if args.negatives[..i].iter().any(|d| same(d, dir)) {
+            anyhow::bail!(
+                "--negatives {} is given twice (its queries would count twice in the fit)",
+                dir.display()
+            );
+        }
+        if args.camera_dataset.iter().any(|d| same(d, dir)) {
+            anyhow::bail!(
+                "--negatives {} is also a --camera-dataset: one folder cannot be in the map and outside it",
                 dir.display()
             );
         }

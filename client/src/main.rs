@@ -39,7 +39,7 @@ enum Command {
     BuildDb(map_cmd::BuildArgs),
     /// Evaluate the pipeline on a dataset's queries (HPointLoc recall table, JSON report).
     Eval(map_cmd::EvalArgs),
-    /// Fit the confidence calibration on a dataset the map covers and one it does not.
+    /// Fit the confidence calibration on a dataset the map covers and one or more it does not.
     Calibrate(calibrate_cmd::CalibrateArgs),
     /// Localize one frame (image files, or a dataset query) through a running pntr-server.
     Localize(localize_cmd::LocalizeArgs),

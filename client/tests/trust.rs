@@ -158,6 +158,24 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     ]));
     let s: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert!(s["samples"].as_u64().unwrap() > s["positives"].as_u64().unwrap());
+    // The same negatives twice would count twice: refused before any work, naming the folder.
+    let twice = pntr(&[
+        "calibrate",
+        "--dataset",
+        map_root.to_str().unwrap(),
+        "--db",
+        db.to_str().unwrap(),
+        "--negatives",
+        third.to_str().unwrap(),
+        "--negatives",
+        third.to_str().unwrap(),
+        "--out",
+        dir.path().join("twice.json").to_str().unwrap(),
+        "--models",
+        models,
+    ]);
+    let e = String::from_utf8_lossy(&twice.stderr);
+    assert!(!twice.status.success() && e.contains("given twice"), "{e}");
     assert!(s["threshold"].as_f64().unwrap() >= 0.5, "{s}");
     let c = json(&cal);
     assert_eq!(c["format"], "pntr-calibration");

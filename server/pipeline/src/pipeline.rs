@@ -664,6 +664,9 @@ impl Pipeline {
         valid.truncate(VERIFY_CANDIDATES);
         let thumb = (!valid.is_empty()).then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
         let thumb_ref = thumb.as_ref();
+        // Refined before verification, so the dense checks judge the refined poses. (`pool`, for the
+        // candidates' consensus, keeps the registrations' poses: within its 0.5 m / 10 deg
+        // agreement the refinement's at most 0.3 m / 5 deg changes little.)
         if let Some(t) = thumb_ref {
             for c in valid.iter_mut() {
                 let db = &self.map.images[c.image].thumb;

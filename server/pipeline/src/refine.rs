@@ -10,7 +10,7 @@
 //! 1992; the KinectFusion tracker, Newcombe et al., 2011), jointly with the keypoint inliers'
 //! point-to-point residuals, which keep the directions that the planes leave free (sliding along one
 //! wall). Gauss-Newton with Huber weights, a handful of iterations on every other sample of the
-//! thumbnail (at most 32 x 32).
+//! thumbnail (32 x 32 for HPointLoc's camera; at most 128 x 128 for any declared camera).
 //!
 //! The refinement is refused (the registration is kept) when it would move the pose by more than
 //! [`MAX_MOVE_M`] or [`MAX_MOVE_DEG`], or when fewer samples agree with the map view's depth after it
@@ -27,11 +27,18 @@ pub const MAX_MOVE_M: f64 = 0.3;
 /// Largest rotation the refinement may make, degrees.
 pub const MAX_MOVE_DEG: f64 = 5.0;
 /// Noise of a keypoint's 3D position (both images' depth and keypoint localisation), metres at 1 m;
-/// it grows linearly with range.
+/// it grows linearly with range, from a floor of [`KEYPOINT_MIN_RANGE_M`].
 const KEYPOINT_SIGMA_PER_M: f64 = 0.02;
+/// Range below which a keypoint's noise stops shrinking, metres.
+const KEYPOINT_MIN_RANGE_M: f64 = 0.5;
 /// Neighbouring thumbnail samples are independent only in part: each dense residual's sigma is
-/// inflated by this factor so that thousands of them do not overrule the keypoints.
+/// inflated by this factor. The depth still carries most of the weight (hundreds of samples against
+/// a few dozen keypoints); the keypoints hold the directions the surfaces leave free.
 const DENSE_CORRELATION: f64 = 1.5;
+/// Fewest query samples with depth, and fewest associated with the map view's surfaces in an
+/// iteration, for the alignment to be attempted.
+const MIN_SAMPLES: usize = 32;
+const MIN_ASSOCIATED: usize = 16;
 
 /// Points and normals of a map view's thumbnail (OpenCV camera frame), row-major; `None` where the
 /// depth is invalid or the neighbourhood is not one surface.
@@ -113,7 +120,8 @@ pub fn refine_dense(
                 .map(|z| kq.backproject(c as f64, r as f64, z))
         })
         .collect();
-    if samples.len() < 32 || src.len() < 3 {
+    debug_assert_eq!(src.len(), dst.len(), "src and dst are parallel");
+    if samples.len() < MIN_SAMPLES || src.len() < 3 {
         return None;
     }
     let kd = &db.intrinsics;
@@ -134,7 +142,9 @@ pub fn refine_dense(
             let Some((u, v)) = kd.pixel_of(&uv) else {
                 continue;
             };
-            let Some((d, n)) = surfaces[(v * db.width + u) as usize] else {
+            // `pixel_of` bounds (u, v) by the intrinsics' size; `get` keeps a thumbnail whose
+            // declared size disagrees with its samples from indexing out of range.
+            let Some((d, n)) = surfaces.get((v * db.width + u) as usize).copied().flatten() else {
                 continue;
             };
             let tol = depth_tolerance_m(q.z);
@@ -150,7 +160,7 @@ pub fn refine_dense(
         for (s, d) in src.iter().zip(dst) {
             let q = est * Point3::from(*s);
             let e = q.coords - d;
-            let sigma = KEYPOINT_SIGMA_PER_M * q.z.max(0.5);
+            let sigma = KEYPOINT_SIGMA_PER_M * q.z.max(KEYPOINT_MIN_RANGE_M);
             for (axis, r) in e.iter().enumerate() {
                 let mut unit = Vector3::zeros();
                 unit[axis] = 1.0;
@@ -162,7 +172,7 @@ pub fn refine_dense(
                 );
             }
         }
-        if used < 16 {
+        if used < MIN_ASSOCIATED {
             return None;
         }
         let damping = 1e-9 * h.trace().max(1e-12);
@@ -260,25 +270,31 @@ mod tests {
     }
 
     #[test]
-    fn a_pose_far_from_the_depth_is_left_alone() {
+    fn the_right_pose_stays_and_a_query_without_depth_is_refused() {
         let db = room_view(&Isometry3::identity());
-        let truth =
-            Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.5), UnitQuaternion::identity());
+        let truth = Isometry3::from_parts(
+            Translation3::new(-0.2, 0.1, 0.5),
+            UnitQuaternion::from_euler_angles(0.03, -0.2, 0.0),
+        );
         let query = room_view(&truth);
-        // A wrong registration a metre off: refining it would move it beyond the bound.
-        let wrong =
-            Isometry3::from_parts(Translation3::new(1.0, 0.0, 0.5), UnitQuaternion::identity());
-        let src: Vec<Vector3<f64>> = (0..12)
-            .map(|i| Vector3::new(i as f64 * 0.1, 0.0, 3.0))
-            .collect();
-        let dst: Vec<Vector3<f64>> = src
-            .iter()
-            .map(|s| (wrong * Point3::from(*s)).coords)
-            .collect();
-        if let Some(p) = refine_dense(&query, &db, &wrong, &src, &dst) {
-            let moved = (p.translation.vector - wrong.translation.vector).norm();
-            assert!(moved <= MAX_MOVE_M, "{moved}");
+        let k = query.intrinsics;
+        let (mut src, mut dst) = (Vec::new(), Vec::new());
+        for i in 0..16u32 {
+            let (c, r) = (8 + 3 * i, 30 + (i % 5));
+            let z = query.depth_m(c, r).unwrap();
+            let p = k.backproject(c as f64, r as f64, z).coords;
+            src.push(p);
+            dst.push((truth * Point3::from(p)).coords);
         }
+        // The exact pose stays: refined, it moves by less than the thumbnails' resolution (or the
+        // refinement is refused and the caller keeps it).
+        let kept = refine_dense(&query, &db, &truth, &src, &dst).unwrap_or(truth);
+        let moved_m = (kept.translation.vector - truth.translation.vector).norm();
+        let moved_deg = kept.rotation.angle_to(&truth.rotation).to_degrees();
+        assert!(
+            moved_m < 0.01 && moved_deg < 0.1,
+            "{moved_m} m, {moved_deg} deg"
+        );
         // Without any valid depth there is nothing to refine with.
         let empty = Thumb {
             depth_mm: vec![0; query.depth_mm.len()],
