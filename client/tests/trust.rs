@@ -139,41 +139,34 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
         "--hfov",
         "69",
     ]));
-    let out = ok(&pntr(&[
-        "calibrate",
-        "--dataset",
-        map_root.to_str().unwrap(),
-        "--db",
-        db.to_str().unwrap(),
-        "--negatives",
-        third.to_str().unwrap(),
-        "--negatives",
-        other.to_str().unwrap(),
-        "--out",
-        cal.to_str().unwrap(),
-        "--models",
-        models,
-        "--camera-dataset",
-        narrow.to_str().unwrap(),
-    ]));
+    // `pntr calibrate` on this map with the given negatives, output and further arguments.
+    let calibrate = |negatives: &[&Path], out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "calibrate",
+            "--dataset",
+            map_root.to_str().unwrap(),
+            "--db",
+            db.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--models",
+            models,
+        ];
+        for n in negatives {
+            args.extend(["--negatives", n.to_str().unwrap()]);
+        }
+        args.extend(extra);
+        pntr(&args)
+    };
+    let out = ok(&calibrate(
+        &[&third, &other],
+        &cal,
+        &["--camera-dataset", narrow.to_str().unwrap()],
+    ));
     let s: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert!(s["samples"].as_u64().unwrap() > s["positives"].as_u64().unwrap());
     // The same negatives twice would count twice: refused before any work, naming the folder.
-    let twice = pntr(&[
-        "calibrate",
-        "--dataset",
-        map_root.to_str().unwrap(),
-        "--db",
-        db.to_str().unwrap(),
-        "--negatives",
-        third.to_str().unwrap(),
-        "--negatives",
-        third.to_str().unwrap(),
-        "--out",
-        dir.path().join("twice.json").to_str().unwrap(),
-        "--models",
-        models,
-    ]);
+    let twice = calibrate(&[&third, &third], &dir.path().join("twice.json"), &[]);
     let e = String::from_utf8_lossy(&twice.stderr);
     assert!(!twice.status.success() && e.contains("given twice"), "{e}");
     assert!(s["threshold"].as_f64().unwrap() >= 0.5, "{s}");
