@@ -230,3 +230,79 @@ fn vlad_finds_the_right_point_and_faiss_agrees_with_brute_force() {
         "too few descriptors for 32 codewords"
     );
 }
+
+/// `n` unit vectors of `dim` dimensions near a 16-dimensional subspace (like descriptors of one
+/// kind of scene), from a seeded generator.
+fn low_rank_vectors(n: usize, dim: usize, seed: u64) -> Vec<f32> {
+    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut next = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+    };
+    let basis: Vec<f32> = (0..16 * dim).map(|_| next()).collect();
+    let mut out = Vec::with_capacity(n * dim);
+    for _ in 0..n {
+        let w: Vec<f32> = (0..16).map(|_| next()).collect();
+        let v: Vec<f32> = (0..dim)
+            .map(|j| (0..16).map(|k| w[k] * basis[k * dim + j]).sum::<f32>() + 0.05 * next())
+            .collect();
+        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        out.extend(v.iter().map(|x| x / norm));
+    }
+    out
+}
+
+#[test]
+fn the_auto_index_switches_to_pca_whitening_on_large_maps_and_the_map_records_it() {
+    use pntr_retrieval::global::{Describer, Descriptor, Retriever};
+    use pntr_retrieval::index::{AUTO_PCA_DIM, AUTO_PCA_FROM};
+    let dim = 520;
+    assert_eq!(IndexKind::parse("auto").unwrap(), IndexKind::Auto);
+    assert_eq!(
+        IndexKind::Auto.resolve(AUTO_PCA_FROM - 1, 4096),
+        IndexKind::Flat
+    );
+    assert_eq!(
+        IndexKind::Auto.resolve(AUTO_PCA_FROM, 4096),
+        IndexKind::PcaWhiten { dim: AUTO_PCA_DIM }
+    );
+    // Descriptors no longer than the reduced ones stay exact, whatever the map's size.
+    assert_eq!(IndexKind::Auto.resolve(100_000, 256), IndexKind::Flat);
+    assert_eq!(IndexKind::Flat.resolve(100_000, 4096), IndexKind::Flat);
+
+    let db = low_rank_vectors(AUTO_PCA_FROM, dim, 3);
+    let book = Codebook::train(&low_rank_vectors(64, 64, 5), 64, 4, 1).unwrap();
+    let descriptors: Vec<Descriptor> = db
+        .chunks_exact(dim)
+        .map(|v| Descriptor::Dense(v.to_vec()))
+        .collect();
+    let r = Retriever::build(Describer::Vlad(book), descriptors, IndexKind::Auto).unwrap();
+    assert_eq!(
+        r.index_kind(),
+        Some(IndexKind::PcaWhiten { dim: AUTO_PCA_DIM })
+    );
+    let back = Retriever::from_bytes(&r.to_bytes().unwrap(), |_| unreachable!("no onnx")).unwrap();
+    assert_eq!(back.index_kind(), r.index_kind());
+    // The whitened index still finds a database vector from a slightly disturbed copy.
+    let noise = low_rank_vectors(20, dim, 11);
+    let mut found = 0;
+    for (i, id) in (0..AUTO_PCA_FROM)
+        .step_by(AUTO_PCA_FROM / 20)
+        .take(20)
+        .enumerate()
+    {
+        let q: Vec<f32> = db[id * dim..(id + 1) * dim]
+            .iter()
+            .zip(&noise[i * dim..(i + 1) * dim])
+            .map(|(a, b)| a + 0.1 * b)
+            .collect();
+        let hits = back.search(&Descriptor::Dense(q), 5).unwrap();
+        found += hits.iter().any(|h| h.id == id) as usize;
+    }
+    assert!(
+        found >= 19,
+        "{found} of 20 disturbed copies found in the top 5"
+    );
+}

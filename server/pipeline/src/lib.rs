@@ -10,6 +10,8 @@
 //! - [`camera`]: any query camera brought to the map's pixel scale (resampling, undistortion), with
 //!   keypoints traced back to the query's own depth.
 //! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
+//! - [`shortlist`]: the global ranking's top images re-ranked by a vote of their strongest keypoints,
+//!   so look-alike rooms of a large map do not crowd the right one out of the candidates.
 //! - [`refine`]: a registered pose polished against the map view's whole depth (point-to-plane ICP
 //!   with the keypoint inliers).
 //! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
@@ -31,6 +33,7 @@ pub mod pipeline;
 pub mod preset;
 pub mod prior;
 pub mod refine;
+pub mod shortlist;
 pub mod verify;
 
 use std::path::PathBuf;

@@ -1,7 +1,8 @@
 //! The PNTR pipeline: one RGB-D query in, a pose out.
 //!
-//! extract the query's features once -> describe and retrieve the top-k database images -> (re-rank
-//! the candidates by a cheap geometric check: mutual nearest neighbours on the descriptors already in
+//! extract the query's features once -> describe and retrieve the top database images -> (shortlist
+//! the best k by a vote of their strongest keypoints, [`crate::shortlist`]; re-rank those by a cheap
+//! geometric check: mutual nearest neighbours on the descriptors already in
 //! hand, back-projected and registered, scored by inliers) -> run the configured matcher on the best
 //! candidate(s) -> back-project matched keypoints with both depths (a pair is kept only when both
 //! sides have valid depth, so the lists stay aligned) -> register -> verify the best registrations
@@ -37,6 +38,7 @@ use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
 use crate::refine::refine_dense;
+use crate::shortlist::{automatic_depth, Shortlist, SHORTLIST_KEYPOINTS};
 
 /// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
 /// turned more than it can have (`pose`: `world_from_camera`, map frame, map axes).
@@ -231,6 +233,8 @@ pub struct Pipeline {
     map_pixels: f64,
     /// The map images' camera positions, for prior and tracking regions.
     pose_index: PoseIndex,
+    /// The strongest keypoints of each map image, for the shortlist's vote.
+    shortlist: Shortlist,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -274,6 +278,7 @@ impl Pipeline {
                 .map(|im| im.world_from_camera.translation.vector)
                 .collect(),
         );
+        let shortlist = Shortlist::new(&map.images, SHORTLIST_KEYPOINTS);
         Ok(Self {
             map,
             stage,
@@ -294,6 +299,7 @@ impl Pipeline {
             map_focal_px,
             map_pixels,
             pose_index,
+            shortlist,
         })
     }
 
@@ -331,6 +337,16 @@ impl Pipeline {
     /// Localise one query with global retrieval over the whole map.
     pub fn localize(&self, q: &Query) -> Result<Localization, PipelineError> {
         self.localize_with(q, &LocalizeOptions::default())
+    }
+
+    /// How many global candidates the shortlist's vote re-ranks to keep `keep`: the preset's
+    /// `shortlist`, or by the map's size when that is 0; just `keep` when re-ranking is off.
+    fn shortlist_depth(&self, keep: usize) -> usize {
+        match (self.preset.rerank, self.preset.shortlist) {
+            (false, _) => keep,
+            (true, 0) => automatic_depth(self.map.images.len(), keep).max(keep),
+            (true, d) => d.max(keep),
+        }
     }
 
     /// The map images inside `region`, nearest first.
@@ -412,7 +428,19 @@ impl Pipeline {
             times = loc.times;
         }
         let t2 = Instant::now();
-        let hits = self.map.retriever.search(&desc, shortlist)?;
+        let depth = self.shortlist_depth(shortlist);
+        let mut hits = self.map.retriever.search(&desc, depth)?;
+        if hits.len() > shortlist {
+            hits = self.shortlist.rerank(
+                &self.map.images,
+                &fq,
+                &q_pts,
+                &hits,
+                shortlist,
+                &self.cheap,
+                2.0 * self.teaser.noise_bound,
+            )?;
+        }
         times.retrieval += t2.elapsed().as_secs_f64();
         let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the

@@ -33,7 +33,8 @@ pub struct Preset {
     pub global: String,
     /// VLAD codewords.
     pub vlad_words: usize,
-    /// faiss index for dense descriptors (`flat`, `hnsw32`, `ivf1024`, `pcaw256`).
+    /// faiss index for dense descriptors: `auto` (the default: exact search below 4096 images,
+    /// PCA-whitening to 512 dimensions from there on), `flat`, `hnsw32`, `ivf1024`, `pcaw256`.
     pub index: String,
     /// Model of the `onnx` global descriptor.
     pub global_model: Option<PathBuf>,
@@ -45,6 +46,11 @@ pub struct Preset {
     pub keypoints: usize,
     /// Retrieval candidates considered per query (k of top-k).
     pub candidates: usize,
+    /// Global candidates re-ranked by a vote of their strongest keypoints before the `candidates`
+    /// best go on ([`crate::shortlist`]); 0 (the default, also for maps written before this field)
+    /// chooses by the map's size ([`crate::shortlist::automatic_depth`]). Used when `rerank` is on.
+    #[serde(default)]
+    pub shortlist: usize,
     /// Re-rank the candidates by a cheap geometric check (MNN matches registered with the solver) and
     /// run the matcher only on the best `final_candidates`; without it, the matcher runs on all.
     pub rerank: bool,
@@ -80,12 +86,13 @@ impl Preset {
             name: name.to_string(),
             global: "vlad".into(),
             vlad_words: 64,
-            index: "flat".into(),
+            index: "auto".into(),
             global_model: None,
             extractor: "xfeat".into(),
             matcher: "lighterglue".into(),
             keypoints: 512,
             candidates: 5,
+            shortlist: 0,
             rerank: true,
             final_candidates: 1,
             solver: Solver::Teaser,

@@ -185,6 +185,8 @@ impl Retriever {
                         }
                     }
                 }
+                // What `auto` chose is what the map records.
+                let kind = kind.resolve(flat.len() / dim.max(1), dim);
                 Store::Dense(Mutex::new(GlobalIndex::build(&flat, dim, kind)?), kind)
             }
         };

@@ -6,12 +6,32 @@ use faiss::{Index, MetricType};
 
 use crate::RetrievalError;
 
-/// Most map vectors an approximate index (IVF cells, PCA) is trained on.
+/// Most map vectors an approximate index (IVF cells) is trained on.
 pub const TRAINING_VECTORS: usize = 8192;
+
+/// Most map vectors PCA-whitening is learned from. Fewer vectors than dimensions let faiss
+/// decompose the Gram matrix of the sample instead of the 4096 x 4096 covariance: about 25 s
+/// instead of 160 s for VLAD on 10,500 images; 3072 vectors ranked the right Point as well
+/// (BENCHMARKS.md, "A deeper shortlist").
+pub const PCA_TRAINING_VECTORS: usize = 2048;
+
+/// From this many map images on, `auto` learns PCA-whitening to [`AUTO_PCA_DIM`] dimensions
+/// instead of searching the raw descriptors exactly. Below it exact search costs at most a few
+/// milliseconds and ranks the right place as well or better; above it the reduced vectors are 8x
+/// cheaper to scan (a flat scan of 4096-d vectors is bound by memory: 17 ms at 10,500 images) and
+/// rank the right Point higher (BENCHMARKS.md, "A deeper shortlist").
+pub const AUTO_PCA_FROM: usize = 4096;
+
+/// Output dimension of `auto`'s PCA-whitening.
+pub const AUTO_PCA_DIM: u32 = 512;
 
 /// Which faiss index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum IndexKind {
+    /// Chosen by the map's size when the index is built ([`IndexKind::resolve`]): exact search
+    /// below [`AUTO_PCA_FROM`] images, PCA-whitening to [`AUTO_PCA_DIM`] then exact search from
+    /// there on. A built index records the kind it resolved to.
+    Auto,
     /// Exact search (default; fine up to tens of thousands of images).
     Flat,
     /// HNSW graph with `m` links per node: approximate, for maps of 100k images and more.
@@ -34,13 +54,15 @@ pub enum IndexKind {
 }
 
 impl IndexKind {
-    /// Parse a name: `flat`, `hnsw<M>` (e.g. hnsw32), `ivf<NLIST>` (e.g. ivf1024, 16 probes) or
-    /// `pcaw<D>` (e.g. pcaw256).
+    /// Parse a name: `auto`, `flat`, `hnsw<M>` (e.g. hnsw32), `ivf<NLIST>` (e.g. ivf1024, 16
+    /// probes) or `pcaw<D>` (e.g. pcaw256).
     pub fn parse(name: &str) -> Result<Self, RetrievalError> {
         let num = |prefix: &str| -> Option<u32> {
             name.strip_prefix(prefix)?.parse().ok().filter(|&v| v > 0)
         };
-        if name == "flat" {
+        if name == "auto" {
+            Ok(Self::Auto)
+        } else if name == "flat" {
             Ok(Self::Flat)
         } else if let Some(m) = num("hnsw") {
             Ok(Self::Hnsw { m })
@@ -50,7 +72,7 @@ impl IndexKind {
             Ok(Self::PcaWhiten { dim })
         } else {
             Err(RetrievalError::Input(format!(
-                "unknown index `{name}` (flat, hnsw<M>, ivf<NLIST>, pcaw<DIM>)"
+                "unknown index `{name}` (auto, flat, hnsw<M>, ivf<NLIST>, pcaw<DIM>)"
             )))
         }
     }
@@ -58,10 +80,26 @@ impl IndexKind {
     /// The name [`IndexKind::parse`] reads.
     pub fn name(&self) -> String {
         match self {
+            Self::Auto => "auto".into(),
             Self::Flat => "flat".into(),
             Self::Hnsw { m } => format!("hnsw{m}"),
             Self::Ivf { nlist, .. } => format!("ivf{nlist}"),
             Self::PcaWhiten { dim } => format!("pcaw{dim}"),
+        }
+    }
+}
+
+impl IndexKind {
+    /// The concrete kind for `n` vectors of `dim` dimensions: `Auto` chooses (exact search below
+    /// [`AUTO_PCA_FROM`] vectors or when `dim` is not above [`AUTO_PCA_DIM`], PCA-whitening to
+    /// [`AUTO_PCA_DIM`] otherwise); any other kind is itself.
+    pub fn resolve(self, n: usize, dim: usize) -> Self {
+        match self {
+            Self::Auto if n >= AUTO_PCA_FROM && dim > AUTO_PCA_DIM as usize => {
+                Self::PcaWhiten { dim: AUTO_PCA_DIM }
+            }
+            Self::Auto => Self::Flat,
+            other => other,
         }
     }
 }
@@ -92,7 +130,7 @@ pub struct Hit {
 }
 
 impl GlobalIndex {
-    /// Build from `vectors` (`n * dim` values).
+    /// Build from `vectors` (`n * dim` values); `Auto` is resolved first ([`IndexKind::resolve`]).
     pub fn build(vectors: &[f32], dim: usize, kind: IndexKind) -> Result<Self, RetrievalError> {
         if dim == 0 || vectors.len() % dim != 0 {
             return Err(RetrievalError::Input(format!(
@@ -101,8 +139,10 @@ impl GlobalIndex {
             )));
         }
         let n = vectors.len() / dim;
+        let kind = kind.resolve(n, dim);
         let desc = match kind {
-            IndexKind::Flat => "Flat".to_string(),
+            // `Auto` resolved to one of the others above.
+            IndexKind::Flat | IndexKind::Auto => "Flat".to_string(),
             IndexKind::Hnsw { m } => format!("HNSW{m},Flat"),
             IndexKind::Ivf { nlist, .. } => {
                 if (nlist as usize) > n {
@@ -124,12 +164,17 @@ impl GlobalIndex {
         let mut index = faiss::index_factory(dim as u32, desc, MetricType::InnerProduct)?;
         if !index.is_trained() {
             // Training (k-means cells, PCA) on an even sample keeps the cost bounded for huge maps.
-            let step = n.div_ceil(TRAINING_VECTORS).max(1);
-            let sample: Vec<f32> = vectors
-                .chunks_exact(dim)
-                .step_by(step)
-                .flatten()
-                .copied()
+            let cap = match kind {
+                IndexKind::PcaWhiten { dim: d } => PCA_TRAINING_VECTORS.max(d as usize),
+                _ => TRAINING_VECTORS,
+            };
+            // Exactly min(n, cap) vectors, evenly spaced through the map.
+            let take = n.min(cap);
+            let sample: Vec<f32> = (0..take)
+                .flat_map(|i| {
+                    let v = i * n / take;
+                    vectors[v * dim..(v + 1) * dim].iter().copied()
+                })
                 .collect();
             index.train(&sample)?;
         }
@@ -186,6 +231,7 @@ impl GlobalIndex {
 
     /// The `k` most similar database vectors to `query`, best first.
     pub fn search(&mut self, query: &[f32], k: usize) -> Result<Vec<Hit>, RetrievalError> {
+        crate::blas::single_threaded();
         if query.len() != self.dim {
             return Err(RetrievalError::Input(format!(
                 "query has {} values, index is {}-d",
@@ -222,6 +268,7 @@ impl GlobalIndex {
         k: usize,
         among: &[usize],
     ) -> Result<Vec<Hit>, RetrievalError> {
+        crate::blas::single_threaded();
         if query.len() != self.dim {
             return Err(RetrievalError::Input(format!(
                 "query has {} values, index is {}-d",

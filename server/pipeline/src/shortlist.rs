@@ -1,0 +1,489 @@
+//! A deeper shortlist: the global descriptor's top `depth` map images re-ranked by a vote of their
+//! strongest keypoints, before the geometric stage takes the best few.
+//!
+//! Why: one aggregated vector per image (VLAD) ranks look-alike rooms of a large map close together.
+//! On a map of HPointLoc-All size (10,500 images of 35 procedural apartments) the right Point is
+//! among VLAD's first 5 for 0.68 of the queries but among its first 100 for 0.94.
+//!
+//! The vote: mutual nearest neighbours between the query's and the image's strongest keypoints,
+//! scored by the largest set of matches whose 3D distances to one match agree with the query's (a
+//! star of the registration's consistency graph). Counting matches alone puts the right Point among
+//! the first 5 for 0.81 of those queries, the consistent star for 0.86, a second vote with twice the
+//! keypoints over the first's best 20 for 0.88 (BENCHMARKS.md, "A deeper shortlist"). Re-ranking
+//! a global shortlist by local matches is the classic second stage of image retrieval (Philbin et
+//! al., CVPR 2007, with a spatial check); the star is the cheap part of TEASER's pruning, so the
+//! geometric stage after it checks the survivors properly.
+//!
+//! Cost: one `k x k` similarity product per image voted on (`k` = [`COARSE_KEYPOINTS`], about 0.1
+//! ms on one core; [`SHORTLIST_KEYPOINTS`] in the second vote, about 0.35 ms). The depth grows with
+//! the square root of the map's size ([`automatic_depth`]): a one-apartment map votes on 20
+//! images, once; a 10,000-image map on 100, then 20 again.
+
+use nalgebra::Vector3;
+use ndarray::linalg::general_mat_mul;
+use ndarray::{ArrayView2, ArrayViewMut2};
+use pntr_features::mnn::Mnn;
+use pntr_features::{Features, Matcher};
+use pntr_registration::teaser::consistency_graph;
+use pntr_retrieval::index::Hit;
+
+use crate::map::MapImage;
+use crate::PipelineError;
+
+/// Keypoints per image (the strongest by detection score) of the first vote, over every candidate.
+pub const COARSE_KEYPOINTS: usize = 128;
+
+/// Keypoints per image of the second vote, over the first's best `FINE_FACTOR * keep`.
+pub const SHORTLIST_KEYPOINTS: usize = 256;
+
+/// How many of the first vote's best, per candidate kept, the second vote looks at again (when the
+/// first had more than that many).
+pub const FINE_FACTOR: usize = 4;
+
+/// Most map images the vote looks at, whatever the map's size (about 13 ms a query on one core).
+pub const MAX_DEPTH: usize = 128;
+
+/// How many global candidates to re-rank when the preset leaves it automatic: the square root of
+/// the map's image count (the global rank of the right Point grows with the number of look-alikes),
+/// at least four times the `keep` candidates that go on, at most [`MAX_DEPTH`] and the map's size.
+pub fn automatic_depth(map_images: usize, keep: usize) -> usize {
+    let by_size = (map_images as f64).sqrt().round() as usize;
+    by_size.max(4 * keep).min(MAX_DEPTH).min(map_images)
+}
+
+/// The strongest keypoints of every map image, chosen once when the pipeline is made.
+#[derive(Debug, Clone, Default)]
+pub struct Shortlist {
+    /// Per map image (map order), indices of its strongest keypoints, best first.
+    strongest: Vec<Vec<u16>>,
+    keypoints: usize,
+}
+
+/// Indices of the `n` highest `scores`, best first (ties keep the lower index first).
+fn strongest_indices(scores: &[f32], n: usize) -> Vec<u16> {
+    let mut order: Vec<u16> = (0..scores.len().min(u16::MAX as usize + 1) as u16).collect();
+    order.sort_by(|&a, &b| scores[b as usize].total_cmp(&scores[a as usize]));
+    order.truncate(n);
+    order
+}
+
+/// The features of `f` at `indices` (float or binary descriptors, whichever `f` has).
+fn gather(f: &Features, indices: &[u16]) -> Features {
+    let pick = |i: &u16| *i as usize;
+    Features {
+        keypoints: indices.iter().map(|i| f.keypoints[pick(i)]).collect(),
+        scores: indices.iter().map(|i| f.scores[pick(i)]).collect(),
+        descriptors: if f.descriptors.is_empty() {
+            Vec::new()
+        } else {
+            indices
+                .iter()
+                .flat_map(|i| f.descriptor(pick(i)).iter().copied())
+                .collect()
+        },
+        dim: f.dim,
+        binary: if f.binary.is_empty() {
+            Vec::new()
+        } else {
+            indices.iter().map(|i| f.binary[pick(i)]).collect()
+        },
+        image_size: f.image_size,
+    }
+}
+
+/// The map image's features at `indices`, descriptors widened from f16.
+fn gather_map(im: &MapImage, indices: &[u16]) -> Features {
+    let mut descriptors = vec![
+        0f32;
+        if im.dim > 0 && !im.descriptors.is_empty() {
+            indices.len() * im.dim
+        } else {
+            0
+        }
+    ];
+    if !descriptors.is_empty() {
+        use half::slice::HalfFloatSliceExt;
+        for (row, &i) in descriptors.chunks_exact_mut(im.dim).zip(indices) {
+            let i = i as usize;
+            im.descriptors[i * im.dim..(i + 1) * im.dim].convert_to_f32_slice(row);
+        }
+    }
+    Features {
+        keypoints: indices.iter().map(|&i| im.keypoints[i as usize]).collect(),
+        scores: indices.iter().map(|&i| im.scores[i as usize]).collect(),
+        descriptors,
+        dim: im.dim,
+        binary: if im.binary.is_empty() {
+            Vec::new()
+        } else {
+            indices.iter().map(|&i| im.binary[i as usize]).collect()
+        },
+        image_size: im.image_size,
+    }
+}
+
+/// Buffers one pass of votes reuses from image to image.
+#[derive(Default)]
+struct Scratch {
+    /// The map image's strongest descriptors, widened to f32, one row each.
+    db: Vec<f32>,
+    /// Query x image cosine similarities.
+    sim: Vec<f32>,
+    /// Best similarity and query row per image keypoint.
+    col_best: Vec<(f32, u32)>,
+    pairs: Vec<(u32, u32)>,
+    src: Vec<Vector3<f64>>,
+    dst: Vec<Vector3<f64>>,
+}
+
+/// Mutual nearest neighbours between the rows of `q` (`n x dim`, unit descriptors) and the map
+/// image's descriptors at `indices`, at least `min_similarity` alike, into `s.pairs`: one matrix
+/// product into a reused buffer, then the best per row and per column (what
+/// [`pntr_features::mnn::Mnn`] computes without a ratio test, without its allocations).
+fn float_pairs(
+    q: &[f32],
+    dim: usize,
+    im: &MapImage,
+    indices: &[u16],
+    min_similarity: f32,
+    s: &mut Scratch,
+) {
+    use half::slice::HalfFloatSliceExt;
+    let (n, m) = (q.len() / dim, indices.len());
+    s.pairs.clear();
+    if n == 0 || m == 0 {
+        return;
+    }
+    s.db.resize(m * dim, 0.0);
+    for (row, &i) in s.db.chunks_exact_mut(dim).zip(indices) {
+        let i = i as usize;
+        im.descriptors[i * dim..(i + 1) * dim].convert_to_f32_slice(row);
+    }
+    s.sim.resize(n * m, 0.0);
+    let qv = ArrayView2::from_shape((n, dim), q).expect("n rows of dim");
+    let dv = ArrayView2::from_shape((m, dim), &s.db[..]).expect("m rows of dim");
+    let mut sim = ArrayViewMut2::from_shape((n, m), &mut s.sim[..]).expect("n x m");
+    general_mat_mul(1.0, &qv, &dv.t(), 0.0, &mut sim);
+    s.col_best.clear();
+    s.col_best.resize(m, (f32::NEG_INFINITY, 0));
+    let mut row_best = Vec::with_capacity(n);
+    for (i, row) in s.sim.chunks_exact(m).enumerate() {
+        let (mut bj, mut b) = (0, f32::NEG_INFINITY);
+        for (j, (&x, col)) in row.iter().zip(s.col_best.iter_mut()).enumerate() {
+            if x > b {
+                (bj, b) = (j, x);
+            }
+            if x > col.0 {
+                *col = (x, i as u32);
+            }
+        }
+        row_best.push((bj, b));
+    }
+    for (i, &(j, b)) in row_best.iter().enumerate() {
+        if b >= min_similarity && s.col_best[j].1 == i as u32 {
+            s.pairs.push((i as u32, j as u32));
+        }
+    }
+}
+
+/// One vote: the mutual matches of the query's strongest keypoints (`q`, with their 3D points
+/// `q_points`) with the map image's at `indices`, scored by geometric consistency: the most
+/// matches whose 3D distances to one match agree with the query's within `bound_m` (the largest
+/// star of TEASER's consistency graph, a lower bound on its maximum clique), then the number of
+/// matches.
+fn vote(
+    q: &Features,
+    q_points: &[Option<Vector3<f64>>],
+    im: &MapImage,
+    indices: &[u16],
+    matcher: &Mnn,
+    bound_m: f64,
+    s: &mut Scratch,
+) -> Result<(usize, usize), PipelineError> {
+    let float = q.binary.is_empty() && matcher.params.ratio.is_none() && q.dim == im.dim;
+    if float && im.descriptors.len() >= im.keypoints.len() * im.dim {
+        float_pairs(
+            &q.descriptors,
+            q.dim,
+            im,
+            indices,
+            matcher.params.min_similarity,
+            s,
+        );
+    } else {
+        s.pairs = matcher.match_features(q, &gather_map(im, indices))?.pairs;
+    }
+    s.src.clear();
+    s.dst.clear();
+    for &(i, j) in &s.pairs {
+        if let (Some(Some(a)), Some(b)) = (
+            q_points.get(i as usize),
+            im.point(indices[j as usize] as usize),
+        ) {
+            s.src.push(*a);
+            s.dst.push(b);
+        }
+    }
+    let finite = vec![true; s.src.len()];
+    let g = consistency_graph(&s.src, &s.dst, &finite, bound_m);
+    let star = (0..g.len()).map(|i| g.degree(i)).max().unwrap_or(0);
+    Ok((star, s.pairs.len()))
+}
+
+impl Shortlist {
+    /// Choose the `keypoints` strongest keypoints of each of `images`.
+    pub fn new(images: &[MapImage], keypoints: usize) -> Self {
+        Self {
+            strongest: images
+                .iter()
+                .map(|im| strongest_indices(&im.scores, keypoints))
+                .collect(),
+            keypoints,
+        }
+    }
+
+    /// `hits` (global candidates, best first) re-ordered by one vote (see [`Shortlist::rerank`])
+    /// with the `keypoints` strongest keypoints, best first, the global order breaking ties.
+    ///
+    /// Errors: as [`Shortlist::rerank`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn ranked_by_vote(
+        &self,
+        images: &[MapImage],
+        query: &Features,
+        query_points: &[Option<Vector3<f64>>],
+        hits: &[Hit],
+        keypoints: usize,
+        matcher: &Mnn,
+        bound_m: f64,
+    ) -> Result<Vec<Hit>, PipelineError> {
+        let order = strongest_indices(&query.scores, keypoints);
+        let q = gather(query, &order);
+        let q_points: Vec<Option<Vector3<f64>>> = order
+            .iter()
+            .map(|&i| query_points.get(i as usize).copied().flatten())
+            .collect();
+        let mut voted = Vec::with_capacity(hits.len());
+        let mut scratch = Scratch::default();
+        for (rank, h) in hits.iter().enumerate() {
+            let (Some(im), Some(idx)) = (images.get(h.id), self.strongest.get(h.id)) else {
+                return Err(PipelineError::Config(format!(
+                    "retrieval returned image {} of a map of {}",
+                    h.id,
+                    images.len()
+                )));
+            };
+            let idx = &idx[..idx.len().min(keypoints)];
+            let v = vote(&q, &q_points, im, idx, matcher, bound_m, &mut scratch)?;
+            voted.push((v, rank, *h));
+        }
+        voted.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        Ok(voted.into_iter().map(|v| v.2).collect())
+    }
+
+    /// The best `keep` of `hits` (global candidates, best first), with their global scores: all
+    /// are voted on with [`COARSE_KEYPOINTS`] keypoints, the best `FINE_FACTOR * keep` again with
+    /// the (up to) [`SHORTLIST_KEYPOINTS`] strongest. A vote ([`vote`]) counts the mutual matches
+    /// of the query's and the image's strongest keypoints whose 3D distances agree within
+    /// `bound_m` (metres; the registration's consistency bound) with one match's; `query_points`
+    /// are the query's keypoints back-projected (OpenCV camera frame, `None` without depth).
+    ///
+    /// Errors: a hit outside `images`, or descriptors the matcher cannot compare (another
+    /// extractor's).
+    #[allow(clippy::too_many_arguments)]
+    pub fn rerank(
+        &self,
+        images: &[MapImage],
+        query: &Features,
+        query_points: &[Option<Vector3<f64>>],
+        hits: &[Hit],
+        keep: usize,
+        matcher: &Mnn,
+        bound_m: f64,
+    ) -> Result<Vec<Hit>, PipelineError> {
+        let coarse = COARSE_KEYPOINTS.min(self.keypoints);
+        let fine_n = FINE_FACTOR * keep;
+        let mut ranked =
+            self.ranked_by_vote(images, query, query_points, hits, coarse, matcher, bound_m)?;
+        // On a small map the first vote saw every candidate worth a second look already.
+        if hits.len() > fine_n && self.keypoints > coarse {
+            ranked.truncate(fine_n);
+            ranked = self.ranked_by_vote(
+                images,
+                query,
+                query_points,
+                &ranked,
+                self.keypoints,
+                matcher,
+                bound_m,
+            )?;
+        }
+        ranked.truncate(keep);
+        Ok(ranked)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn automatic_depth_grows_with_the_map_within_bounds() {
+        assert_eq!(automatic_depth(138, 5), 20);
+        assert_eq!(automatic_depth(10_500, 5), 102);
+        assert_eq!(automatic_depth(1_000_000, 5), MAX_DEPTH);
+        assert_eq!(automatic_depth(12, 5), 12);
+    }
+
+    /// `n` unit descriptors of 64 dimensions from a seeded generator.
+    fn descriptors(n: usize, seed: u64) -> Vec<f32> {
+        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let mut out = Vec::with_capacity(n * 64);
+        for _ in 0..n {
+            let row: Vec<f32> = (0..64)
+                .map(|_| {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    (state >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+                })
+                .collect();
+            let norm = row.iter().map(|x| x * x).sum::<f32>().sqrt();
+            out.extend(row.iter().map(|x| x / norm));
+        }
+        out
+    }
+
+    fn features(desc: Vec<f32>, scores: Vec<f32>) -> Features {
+        Features {
+            keypoints: (0..scores.len()).map(|i| [i as f32, 0.0]).collect(),
+            scores,
+            descriptors: desc,
+            dim: 64,
+            binary: Vec::new(),
+            image_size: (256, 256),
+        }
+    }
+
+    fn map_image(f: &Features) -> MapImage {
+        MapImage {
+            id: String::new(),
+            scene: 0,
+            point: 0,
+            world_from_camera: nalgebra::Isometry3::identity(),
+            keypoints: f.keypoints.clone(),
+            scores: f.scores.clone(),
+            descriptors: f
+                .descriptors
+                .iter()
+                .map(|&x| half::f16::from_f32(x))
+                .collect(),
+            dim: 64,
+            binary: Vec::new(),
+            points: vec![[f32::NAN; 3]; f.len()],
+            instances: vec![0; f.len()],
+            image_size: f.image_size,
+            camera: pntr_core::Intrinsics::hpointloc(),
+            thumb: crate::verify::Thumb::new(
+                &pntr_core::RgbImage {
+                    width: 16,
+                    height: 16,
+                    data: vec![0; 16 * 16 * 3],
+                },
+                &pntr_core::DepthMap {
+                    width: 16,
+                    height: 16,
+                    data: vec![1.0; 16 * 16],
+                },
+                &pntr_core::Intrinsics::hpointloc(),
+            ),
+        }
+    }
+
+    #[test]
+    fn the_image_sharing_the_strongest_keypoints_comes_first() {
+        // The query's 40 descriptors; image 2 holds them all (as its strongest), image 1 holds
+        // them only among its weakest keypoints (beyond the vote's 32), image 0 none.
+        let q = features(descriptors(40, 1), vec![1.0; 40]);
+        let strangers = descriptors(60, 2);
+        let shared_strong = {
+            let mut d = q.descriptors.clone();
+            d.extend_from_slice(&strangers[..20 * 64]);
+            features(d, (0..60).map(|i| 1.0 - i as f32 / 100.0).collect())
+        };
+        let shared_weak = {
+            let mut d = strangers[..20 * 64].to_vec();
+            d.extend_from_slice(&q.descriptors);
+            features(d, (0..60).map(|i| 1.0 - i as f32 / 100.0).collect())
+        };
+        let images = vec![
+            map_image(&features(strangers.clone(), vec![0.5; 60])),
+            map_image(&shared_weak),
+            map_image(&shared_strong),
+        ];
+        let hits: Vec<Hit> = (0..3)
+            .map(|id| Hit {
+                id,
+                score: 1.0 - id as f32 / 10.0,
+            })
+            .collect();
+        let list = Shortlist::new(&images, 32);
+        let kept = list
+            .rerank(&images, &q, &[], &hits, 2, &Mnn::default(), 0.1)
+            .unwrap();
+        let ids: Vec<usize> = kept.iter().map(|h| h.id).collect();
+        assert_eq!(ids, vec![2, 1], "votes 32 > 12 > 0");
+        // Global scores travel with their images.
+        assert_eq!(kept[0].score, hits[2].score);
+        // A hit the map does not have is an error, not a panic.
+        let bad = [Hit { id: 9, score: 1.0 }];
+        assert!(list
+            .rerank(&images, &q, &[], &bad, 1, &Mnn::default(), 0.1)
+            .is_err());
+    }
+
+    #[test]
+    fn geometric_consistency_outvotes_more_matches() {
+        // The query's 30 keypoints on a 3D grid. Image 1 matches 20 of them at the same 3D
+        // layout (moved rigidly); image 0 matches all 30, but at scrambled 3D positions.
+        let q = features(descriptors(30, 7), vec![1.0; 30]);
+        let q_points: Vec<Option<Vector3<f64>>> = (0..30)
+            .map(|i| {
+                let i = i as f64;
+                Some(Vector3::new(
+                    i % 5.0,
+                    (i / 5.0).floor() * 0.7,
+                    2.0 + i * 0.1,
+                ))
+            })
+            .collect();
+        let mut consistent = map_image(&q);
+        let mut scrambled = map_image(&q);
+        for i in 0..30 {
+            let p = q_points[i].unwrap() + Vector3::new(0.3, -0.2, 1.0);
+            consistent.points[i] = if i < 20 {
+                [p.x as f32, p.y as f32, p.z as f32]
+            } else {
+                [f32::NAN; 3]
+            };
+            let s = q_points[(i * 7 + 3) % 30].unwrap();
+            scrambled.points[i] = [s.x as f32, (s.y * 1.9) as f32, (s.z * 0.6) as f32];
+        }
+        let images = vec![scrambled, consistent];
+        let hits: Vec<Hit> = (0..2).map(|id| Hit { id, score: 0.5 }).collect();
+        let list = Shortlist::new(&images, 64);
+        let kept = list
+            .rerank(&images, &q, &q_points, &hits, 1, &Mnn::default(), 0.1)
+            .unwrap();
+        assert_eq!(
+            kept[0].id, 1,
+            "20 consistent matches beat 30 scrambled ones"
+        );
+    }
+
+    #[test]
+    fn strongest_indices_are_best_first() {
+        assert_eq!(strongest_indices(&[0.1, 0.9, 0.5, 0.9], 3), vec![1, 3, 2]);
+        assert_eq!(strongest_indices(&[0.3], 4), vec![0]);
+    }
+}
