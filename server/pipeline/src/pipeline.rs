@@ -349,6 +349,29 @@ impl Pipeline {
         }
     }
 
+    /// The best `keep` of the global candidates `hits` by the shortlist's vote ([`Shortlist`]), or
+    /// `hits` as they are when there are no more than `keep`.
+    fn shortlisted(
+        &self,
+        fq: &Features,
+        q_pts: &[Option<Vector3<f64>>],
+        hits: Vec<Hit>,
+        keep: usize,
+    ) -> Result<Vec<Hit>, PipelineError> {
+        if hits.len() <= keep {
+            return Ok(hits);
+        }
+        self.shortlist.rerank(
+            &self.map.images,
+            fq,
+            q_pts,
+            &hits,
+            keep,
+            &self.cheap,
+            2.0 * self.teaser.noise_bound,
+        )
+    }
+
     /// The map images inside `region`, nearest first.
     pub fn images_within(&self, region: &Region) -> Vec<usize> {
         self.pose_index.within(region)
@@ -414,7 +437,19 @@ impl Pipeline {
         if let Some(ids) = inside.filter(|ids| !ids.is_empty()) {
             let k = opts.region_candidates.unwrap_or(shortlist);
             let ts = Instant::now();
-            let hits = self.map.retriever.search_among(&desc, k, &ids)?;
+            // A caller's prior can hold many look-alike views: voted like global retrieval. A
+            // tracking region holds the few views around the stream's last verified pose, ranked
+            // by the global descriptor alone: its re-anchoring then keeps the views most like the
+            // frame (voting there once re-anchored a clean drive on a view 0.3 m off).
+            let hits = if opts.region_mode == Mode::Tracking {
+                self.map.retriever.search_among(&desc, k, &ids)?
+            } else {
+                let deep = self
+                    .map
+                    .retriever
+                    .search_among(&desc, self.shortlist_depth(k), &ids)?;
+                self.shortlisted(&fq, &q_pts, deep, k)?
+            };
             times.retrieval += ts.elapsed().as_secs_f64();
             let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
             let on_track = loc.pose.is_some_and(|p| off_track(&p, opts).is_none());
@@ -428,19 +463,11 @@ impl Pipeline {
             times = loc.times;
         }
         let t2 = Instant::now();
-        let depth = self.shortlist_depth(shortlist);
-        let mut hits = self.map.retriever.search(&desc, depth)?;
-        if hits.len() > shortlist {
-            hits = self.shortlist.rerank(
-                &self.map.images,
-                &fq,
-                &q_pts,
-                &hits,
-                shortlist,
-                &self.cheap,
-                2.0 * self.teaser.noise_bound,
-            )?;
-        }
+        let hits = self
+            .map
+            .retriever
+            .search(&desc, self.shortlist_depth(shortlist))?;
+        let hits = self.shortlisted(&fq, &q_pts, hits, shortlist)?;
         times.retrieval += t2.elapsed().as_secs_f64();
         let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the
