@@ -50,6 +50,9 @@ fn map_round_trip_pipeline_and_refused_files() {
     let preset = Preset::named("fast").unwrap();
     let (map, stage) = build(&index, &preset);
     assert_eq!(map.images.len(), 30);
+    // The preset's `auto` index resolves by size, and the header says what was built.
+    assert_eq!(preset.index, "auto");
+    assert_eq!(map.header.preset.index, "flat");
     // Pairs stay aligned: one 3D point and one instance id per keypoint, NaN only where depth is bad.
     for im in &map.images {
         assert_eq!(im.points.len(), im.keypoints.len());

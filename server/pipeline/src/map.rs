@@ -369,7 +369,14 @@ pub fn build(
     Ok(Map {
         header: MapHeader {
             map_id: map_id.to_string(),
-            preset: preset.clone(),
+            // The index `auto` chose, so the header says what was built (and older readers,
+            // which do not know `auto`, still load it).
+            preset: Preset {
+                index: retriever
+                    .index_kind()
+                    .map_or_else(|| preset.index.clone(), |k| k.name()),
+                ..preset.clone()
+            },
             models: model_identities(preset, models_dir)?,
             intrinsics: header_camera.unwrap_or_else(Intrinsics::hpointloc),
             camera_axes: "habitat".into(),

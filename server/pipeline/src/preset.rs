@@ -34,7 +34,8 @@ pub struct Preset {
     /// VLAD codewords.
     pub vlad_words: usize,
     /// faiss index for dense descriptors: `auto` (the default: exact search below 4096 images,
-    /// PCA-whitening to 512 dimensions from there on), `flat`, `hnsw32`, `ivf1024`, `pcaw256`.
+    /// PCA-whitening to 512 dimensions from there on when the descriptor is longer), `flat`,
+    /// `hnsw32`, `ivf1024`, `pcaw256`. A built map's header records what `auto` chose.
     pub index: String,
     /// Model of the `onnx` global descriptor.
     pub global_model: Option<PathBuf>,

@@ -3,12 +3,12 @@
 //!
 //! Why: one aggregated vector per image (VLAD) ranks look-alike rooms of a large map close together.
 //! On a map of HPointLoc-All size (10,500 images of 35 procedural apartments) the right Point is
-//! among VLAD's first 5 for 0.68 of the queries but among its first 100 for 0.94.
+//! among VLAD's first 5 for 0.69 of the queries but among its first 100 for 0.93.
 //!
 //! The vote: mutual nearest neighbours between the query's and the image's strongest keypoints,
 //! scored by the largest set of matches whose 3D distances to one match agree with the query's (a
 //! star of the registration's consistency graph). Counting matches alone puts the right Point among
-//! the first 5 for 0.81 of those queries, the consistent star for 0.86, a second vote with twice the
+//! the first 5 for 0.83 of those queries, the consistent star for 0.87, a second vote with twice the
 //! keypoints over the first's best 20 for 0.88 (BENCHMARKS.md, "A deeper shortlist"). Re-ranking
 //! a global shortlist by local matches is the classic second stage of image retrieval (Philbin et
 //! al., CVPR 2007, with a spatial check); the star is the cheap part of TEASER's pruning, so the
@@ -40,7 +40,8 @@ pub const SHORTLIST_KEYPOINTS: usize = 256;
 /// first had more than that many).
 pub const FINE_FACTOR: usize = 4;
 
-/// Most map images the vote looks at, whatever the map's size (about 13 ms a query on one core).
+/// Most map images the automatic depth votes on, whatever the map's size (about 13 ms a query on
+/// one core); a preset's explicit `shortlist` is taken as it is.
 pub const MAX_DEPTH: usize = 128;
 
 /// How many global candidates to re-rank when the preset leaves it automatic: the square root of
@@ -61,7 +62,7 @@ pub struct Shortlist {
 
 /// Indices of the `n` highest `scores`, best first (ties keep the lower index first).
 fn strongest_indices(scores: &[f32], n: usize) -> Vec<u16> {
-    let mut order: Vec<u16> = (0..scores.len().min(u16::MAX as usize + 1) as u16).collect();
+    let mut order: Vec<u16> = (0..scores.len().min(u16::MAX as usize) as u16).collect();
     order.sort_by(|&a, &b| scores[b as usize].total_cmp(&scores[a as usize]));
     order.truncate(n);
     order
@@ -149,8 +150,11 @@ fn float_pairs(
     s: &mut Scratch,
 ) {
     use half::slice::HalfFloatSliceExt;
-    let (n, m) = (q.len() / dim, indices.len());
     s.pairs.clear();
+    if dim == 0 {
+        return;
+    }
+    let (n, m) = (q.len() / dim, indices.len());
     if n == 0 || m == 0 {
         return;
     }
@@ -188,9 +192,9 @@ fn float_pairs(
 
 /// One vote: the mutual matches of the query's strongest keypoints (`q`, with their 3D points
 /// `q_points`) with the map image's at `indices`, scored by geometric consistency: the most
-/// matches whose 3D distances to one match agree with the query's within `bound_m` (the largest
-/// star of TEASER's consistency graph, a lower bound on its maximum clique), then the number of
-/// matches.
+/// matches whose 3D distances to one match agree with the query's within `bound_m` (the highest
+/// degree in TEASER's consistency graph, a cheap stand-in for its maximum clique), then the number
+/// of matches. An image or query without keypoints gets no votes.
 fn vote(
     q: &Features,
     q_points: &[Option<Vector3<f64>>],
@@ -200,7 +204,14 @@ fn vote(
     bound_m: f64,
     s: &mut Scratch,
 ) -> Result<(usize, usize), PipelineError> {
-    let float = q.binary.is_empty() && matcher.params.ratio.is_none() && q.dim == im.dim;
+    if q.is_empty() || indices.is_empty() {
+        return Ok((0, 0));
+    }
+    let float = q.binary.is_empty()
+        && q.dim > 0
+        && !q.descriptors.is_empty()
+        && matcher.params.ratio.is_none()
+        && q.dim == im.dim;
     if float && im.descriptors.len() >= im.keypoints.len() * im.dim {
         float_pairs(
             &q.descriptors,
@@ -242,8 +253,8 @@ impl Shortlist {
         }
     }
 
-    /// `hits` (global candidates, best first) re-ordered by one vote (see [`Shortlist::rerank`])
-    /// with the `keypoints` strongest keypoints, best first, the global order breaking ties.
+    /// `hits` (candidates, best first) re-ordered by one vote (see [`Shortlist::rerank`]) with the
+    /// `keypoints` strongest keypoints, best first, the order of `hits` breaking ties.
     ///
     /// Errors: as [`Shortlist::rerank`].
     #[allow(clippy::too_many_arguments)]
@@ -479,6 +490,31 @@ mod tests {
             kept[0].id, 1,
             "20 consistent matches beat 30 scrambled ones"
         );
+    }
+
+    #[test]
+    fn a_frame_without_keypoints_gets_no_votes_and_no_panic() {
+        // ORB on a blank frame: no keypoints, descriptor length 0, against binary map images.
+        let empty = Features {
+            keypoints: Vec::new(),
+            scores: Vec::new(),
+            descriptors: Vec::new(),
+            dim: 0,
+            binary: Vec::new(),
+            image_size: (256, 256),
+        };
+        let mut orb = map_image(&features(descriptors(4, 3), vec![1.0; 4]));
+        orb.descriptors.clear();
+        orb.dim = 0;
+        orb.binary = vec![[7u8; 32]; 4];
+        let images = vec![orb.clone(), orb];
+        let hits: Vec<Hit> = (0..2).map(|id| Hit { id, score: 0.0 }).collect();
+        let list = Shortlist::new(&images, 8);
+        let kept = list
+            .rerank(&images, &empty, &[], &hits, 1, &Mnn::default(), 0.1)
+            .unwrap();
+        assert_eq!(kept.len(), 1);
+        assert_eq!(kept[0].id, 0, "no votes: the global order stands");
     }
 
     #[test]

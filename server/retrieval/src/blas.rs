@@ -5,9 +5,10 @@
 //! while, which on a busy server takes the cores from the feature extractor: on 2 cores, with the
 //! projection in every query, extraction went from 10 to 16 ms and the whole query from 50 to 72
 //! ms (BENCHMARKS.md, "A deeper shortlist"). One query's projection is a 4096 x 512 product, too
-//! small to share, so searches ask OpenBLAS for one thread, once per process. Training (k-means,
-//! PCA) runs before the first search and keeps every thread. Another BLAS (reference, BLIS) has
-//! no `openblas_set_num_threads` and is left as it is.
+//! small to share, so searches ask OpenBLAS for one thread, once per process. A map built before the
+//! process's first search (`pntr build-db`) trains (k-means, PCA) on every thread; one built after
+//! it (a test, `pntr eval` without `--db` builds first) trains on one. Another BLAS (reference,
+//! BLIS) has no `openblas_set_num_threads` and is left as it is.
 
 #![allow(unsafe_code)] // dlsym and one C call; each use is commented.
 

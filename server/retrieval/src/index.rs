@@ -10,16 +10,17 @@ use crate::RetrievalError;
 pub const TRAINING_VECTORS: usize = 8192;
 
 /// Most map vectors PCA-whitening is learned from. Fewer vectors than dimensions let faiss
-/// decompose the Gram matrix of the sample instead of the 4096 x 4096 covariance: about 25 s
-/// instead of 160 s for VLAD on 10,500 images; 3072 vectors ranked the right Point as well
-/// (BENCHMARKS.md, "A deeper shortlist").
+/// decompose the Gram matrix of the sample instead of the 4096 x 4096 covariance: 18-23 s of
+/// training instead of 160 s for VLAD, whatever the map's size; 3072 vectors ranked the right
+/// Point as well (BENCHMARKS.md, "A deeper shortlist").
 pub const PCA_TRAINING_VECTORS: usize = 2048;
 
 /// From this many map images on, `auto` learns PCA-whitening to [`AUTO_PCA_DIM`] dimensions
-/// instead of searching the raw descriptors exactly. Below it exact search costs at most a few
-/// milliseconds and ranks the right place as well or better; above it the reduced vectors are 8x
-/// cheaper to scan (a flat scan of 4096-d vectors is bound by memory: 17 ms at 10,500 images) and
-/// rank the right Point higher (BENCHMARKS.md, "A deeper shortlist").
+/// instead of searching the raw descriptors exactly (for descriptors longer than that). Below it
+/// exact search costs at most a few milliseconds and ranks the right place as well or better;
+/// above it the reduced vectors are 8x cheaper to scan (a flat scan of 4096-d vectors is bound by
+/// memory: 16 ms at 10,500 images) and, after the shortlist's vote, rank the right Point as well
+/// (4,200 images) or slightly better (10,500) (BENCHMARKS.md, "A deeper shortlist").
 pub const AUTO_PCA_FROM: usize = 4096;
 
 /// Output dimension of `auto`'s PCA-whitening.
@@ -32,7 +33,7 @@ pub enum IndexKind {
     /// below [`AUTO_PCA_FROM`] images, PCA-whitening to [`AUTO_PCA_DIM`] then exact search from
     /// there on. A built index records the kind it resolved to.
     Auto,
-    /// Exact search (default; fine up to tens of thousands of images).
+    /// Exact search (what `auto` chooses for small maps).
     Flat,
     /// HNSW graph with `m` links per node: approximate, for maps of 100k images and more.
     Hnsw {

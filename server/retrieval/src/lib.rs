@@ -5,9 +5,9 @@
 //! codebook learned by faiss k-means on the map's own database images ([`vlad`]). A network exported
 //! elsewhere plugs in through a small ONNX contract ([`onnx_global`]), and the paper's classical
 //! baseline, a bag of ORB words with TF-IDF and an inverted file, is [`bow`]. Dense descriptors are
-//! L2-normalised, so inner product is cosine similarity; the [`index`] is faiss (`auto` by default: exact
-//! below 4096 images, PCA-whitening learned on the map above; HNSW or IVF by name), checked against
-//! brute force in the tests; [`blas`] keeps query-time BLAS calls on the calling thread. [`global`] picks one of them by name and serialises it into the map.
+//! L2-normalised, so inner product is cosine similarity; the [`index`] is faiss (`auto` by default:
+//! exact below 4096 images, PCA-whitening learned on the map above; HNSW or IVF by name), checked
+//! against brute force in the tests; [`blas`] keeps query-time BLAS calls on the calling thread. [`global`] picks one of them by name and serialises it into the map.
 //!
 //! Naming: this is "VLAD over XFeat descriptors", not NetVLAD (no learned aggregation).
 
