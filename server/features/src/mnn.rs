@@ -83,6 +83,78 @@ impl Mnn {
     }
 }
 
+/// Buffers [`mutual_nearest`] reuses from call to call (the similarity matrix and the best match
+/// of every row and column).
+#[derive(Debug, Default)]
+pub struct MnnBuffers {
+    sim: Vec<f32>,
+    rows: Vec<(u32, f32, f32)>,
+    cols: Vec<(u32, f32)>,
+}
+
+/// Mutual nearest neighbours between the rows of `a` and of `b` (unit float descriptors of `dim`
+/// values; a partial last row is ignored), by cosine similarity, with `params`' similarity floor and
+/// ratio test (`max_hamming` is for binary descriptors and unused here): the pairs and their
+/// similarities are appended to `out`. All similarities come from one matrix product (a blocked,
+/// vectorised sgemm) into `buf`, then the best match per row (with the second best, for the ratio)
+/// and per column in a single row-major pass; the first maximum wins ties. Nothing for `dim == 0`
+/// or an empty side.
+pub fn mutual_nearest(
+    a: &[f32],
+    b: &[f32],
+    dim: usize,
+    params: &MnnParams,
+    buf: &mut MnnBuffers,
+    out: &mut Matches,
+) {
+    if dim == 0 {
+        return;
+    }
+    let (n, m) = (a.len() / dim, b.len() / dim);
+    if n == 0 || m == 0 {
+        return;
+    }
+    let av = ndarray::ArrayView2::from_shape((n, dim), &a[..n * dim]).expect("n whole rows");
+    let bv = ndarray::ArrayView2::from_shape((m, dim), &b[..m * dim]).expect("m whole rows");
+    buf.sim.clear();
+    buf.sim.resize(n * m, 0.0);
+    let mut sim = ndarray::ArrayViewMut2::from_shape((n, m), &mut buf.sim[..]).expect("n x m");
+    ndarray::linalg::general_mat_mul(1.0, &av, &bv.t(), 0.0, &mut sim);
+    buf.rows.clear();
+    buf.cols.clear();
+    buf.cols.resize(m, (0, f32::NEG_INFINITY));
+    for (i, row) in buf.sim.chunks_exact(m).enumerate() {
+        let (mut bj, mut b1, mut b2) = (0, f32::NEG_INFINITY, f32::NEG_INFINITY);
+        for (j, (&s, col)) in row.iter().zip(buf.cols.iter_mut()).enumerate() {
+            if s > b1 {
+                b2 = b1;
+                b1 = s;
+                bj = j;
+            } else if s > b2 {
+                b2 = s;
+            }
+            if s > col.1 {
+                *col = (i as u32, s);
+            }
+        }
+        buf.rows.push((bj as u32, b1, b2));
+    }
+    for (i, &(j, s1, s2)) in buf.rows.iter().enumerate() {
+        if buf.cols[j as usize].0 != i as u32 || s1 < params.min_similarity {
+            continue;
+        }
+        if let Some(r) = params.ratio {
+            let d1 = (2.0 - 2.0 * s1).max(0.0).sqrt();
+            let d2 = (2.0 - 2.0 * s2).max(0.0).sqrt();
+            if m > 1 && d1 >= r * d2 {
+                continue;
+            }
+        }
+        out.pairs.push((i as u32, j));
+        out.scores.push(s1);
+    }
+}
+
 impl Matcher for Mnn {
     fn match_features(&self, a: &Features, b: &Features) -> Result<Matches, FeatureError> {
         match (a.binary.is_empty(), b.binary.is_empty()) {
@@ -101,50 +173,29 @@ impl Matcher for Mnn {
             )));
         }
         let (n, m) = (a.len(), b.len());
-        if n == 0 || m == 0 {
-            return Ok(Matches::default());
+        if a.descriptors.len() != n * a.dim {
+            return Err(FeatureError::Input(format!(
+                "descriptors of the first set: {} values for {n} keypoints of {}",
+                a.descriptors.len(),
+                a.dim
+            )));
         }
-        // All similarities at once as one matrix product (a blocked, vectorised sgemm), then the best
-        // match per row and per column in a single row-major pass.
-        let av = ndarray::ArrayView2::from_shape((n, a.dim), &a.descriptors)
-            .map_err(|e| FeatureError::Input(format!("descriptors of the first set: {e}")))?;
-        let bv = ndarray::ArrayView2::from_shape((m, b.dim), &b.descriptors)
-            .map_err(|e| FeatureError::Input(format!("descriptors of the second set: {e}")))?;
-        let sim = av.dot(&bv.t());
-        let mut best_b: Vec<(usize, f32, f32)> = Vec::with_capacity(n);
-        let mut best_a = vec![(0usize, f32::NEG_INFINITY); m];
-        for (i, row) in sim.outer_iter().enumerate() {
-            let (mut bj, mut b1, mut b2) = (0, f32::NEG_INFINITY, f32::NEG_INFINITY);
-            for (j, &s) in row.iter().enumerate() {
-                if s > b1 {
-                    b2 = b1;
-                    b1 = s;
-                    bj = j;
-                } else if s > b2 {
-                    b2 = s;
-                }
-                if s > best_a[j].1 {
-                    best_a[j] = (i, s);
-                }
-            }
-            best_b.push((bj, b1, b2));
+        if b.descriptors.len() != m * b.dim {
+            return Err(FeatureError::Input(format!(
+                "descriptors of the second set: {} values for {m} keypoints of {}",
+                b.descriptors.len(),
+                b.dim
+            )));
         }
-        let best_a: Vec<usize> = best_a.into_iter().map(|(i, _)| i).collect();
         let mut out = Matches::default();
-        for (i, &(j, s1, s2)) in best_b.iter().enumerate() {
-            if best_a[j] != i || s1 < self.params.min_similarity {
-                continue;
-            }
-            if let Some(r) = self.params.ratio {
-                let d1 = (2.0 - 2.0 * s1).max(0.0).sqrt();
-                let d2 = (2.0 - 2.0 * s2).max(0.0).sqrt();
-                if m > 1 && d1 >= r * d2 {
-                    continue;
-                }
-            }
-            out.pairs.push((i as u32, j as u32));
-            out.scores.push(s1);
-        }
+        mutual_nearest(
+            &a.descriptors,
+            &b.descriptors,
+            a.dim,
+            &self.params,
+            &mut MnnBuffers::default(),
+            &mut out,
+        );
         Ok(out)
     }
 

@@ -20,10 +20,8 @@
 //! images, once; a 10,000-image map on 100, then 20 again.
 
 use nalgebra::Vector3;
-use ndarray::linalg::general_mat_mul;
-use ndarray::{ArrayView2, ArrayViewMut2};
-use pntr_features::mnn::Mnn;
-use pntr_features::{Features, Matcher};
+use pntr_features::mnn::{mutual_nearest, Mnn, MnnBuffers};
+use pntr_features::{Features, Matcher, Matches};
 use pntr_registration::teaser::consistency_graph;
 use pntr_retrieval::index::Hit;
 
@@ -128,66 +126,10 @@ fn gather_map(im: &MapImage, indices: &[u16]) -> Features {
 struct Scratch {
     /// The map image's strongest descriptors, widened to f32, one row each.
     db: Vec<f32>,
-    /// Query x image cosine similarities.
-    sim: Vec<f32>,
-    /// Best similarity and query row per image keypoint.
-    col_best: Vec<(f32, u32)>,
-    pairs: Vec<(u32, u32)>,
+    mnn: MnnBuffers,
+    matches: Matches,
     src: Vec<Vector3<f64>>,
     dst: Vec<Vector3<f64>>,
-}
-
-/// Mutual nearest neighbours between the rows of `q` (`n x dim`, unit descriptors) and the map
-/// image's descriptors at `indices`, at least `min_similarity` alike, into `s.pairs`: one matrix
-/// product into a reused buffer, then the best per row and per column (what
-/// [`pntr_features::mnn::Mnn`] computes without a ratio test, without its allocations).
-fn float_pairs(
-    q: &[f32],
-    dim: usize,
-    im: &MapImage,
-    indices: &[u16],
-    min_similarity: f32,
-    s: &mut Scratch,
-) {
-    use half::slice::HalfFloatSliceExt;
-    s.pairs.clear();
-    if dim == 0 {
-        return;
-    }
-    let (n, m) = (q.len() / dim, indices.len());
-    if n == 0 || m == 0 {
-        return;
-    }
-    s.db.resize(m * dim, 0.0);
-    for (row, &i) in s.db.chunks_exact_mut(dim).zip(indices) {
-        let i = i as usize;
-        im.descriptors[i * dim..(i + 1) * dim].convert_to_f32_slice(row);
-    }
-    s.sim.resize(n * m, 0.0);
-    let qv = ArrayView2::from_shape((n, dim), q).expect("n rows of dim");
-    let dv = ArrayView2::from_shape((m, dim), &s.db[..]).expect("m rows of dim");
-    let mut sim = ArrayViewMut2::from_shape((n, m), &mut s.sim[..]).expect("n x m");
-    general_mat_mul(1.0, &qv, &dv.t(), 0.0, &mut sim);
-    s.col_best.clear();
-    s.col_best.resize(m, (f32::NEG_INFINITY, 0));
-    let mut row_best = Vec::with_capacity(n);
-    for (i, row) in s.sim.chunks_exact(m).enumerate() {
-        let (mut bj, mut b) = (0, f32::NEG_INFINITY);
-        for (j, (&x, col)) in row.iter().zip(s.col_best.iter_mut()).enumerate() {
-            if x > b {
-                (bj, b) = (j, x);
-            }
-            if x > col.0 {
-                *col = (x, i as u32);
-            }
-        }
-        row_best.push((bj, b));
-    }
-    for (i, &(j, b)) in row_best.iter().enumerate() {
-        if b >= min_similarity && s.col_best[j].1 == i as u32 {
-            s.pairs.push((i as u32, j as u32));
-        }
-    }
 }
 
 /// One vote: the mutual matches of the query's strongest keypoints (`q`, with their 3D points
@@ -207,26 +149,32 @@ fn vote(
     if q.is_empty() || indices.is_empty() {
         return Ok((0, 0));
     }
-    let float = q.binary.is_empty()
-        && q.dim > 0
-        && !q.descriptors.is_empty()
-        && matcher.params.ratio.is_none()
-        && q.dim == im.dim;
+    let float = q.binary.is_empty() && q.dim > 0 && !q.descriptors.is_empty() && q.dim == im.dim;
+    s.matches.pairs.clear();
+    s.matches.scores.clear();
     if float && im.descriptors.len() >= im.keypoints.len() * im.dim {
-        float_pairs(
+        // The map image's rows widened into a reused buffer, matched without allocating.
+        use half::slice::HalfFloatSliceExt;
+        let dim = im.dim;
+        s.db.resize(indices.len() * dim, 0.0);
+        for (row, &i) in s.db.chunks_exact_mut(dim).zip(indices) {
+            let i = i as usize;
+            im.descriptors[i * dim..(i + 1) * dim].convert_to_f32_slice(row);
+        }
+        mutual_nearest(
             &q.descriptors,
-            q.dim,
-            im,
-            indices,
-            matcher.params.min_similarity,
-            s,
+            &s.db,
+            dim,
+            &matcher.params,
+            &mut s.mnn,
+            &mut s.matches,
         );
     } else {
-        s.pairs = matcher.match_features(q, &gather_map(im, indices))?.pairs;
+        s.matches = matcher.match_features(q, &gather_map(im, indices))?;
     }
     s.src.clear();
     s.dst.clear();
-    for &(i, j) in &s.pairs {
+    for &(i, j) in &s.matches.pairs {
         if let (Some(Some(a)), Some(b)) = (
             q_points.get(i as usize),
             im.point(indices[j as usize] as usize),
@@ -238,7 +186,7 @@ fn vote(
     let finite = vec![true; s.src.len()];
     let g = consistency_graph(&s.src, &s.dst, &finite, bound_m);
     let star = (0..g.len()).map(|i| g.degree(i)).max().unwrap_or(0);
-    Ok((star, s.pairs.len()))
+    Ok((star, s.matches.pairs.len()))
 }
 
 impl Shortlist {
