@@ -200,13 +200,18 @@ pub fn dense_check(from: &Thumb, to: &Thumb, to_from_from: &Isometry3<f64>) -> D
     let kt = &to.intrinsics;
     let rot = to_from_from.rotation.to_rotation_matrix();
     let t = to_from_from.translation.vector;
+    // The back-projection's per-column and per-row factors, once (the same values per pixel).
+    let xs: Vec<f64> = (0..from.width)
+        .map(|u| (u as f64 - kf.cx) / kf.fx)
+        .collect();
     for r in 0..from.height {
-        for col in 0..from.width {
+        let y = (r as f64 - kf.cy) / kf.fy;
+        for (col, &x) in (0..from.width).zip(&xs) {
             let Some(z) = from.depth_m(col, r) else {
                 continue;
             };
             c.valid += 1;
-            let p = kf.backproject(col as f64, r as f64, z);
+            let p = Point3::new(x * z, y * z, z);
             let q: Point3<f64> = Point3::from(rot * p.coords + t);
             let Some(uv) = kt.project(&q) else { continue };
             let Some((u, v)) = kt.pixel_of(&uv) else {

@@ -67,16 +67,36 @@ impl Codebook {
         self.k * self.dim
     }
 
-    fn nearest(&self, d: &[f32]) -> usize {
-        let mut best = (0, f32::INFINITY);
-        for c in 0..self.k {
-            let cw = &self.centroids[c * self.dim..(c + 1) * self.dim];
-            let dist: f32 = cw.iter().zip(d).map(|(a, b)| (a - b) * (a - b)).sum();
-            if dist < best.1 {
-                best = (c, dist);
-            }
-        }
-        best.0
+    /// The nearest codeword of every descriptor (`n * dim` values, whole rows): the largest
+    /// `d . c - |c|^2 / 2` (the smallest `|d - c|^2` less the constant `|d|^2 / 2`), the first among
+    /// equals, with every dot product from one matrix product (matrixmultiply's sgemm).
+    fn nearest_all(&self, descriptors: &[f32]) -> Vec<usize> {
+        let n = descriptors.len() / self.dim;
+        let (Ok(d), Ok(c)) = (
+            ndarray::ArrayView2::from_shape((n, self.dim), descriptors),
+            ndarray::ArrayView2::from_shape((self.k, self.dim), &self.centroids[..]),
+        ) else {
+            return Vec::new();
+        };
+        let dots = d.dot(&c.t());
+        let half_norms: Vec<f32> = self
+            .centroids
+            .chunks_exact(self.dim)
+            .map(|c| c.iter().map(|x| x * x).sum::<f32>() / 2.0)
+            .collect();
+        dots.rows()
+            .into_iter()
+            .map(|row| {
+                let mut best = (0, f32::NEG_INFINITY);
+                for (j, (&dot, &h)) in row.iter().zip(&half_norms).enumerate() {
+                    let score = dot - h;
+                    if score > best.1 {
+                        best = (j, score);
+                    }
+                }
+                best.0
+            })
+            .collect()
     }
 
     /// The VLAD vector of one image's local descriptors (`n * dim` values). An image without
@@ -90,8 +110,8 @@ impl Codebook {
             )));
         }
         let mut v = vec![0f32; self.vlad_dim()];
-        for d in descriptors.chunks_exact(self.dim) {
-            let c = self.nearest(d);
+        let nearest = self.nearest_all(descriptors);
+        for (d, &c) in descriptors.chunks_exact(self.dim).zip(&nearest) {
             let cw = &self.centroids[c * self.dim..(c + 1) * self.dim];
             for ((acc, x), m) in v[c * self.dim..(c + 1) * self.dim]
                 .iter_mut()
@@ -195,5 +215,62 @@ impl Codebook {
         };
         let bytes = std::fs::read(path).map_err(|e| err(e.to_string()))?;
         Self::from_bytes(&bytes).map_err(err)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` rows of `dim` values in -0.5..0.5 from a seeded xorshift.
+    fn rows(n: usize, dim: usize, seed: u64) -> Vec<f32> {
+        let mut x = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+        (0..n * dim)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x >> 40) as f32 / (1u64 << 24) as f32 - 0.5
+            })
+            .collect()
+    }
+
+    #[test]
+    fn every_descriptor_goes_to_its_nearest_codeword() {
+        let (dim, k) = (64, 32);
+        let book = Codebook {
+            dim,
+            k,
+            centroids: rows(k, dim, 1),
+        };
+        let d = rows(500, dim, 2);
+        let got = book.nearest_all(&d);
+        assert_eq!(got.len(), 500);
+        for (i, row) in d.chunks_exact(dim).enumerate() {
+            let dist = |c: usize| -> f64 {
+                book.centroids[c * dim..(c + 1) * dim]
+                    .iter()
+                    .zip(row)
+                    .map(|(a, b)| ((a - b) as f64).powi(2))
+                    .sum()
+            };
+            let want = (0..k).min_by(|&a, &b| dist(a).total_cmp(&dist(b))).unwrap();
+            assert!(
+                got[i] == want || (dist(got[i]) - dist(want)).abs() < 1e-5,
+                "descriptor {i}: codeword {} at {} instead of {want} at {}",
+                got[i],
+                dist(got[i]),
+                dist(want)
+            );
+        }
+        // Descriptors equal to codewords go to those codewords; the first of two equal ones wins.
+        let mut twin = book.clone();
+        twin.centroids[5 * dim..6 * dim].copy_from_slice(&book.centroids[..dim]);
+        assert_eq!(twin.nearest_all(&book.centroids[..3 * dim]), vec![0, 1, 2]);
+        // The VLAD vector is unit length, and zero without descriptors.
+        let v = book.vlad(&d).unwrap();
+        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-5, "norm {norm}");
+        assert!(book.vlad(&[]).unwrap().iter().all(|&x| x == 0.0));
     }
 }
