@@ -360,7 +360,10 @@ pub fn dense_evidence(
     db_from_query: &Isometry3<f64>,
     nearby: &[(&Thumb, Isometry3<f64>)],
 ) -> Evidence {
-    let m = dense_check_both(query, matched, db_from_query);
+    // Both directions with the matched view, as `dense_check_both`; the first alone gives the overlap.
+    let forward = dense_check(query, matched, db_from_query);
+    let mut m = forward;
+    m.add(&dense_check(matched, query, &db_from_query.inverse()));
     let mut all = m;
     let mut others = DenseCounts::default();
     for (t, view_from_query) in nearby {
@@ -371,7 +374,7 @@ pub fn dense_evidence(
     Evidence {
         depth_agree: m.agree_share(),
         free_space_violation: m.violate_share(),
-        overlap: dense_check(query, matched, db_from_query).overlap(),
+        overlap: forward.overlap(),
         views_agree: all.agree_share(),
         views_violation: all.violate_share(),
         gray_correlation: m.gray_correlation(),
