@@ -256,16 +256,19 @@ pub fn mutual_nearest(
     }
     let av = ndarray::ArrayView2::from_shape((n, dim), &a[..n * dim]).expect("n whole rows");
     let bv = ndarray::ArrayView2::from_shape((m, dim), &b[..m * dim]).expect("m whole rows");
-    buf.sim.clear();
-    buf.sim.resize(n * m, 0.0);
-    let mut sim = ndarray::ArrayViewMut2::from_shape((n, m), &mut buf.sim[..]).expect("n x m");
+    // Grown, never cleared: with beta = 0 the product writes every entry without reading it
+    // (matrixmultiply's contract), so stale values from the last call are harmless.
+    if buf.sim.len() < n * m {
+        buf.sim.resize(n * m, 0.0);
+    }
+    let mut sim = ndarray::ArrayViewMut2::from_shape((n, m), &mut buf.sim[..n * m]).expect("n x m");
     ndarray::linalg::general_mat_mul(1.0, &av, &bv.t(), 0.0, &mut sim);
     buf.rows.clear();
     buf.col_best.clear();
     buf.col_best.resize(m, f32::NEG_INFINITY);
     buf.col_row.clear();
     buf.col_row.resize(m, 0);
-    for (i, row) in buf.sim.chunks_exact(m).enumerate() {
+    for (i, row) in buf.sim[..n * m].chunks_exact(m).enumerate() {
         let best = scan_row(row, i as u32, &mut buf.col_best, &mut buf.col_row);
         buf.rows.push(best);
     }
@@ -283,6 +286,16 @@ pub fn mutual_nearest(
         out.pairs.push((i as u32, j));
         out.scores.push(s1);
     }
+}
+
+/// Largest similarity matrix (entries) a thread keeps between calls of [`Mnn::match_features`]:
+/// 1024 x 1024 keypoints, 4 MiB; larger ones get a buffer of their own.
+const REUSED_SIMILARITIES: usize = 1 << 20;
+
+thread_local! {
+    /// Each thread's buffers for [`Mnn::match_features`] (a server worker matches five candidates a
+    /// frame: one allocation and one clearing of the matrix fewer per match).
+    static REUSED: std::cell::RefCell<MnnBuffers> = std::cell::RefCell::new(MnnBuffers::default());
 }
 
 impl Matcher for Mnn {
@@ -318,14 +331,21 @@ impl Matcher for Mnn {
             )));
         }
         let mut out = Matches::default();
-        mutual_nearest(
-            &a.descriptors,
-            &b.descriptors,
-            a.dim,
-            &self.params,
-            &mut MnnBuffers::default(),
-            &mut out,
-        );
+        let run = |buf: &mut MnnBuffers, out: &mut Matches| {
+            mutual_nearest(
+                &a.descriptors,
+                &b.descriptors,
+                a.dim,
+                &self.params,
+                buf,
+                out,
+            )
+        };
+        if n * m <= REUSED_SIMILARITIES {
+            REUSED.with(|buf| run(&mut buf.borrow_mut(), &mut out));
+        } else {
+            run(&mut MnnBuffers::default(), &mut out);
+        }
         Ok(out)
     }
 
@@ -447,6 +467,28 @@ mod tests {
                 assert_eq!((cb, cr), (pb, pr), "columns, m {m}, {levels} levels");
             }
         }
+    }
+
+    #[test]
+    fn reused_buffers_give_what_fresh_ones_give() {
+        let (a, b) = (features(300, 64, 3), features(280, 64, 4));
+        let (small_a, small_b) = (features(40, 64, 5), features(90, 64, 6));
+        let p = MnnParams {
+            min_similarity: 0.0,
+            ratio: Some(0.95),
+            ..MnnParams::default()
+        };
+        let run = |x: &Features, y: &Features, buf: &mut MnnBuffers| {
+            let mut out = Matches::default();
+            mutual_nearest(&x.descriptors, &y.descriptors, 64, &p, buf, &mut out);
+            out
+        };
+        let mut shared = MnnBuffers::default();
+        let big = run(&a, &b, &mut shared);
+        let small = run(&small_a, &small_b, &mut shared);
+        assert_eq!(small, run(&small_a, &small_b, &mut MnnBuffers::default()));
+        assert_eq!(big, run(&a, &b, &mut MnnBuffers::default()));
+        assert!(!small.pairs.is_empty() && !big.pairs.is_empty());
     }
 
     #[test]
