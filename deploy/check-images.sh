@@ -472,7 +472,7 @@ check_cpu_image() {
   # Files, and that the build stage did not leak into the runtime image.
   local missing=()
   for f in /usr/local/bin/pntr-server /usr/local/bin/pntr "$(getenv ORT_DYLIB_PATH)" \
-    "$(getenv PNTR_MODELS)"/{xfeat_backbone.onnx,lighterglue.onnx,aliked_n16.onnx,README.md}; do
+    "$(getenv PNTR_MODELS)"/{xfeat_backbone.onnx,xfeat_backbone_int8.onnx,lighterglue.onnx,aliked_n16.onnx,README.md}; do
     [ -f "$m$f" ] || missing+=("$f")
   done
   for f in /src /usr/local/cargo /usr/bin/gcc /usr/bin/cc; do [ ! -e "$m$f" ] || missing+=("$f (should not be there)"); done

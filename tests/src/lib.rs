@@ -87,7 +87,7 @@ pub fn build_map(
 ) -> pntr_pipeline::map::Map {
     let preset = pntr_pipeline::preset::Preset::named(preset).expect("preset");
     let stage = preset
-        .feature_config(models())
+        .map_feature_config(models())
         .build()
         .expect("models load");
     let scenes: Vec<_> = index.scenes.iter().collect();

@@ -1,7 +1,9 @@
 //! Choosing stages by name: one exhaustive match from configuration to built components.
 //!
-//! Names the CLI and the server accept: extractors `xfeat`, `aliked`, `orb`, `onnx`; matchers
-//! `lighterglue`, `lightglue`, `mnn`, `onnx`. Not every pair fits (LighterGlue was trained on XFeat's
+//! Names the CLI and the server accept: extractors `xfeat`, `xfeat-int8`, `aliked`, `orb`, `onnx`;
+//! matchers `lighterglue`, `lightglue`, `mnn`, `onnx`. `xfeat-int8` is XFeat's backbone with int8
+//! weights and activations (static quantization, keypoint heads kept in float: `models/export.py`);
+//! its descriptors are XFeat's, so it pairs as `xfeat` does. Not every pair fits (LighterGlue was trained on XFeat's
 //! 64-d descriptors, LightGlue here on ALIKED's 128-d ones; ORB's binary descriptors need Hamming
 //! distance); an unfit pair is refused at start-up with the list of valid ones.
 
@@ -17,14 +19,17 @@ use crate::xfeat::{XFeat, XFeatParams, XFEAT_DIM};
 use crate::{Extractor, FeatureError, Matcher};
 
 /// Extractor names.
-pub const EXTRACTORS: [&str; 4] = ["xfeat", "aliked", "orb", "onnx"];
+pub const EXTRACTORS: [&str; 5] = ["xfeat", "xfeat-int8", "aliked", "orb", "onnx"];
 /// Matcher names.
 pub const MATCHERS: [&str; 4] = ["lighterglue", "lightglue", "mnn", "onnx"];
 /// Extractor/matcher pairs that fit.
-pub const VALID_PAIRS: [(&str, &str); 9] = [
+pub const VALID_PAIRS: [(&str, &str); 12] = [
     ("xfeat", "lighterglue"),
     ("xfeat", "mnn"),
     ("xfeat", "onnx"),
+    ("xfeat-int8", "lighterglue"),
+    ("xfeat-int8", "mnn"),
+    ("xfeat-int8", "onnx"),
     ("aliked", "lightglue"),
     ("aliked", "mnn"),
     ("aliked", "onnx"),
@@ -32,6 +37,33 @@ pub const VALID_PAIRS: [(&str, &str); 9] = [
     ("onnx", "mnn"),
     ("onnx", "onnx"),
 ];
+
+/// The model file of a built-in extractor or matcher in the models folder, `None` for the others
+/// (`orb`, `mnn`, `onnx`, whose model, if any, is named by the caller).
+pub fn model_file(name: &str) -> Option<&'static str> {
+    match name {
+        "xfeat" => Some("xfeat_backbone.onnx"),
+        "xfeat-int8" => Some("xfeat_backbone_int8.onnx"),
+        "lighterglue" => Some("lighterglue.onnx"),
+        "aliked" => Some("aliked_n16.onnx"),
+        "lightglue" => Some("lightglue_aliked.onnx"),
+        _ => None,
+    }
+}
+
+/// Whether descriptors from extractor `a` mean the same as those from `b`: the same name, or `xfeat`
+/// and `xfeat-int8` (one network; the int8 one is quantized from it and its descriptors agree with
+/// the float ones to a median cosine of 0.998, so a map built with either serves queries of both).
+pub fn same_descriptors(a: &str, b: &str) -> bool {
+    fn family(name: &str) -> &str {
+        if name == "xfeat-int8" {
+            "xfeat"
+        } else {
+            name
+        }
+    }
+    family(a) == family(b)
+}
 
 /// Descriptor length of ALIKED-n16.
 pub const ALIKED_DIM: usize = 128;
@@ -159,8 +191,10 @@ impl FeatureConfig {
     pub fn build(&self) -> Result<FeatureStage, FeatureError> {
         self.validate()?;
         let extractor: Arc<dyn Extractor> = match self.extractor.as_str() {
-            "xfeat" => Arc::new(XFeat::load(
-                &self.models_dir.join("xfeat_backbone.onnx"),
+            name @ ("xfeat" | "xfeat-int8") => Arc::new(XFeat::load(
+                &self
+                    .models_dir
+                    .join(model_file(name).expect("xfeat models are named")),
                 XFeatParams {
                     top_k: self.top_k,
                     runtime: self.runtime.clone(),
@@ -236,7 +270,8 @@ mod tests {
         c.extractor = "sift".into();
         let e = c.validate().unwrap_err().to_string();
         assert!(
-            e.contains("unknown extractor `sift`") && e.contains("xfeat, aliked, orb, onnx"),
+            e.contains("unknown extractor `sift`")
+                && e.contains("xfeat, xfeat-int8, aliked, orb, onnx"),
             "{e}"
         );
         c.extractor = "onnx".into();

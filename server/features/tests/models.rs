@@ -246,6 +246,69 @@ fn mnn_and_orb_matches_on_synthetic_renders() {
     );
 }
 
+fn xfeat_int8() -> XFeat {
+    XFeat::load(
+        &models().join("xfeat_backbone_int8.onnx"),
+        XFeatParams::default(),
+    )
+    .unwrap()
+}
+
+#[test]
+fn int8_backbone_agrees_with_the_float_one() {
+    // Renders of a scene the quantization never saw (it was calibrated on seed 11).
+    let cfg = pntr_synth::SynthConfig {
+        points_per_scene: 2,
+        queries_per_point: 4,
+        seed: 5,
+        ..Default::default()
+    };
+    let planned = pntr_synth::plan_scene(&cfg, 0);
+    let renderer = pntr_synth::Renderer::new(&planned.scene);
+    let k = Intrinsics::hpointloc();
+    let (float, int8) = (xfeat(), xfeat_int8());
+    let (mut kept, mut total, mut cosines) = (0usize, 0usize, Vec::new());
+    for (i, pose) in planned.points[0].queries.iter().enumerate() {
+        let rgb = renderer.render(pose, &k, i as u64).rgb;
+        let (f, q) = (float.extract(&rgb).unwrap(), int8.extract(&rgb).unwrap());
+        for (j, kq) in q.keypoints.iter().enumerate() {
+            total += 1;
+            let near = f
+                .keypoints
+                .iter()
+                .position(|kf| (kf[0] - kq[0]).abs() <= 1.0 && (kf[1] - kq[1]).abs() <= 1.0);
+            if let Some(n) = near {
+                kept += 1;
+                let dot: f32 = f
+                    .descriptor(n)
+                    .iter()
+                    .zip(q.descriptor(j))
+                    .map(|(a, b)| a * b)
+                    .sum();
+                cosines.push(dot);
+            }
+        }
+    }
+    cosines.sort_by(f32::total_cmp);
+    let median = cosines[cosines.len() / 2];
+    eprintln!(
+        "int8 vs float: {kept} of {total} keypoints within 1 px, median descriptor cosine {median:.4}"
+    );
+    assert!(kept as f64 >= 0.8 * total as f64, "{kept} of {total}");
+    assert!(median >= 0.98, "median cosine {median}");
+    // Matches between renders with known geometry: as many and as right as the float model's.
+    let (_, total_f, good_f) = geometric_accuracy(&float, &Mnn::default());
+    let (_, total_q, good_q) = geometric_accuracy(&int8, &Mnn::default());
+    let (share_f, share_q) = (
+        good_f as f64 / total_f as f64,
+        good_q as f64 / total_q as f64,
+    );
+    assert!(
+        share_q >= share_f - 0.03 && total_q as f64 >= 0.85 * total_f as f64,
+        "int8 {good_q}/{total_q} against float {good_f}/{total_f}"
+    );
+}
+
 #[test]
 fn bad_models_and_images_are_clear_errors() {
     let missing =

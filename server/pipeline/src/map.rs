@@ -196,19 +196,11 @@ pub fn model_identities(
     preset: &Preset,
     models_dir: &std::path::Path,
 ) -> Result<Vec<ModelIdentity>, PipelineError> {
-    let file_of = |name: &str| -> Option<&'static str> {
-        match name {
-            "xfeat" => Some("xfeat_backbone.onnx"),
-            "lighterglue" => Some("lighterglue.onnx"),
-            "aliked" => Some("aliked_n16.onnx"),
-            "lightglue" => Some("lightglue_aliked.onnx"),
-            _ => None,
-        }
-    };
+    let file_of = pntr_features::config::model_file;
     let mut out = Vec::new();
     for (role, name) in [
-        ("extractor", &preset.extractor),
-        ("matcher", &preset.matcher),
+        ("extractor", preset.map_extractor()),
+        ("matcher", preset.matcher.as_str()),
     ] {
         let file = file_of(name);
         let checksum = match file {
@@ -217,7 +209,7 @@ pub fn model_identities(
         };
         out.push(ModelIdentity {
             role: role.into(),
-            name: name.clone(),
+            name: name.to_string(),
             file: file.map(String::from),
             checksum,
         });
@@ -270,8 +262,9 @@ pub fn keypoint_points(
 const TRAINING_DESCRIPTORS: usize = 200_000;
 
 /// Build a map of `scenes` with `preset`: extract features of every database image, learn the
-/// retrieval codebook or vocabulary on them, index their global descriptors. `progress(done, total)`
-/// is called after every image.
+/// retrieval codebook or vocabulary on them, index their global descriptors. `stage` describes the
+/// images: build it from [`Preset::map_feature_config`] (the float backbone for `xfeat-mnn-int8`).
+/// `progress(done, total)` is called after every image.
 pub fn build(
     map_id: &str,
     scenes: &[&SceneEntry],

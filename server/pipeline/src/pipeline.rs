@@ -250,11 +250,15 @@ impl std::fmt::Debug for Pipeline {
 
 impl Pipeline {
     /// Put a map and a feature stage together. The preset must use the extractor the map was built
-    /// with (descriptors from another extractor mean nothing to it).
+    /// with, or one with the same descriptors (`xfeat` and `xfeat-int8`:
+    /// [`pntr_features::config::same_descriptors`]); descriptors from another extractor mean nothing
+    /// to the map.
     pub fn new(map: Arc<Map>, stage: FeatureStage, preset: Preset) -> Result<Self, PipelineError> {
         preset.validate()?;
         let built = &map.header.preset;
-        if built.extractor != preset.extractor || built.global != preset.global {
+        if !pntr_features::config::same_descriptors(&built.extractor, &preset.extractor)
+            || built.global != preset.global
+        {
             return Err(PipelineError::Config(format!(
                 "the map was built with {} + {} (preset {}); preset {} uses {} + {}",
                 built.global,
@@ -312,7 +316,9 @@ impl Pipeline {
     ) -> Self {
         // A calibration fitted for another preset still loads: its probabilities then describe
         // another pipeline's evidence (refit it with `pntr calibrate --preset`).
-        if calibration.preset != self.preset.name {
+        if calibration.preset != self.preset.name
+            && calibration.preset != self.preset.calibration_preset()
+        {
             tracing::warn!(
                 calibration_preset = %calibration.preset,
                 preset = %self.preset.name,

@@ -1,6 +1,7 @@
 //! Named presets: one string picks every stage (hloc-style), so a map, a server and an evaluation
 //! agree on what ran. The preset is stored in the map header; the server and `pntr eval` refuse a
-//! preset whose extractor differs from the one the map was built with.
+//! preset whose extractor's descriptors differ from those the map was built with (`xfeat` and its
+//! int8 quantization `xfeat-int8` share theirs).
 
 use std::path::PathBuf;
 
@@ -39,7 +40,7 @@ pub struct Preset {
     pub index: String,
     /// Model of the `onnx` global descriptor.
     pub global_model: Option<PathBuf>,
-    /// Extractor name (`xfeat`, `aliked`, `orb`, `onnx`).
+    /// Extractor name (`xfeat`, `xfeat-int8`, `aliked`, `orb`, `onnx`).
     pub extractor: String,
     /// Matcher name (`lighterglue`, `lightglue`, `mnn`, `onnx`).
     pub matcher: String,
@@ -64,7 +65,7 @@ pub struct Preset {
 }
 
 /// Names of the built-in presets.
-pub const PRESETS: [&str; 7] = [
+pub const PRESETS: [&str; 8] = [
     "fast",
     "fast-norerank",
     "fast-icp",
@@ -72,6 +73,7 @@ pub const PRESETS: [&str; 7] = [
     "accurate-icp",
     "classical",
     "xfeat-mnn",
+    "xfeat-mnn-int8",
 ];
 
 /// The default preset: the best trade-off measured (BENCHMARKS.md, "Pipeline presets"): on the synthetic
@@ -133,6 +135,11 @@ impl Preset {
                 matcher: "mnn".into(),
                 ..base
             },
+            "xfeat-mnn-int8" => Self {
+                extractor: "xfeat-int8".into(),
+                matcher: "mnn".into(),
+                ..base
+            },
             other => {
                 return Err(PipelineError::Config(format!(
                     "unknown preset `{other}`; presets: {}",
@@ -142,11 +149,22 @@ impl Preset {
         })
     }
 
+    /// The preset whose confidence calibration scores this one's answers: its own name, except
+    /// `xfeat-mnn-int8`, which runs `xfeat-mnn`'s pipeline with the int8 backbone and is scored by
+    /// `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md, "int8 XFeat").
+    pub fn calibration_preset(&self) -> &str {
+        match self.name.as_str() {
+            "xfeat-mnn-int8" => "xfeat-mnn",
+            name => name,
+        }
+    }
+
     /// Check the combination before anything is loaded.
     pub fn validate(&self) -> Result<(), PipelineError> {
         let bad = |m: String| Err(PipelineError::Config(format!("preset {}: {m}", self.name)));
         match (self.global.as_str(), self.extractor.as_str()) {
-            ("bow", "orb") | ("vlad", "xfeat" | "aliked" | "onnx") | ("onnx", _) => {}
+            ("bow", "orb") | ("vlad", "xfeat" | "xfeat-int8" | "aliked" | "onnx") | ("onnx", _) => {
+            }
             ("bow", e) => return bad(format!("bow needs the orb extractor, not {e}")),
             ("vlad", e) => return bad(format!("vlad needs float descriptors; {e} has none")),
             (g, _) => return bad(format!("unknown global descriptor `{g}` (vlad, bow, onnx)")),
@@ -171,6 +189,25 @@ impl Preset {
             models_dir,
             top_k: self.keypoints,
             ..FeatureConfig::default()
+        }
+    }
+
+    /// The extractor that describes the map's images: the preset's own, except for `xfeat-int8`,
+    /// whose maps are described by the float `xfeat` (the same descriptor space; int8 on both sides
+    /// cost precision where int8 on the query side alone did not: BENCHMARKS.md, "int8 XFeat").
+    /// Map building is offline, so it keeps the float network's accuracy.
+    pub fn map_extractor(&self) -> &str {
+        match self.extractor.as_str() {
+            "xfeat-int8" => "xfeat",
+            other => other,
+        }
+    }
+
+    /// The feature-stage configuration that builds this preset's maps ([`Self::map_extractor`]).
+    pub fn map_feature_config(&self, models_dir: PathBuf) -> FeatureConfig {
+        FeatureConfig {
+            extractor: self.map_extractor().to_string(),
+            ..self.feature_config(models_dir)
         }
     }
 
@@ -207,5 +244,14 @@ mod tests {
             ..Preset::named("fast").unwrap()
         };
         assert!(bad.validate().unwrap_err().to_string().contains("orb"));
+        // The int8 preset queries with the int8 backbone, describes maps with the float one and is
+        // scored by the float preset's calibration.
+        let int8 = Preset::named("xfeat-mnn-int8").unwrap();
+        assert_eq!(int8.feature_config(PathBuf::new()).extractor, "xfeat-int8");
+        assert_eq!(int8.map_feature_config(PathBuf::new()).extractor, "xfeat");
+        assert_eq!(int8.calibration_preset(), "xfeat-mnn");
+        let fast = Preset::named("fast").unwrap();
+        assert_eq!(fast.map_extractor(), "xfeat");
+        assert_eq!(fast.calibration_preset(), "fast");
     }
 }
