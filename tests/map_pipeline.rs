@@ -20,7 +20,7 @@ fn dataset(root: &Path) -> DatasetIndex {
 
 fn build(index: &DatasetIndex, preset: &Preset) -> (Map, pntr_features::config::FeatureStage) {
     let models = pntr_tests::models();
-    let stage = preset.feature_config(models.clone()).build().unwrap();
+    let stage = preset.map_feature_config(models.clone()).build().unwrap();
     let scenes: Vec<_> = index.scenes.iter().collect();
     let mut calls = 0;
     let map = map::build("all", &scenes, preset, &stage, &models, &mut |_, _| {
@@ -235,6 +235,28 @@ fn int8_preset_serves_a_map_built_with_the_float_backbone() {
     let map = Arc::new(map);
     let int8 = Preset::named("xfeat-mnn-int8").unwrap();
     let int8_stage = int8.feature_config(pntr_tests::models()).build().unwrap();
+    // The int8 preset's own map: its images described by the float backbone (the same
+    // descriptors as the float map's), both models named in the header.
+    let (own, _) = build(&index, &int8);
+    assert!(own
+        .images
+        .iter()
+        .zip(&map.images)
+        .all(|(a, b)| a.descriptors == b.descriptors && a.keypoints == b.keypoints));
+    let roles: Vec<(&str, &str)> = own
+        .header
+        .models
+        .iter()
+        .map(|m| (m.role.as_str(), m.file.as_deref().unwrap_or("")))
+        .collect();
+    assert_eq!(
+        roles,
+        [
+            ("extractor", "xfeat_backbone.onnx"),
+            ("query_extractor", "xfeat_backbone_int8.onnx"),
+            ("matcher", "")
+        ]
+    );
     // The ALIKED preset still refuses the XFeat map.
     let accurate = Preset::named("accurate").unwrap();
     let e = Pipeline::new(map.clone(), int8_stage.clone(), accurate)

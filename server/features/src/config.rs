@@ -191,16 +191,27 @@ impl FeatureConfig {
     pub fn build(&self) -> Result<FeatureStage, FeatureError> {
         self.validate()?;
         let extractor: Arc<dyn Extractor> = match self.extractor.as_str() {
-            name @ ("xfeat" | "xfeat-int8") => Arc::new(XFeat::load(
-                &self
+            name @ ("xfeat" | "xfeat-int8") => {
+                let path = self
                     .models_dir
-                    .join(model_file(name).expect("xfeat models are named")),
-                XFeatParams {
-                    top_k: self.top_k,
-                    runtime: self.runtime.clone(),
-                    ..XFeatParams::default()
-                },
-            )?),
+                    .join(model_file(name).expect("xfeat models are named"));
+                if name == "xfeat-int8" && !path.is_file() {
+                    return Err(FeatureError::Model {
+                        path: path.display().to_string(),
+                        message: "not found: the int8 backbone is made from \
+                                  xfeat_backbone.onnx by models/quantize.py"
+                            .into(),
+                    });
+                }
+                Arc::new(XFeat::load(
+                    &path,
+                    XFeatParams {
+                        top_k: self.top_k,
+                        runtime: self.runtime.clone(),
+                        ..XFeatParams::default()
+                    },
+                )?)
+            }
             "aliked" => Arc::new(OnnxExtractor::load_named(
                 &self.models_dir.join("aliked_n16.onnx"),
                 &self.runtime,

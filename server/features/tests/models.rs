@@ -307,6 +307,28 @@ fn int8_backbone_agrees_with_the_float_one() {
         share_q >= share_f - 0.03 && total_q as f64 >= 0.85 * total_f as f64,
         "int8 {good_q}/{total_q} against float {good_f}/{total_f}"
     );
+    // Without its model file the int8 extractor says which file and how to make it.
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(
+        models().join("xfeat_backbone.onnx"),
+        dir.path().join("xfeat_backbone.onnx"),
+    )
+    .unwrap();
+    let built = pntr_features::config::FeatureConfig {
+        extractor: "xfeat-int8".into(),
+        matcher: "mnn".into(),
+        models_dir: dir.path().to_path_buf(),
+        ..Default::default()
+    }
+    .build();
+    let Err(e) = built else {
+        panic!("built without xfeat_backbone_int8.onnx")
+    };
+    let e = e.to_string();
+    assert!(
+        e.contains("xfeat_backbone_int8.onnx") && e.contains("models/quantize.py"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -89,7 +89,9 @@ impl MapImage {
 /// Identity of a model the map depends on.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ModelIdentity {
-    /// Role: `extractor`, `matcher` or `global`.
+    /// Role: `extractor` (what described the map's images), `query_extractor` (what describes the
+    /// queries, when the preset uses another backbone for them: `xfeat-mnn-int8`), `matcher` or
+    /// `global`.
     pub role: String,
     /// The configured name (xfeat, lighterglue, ...).
     pub name: String,
@@ -191,17 +193,20 @@ pub fn file_checksum(path: &std::path::Path) -> Result<String, PipelineError> {
     Ok(format!("{:016x}", pntr_core::bytes::fnv1a(&bytes)))
 }
 
-/// The model files a preset uses, by role and name.
+/// The model files a preset uses, by role and name. A missing file is an error naming it, so a map is
+/// not built for a preset whose query model is absent.
 pub fn model_identities(
     preset: &Preset,
     models_dir: &std::path::Path,
 ) -> Result<Vec<ModelIdentity>, PipelineError> {
     let file_of = pntr_features::config::model_file;
     let mut out = Vec::new();
-    for (role, name) in [
-        ("extractor", preset.map_extractor()),
-        ("matcher", preset.matcher.as_str()),
-    ] {
+    let mut roles = vec![("extractor", preset.map_extractor())];
+    if preset.extractor != preset.map_extractor() {
+        roles.push(("query_extractor", preset.extractor.as_str()));
+    }
+    roles.push(("matcher", preset.matcher.as_str()));
+    for (role, name) in roles {
         let file = file_of(name);
         let checksum = match file {
             Some(f) => Some(file_checksum(&models_dir.join(f))?),

@@ -262,7 +262,7 @@ impl Pipeline {
             return Err(PipelineError::Config(format!(
                 "the map was built with {} + {} (preset {}); preset {} uses {} + {}",
                 built.global,
-                built.extractor,
+                built.map_extractor(),
                 built.name,
                 preset.name,
                 preset.global,

@@ -151,7 +151,9 @@ impl Preset {
 
     /// The preset whose confidence calibration scores this one's answers: its own name, except
     /// `xfeat-mnn-int8`, which runs `xfeat-mnn`'s pipeline with the int8 backbone and is scored by
-    /// `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md, "int8 XFeat").
+    /// `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md, "int8 XFeat"). One way only: a
+    /// calibration fitted for `xfeat-mnn-int8` still warns when loaded for `xfeat-mnn`, since nothing
+    /// measured that direction.
     pub fn calibration_preset(&self) -> &str {
         match self.name.as_str() {
             "xfeat-mnn-int8" => "xfeat-mnn",
