@@ -48,11 +48,16 @@ enum Command {
     /// Stream a recorded drive (TUM RGB-D folder or ROS 2 bag) through a running pntr-server's
     /// LocalizeStream and measure the trajectory (ATE, RPE), the share localized and the latency.
     Replay(replay_cmd::ReplayArgs),
-    /// List the scenes and Points of a dataset and check that every file reads.
+    /// List the scenes and Points of a dataset and check that every file reads, or describe a map
+    /// file from its header (`--db`): preset, the models its images and its queries use, camera,
+    /// scenes.
     Info {
         /// Dataset root (the folder holding HPointLoc_dataset, or that folder).
+        #[arg(long, required_unless_present = "db", conflicts_with = "db")]
+        dataset: Option<PathBuf>,
+        /// A map file (`pntr build-db`) to describe instead; only its header is read.
         #[arg(long)]
-        dataset: PathBuf,
+        db: Option<PathBuf>,
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
@@ -93,7 +98,11 @@ fn main() {
         Command::Replay(args) => replay_cmd::run(&args),
         Command::Eval(args) => map_cmd::eval(&args),
         Command::Calibrate(args) => calibrate_cmd::run(&args),
-        Command::Info { dataset, json } => synth_cmd::info(&dataset, json),
+        Command::Info { dataset, db, json } => match (dataset, db) {
+            (_, Some(db)) => map_cmd::info(&db, json),
+            (Some(dataset), None) => synth_cmd::info(&dataset, json),
+            (None, None) => unreachable!("clap requires --dataset or --db"),
+        },
         Command::Demo {
             out,
             models,

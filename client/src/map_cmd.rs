@@ -575,3 +575,52 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     eprintln!("report written to {}", args.json.display());
     plot_report(args, &report, &format!("preset {}", preset.name))
 }
+
+/// `pntr info --db FILE`: what a map file says about itself, from its header alone (fast on maps of
+/// any size). Errors name the file and what is wrong with it.
+pub fn info(path: &Path, as_json: bool) -> Result<()> {
+    let header = mapfile::read_header(path)?;
+    if as_json {
+        println!("{}", serde_json::to_string_pretty(&header)?);
+        return Ok(());
+    }
+    let p = &header.preset;
+    println!(
+        "map {} ({}), built by {} in {:.1} s",
+        header.map_id,
+        path.display(),
+        header.built_by,
+        header.build_seconds
+    );
+    println!(
+        "preset {}: {} ({} words) + {}, index {}, {} keypoints, {} candidates, matcher {}, solver {:?}",
+        p.name, p.global, p.vlad_words, p.extractor, p.index, p.keypoints, p.candidates, p.matcher, p.solver
+    );
+    if p.map_extractor() != p.extractor {
+        println!(
+            "map images described by {}, queries by {}",
+            p.map_extractor(),
+            p.extractor
+        );
+    }
+    for m in &header.models {
+        println!(
+            "model {}: {} ({}, checksum {})",
+            m.role,
+            m.name,
+            m.file.as_deref().unwrap_or("no file"),
+            m.checksum.as_deref().unwrap_or("-")
+        );
+    }
+    let k = &header.intrinsics;
+    println!(
+        "camera (first image): fx {:.2} fy {:.2} cx {:.2} cy {:.2}, axes {}",
+        k.fx, k.fy, k.cx, k.cy, header.camera_axes
+    );
+    println!(
+        "scenes ({}): {}",
+        header.scenes.len(),
+        header.scenes.join(", ")
+    );
+    Ok(())
+}

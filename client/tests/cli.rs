@@ -183,6 +183,33 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     assert_eq!(v["map_id"], "synth000");
     assert_eq!(v["images"], 18);
     assert_eq!(v["preset"], "xfeat-mnn");
+    // The map describes itself from its header.
+    let out = pntr(&["info", "--db", map_s, "--json"]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let h: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(h["map_id"], "synth000");
+    assert_eq!(h["preset"]["name"], "xfeat-mnn");
+    assert_eq!(h["models"][0]["role"], "extractor");
+    assert_eq!(h["models"][0]["file"], "xfeat_backbone.onnx");
+    let out = pntr(&["info", "--db", map_s]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success()
+            && text.contains("preset xfeat-mnn:")
+            && text.contains("scenes (1): synth000"),
+        "{text}"
+    );
+    let missing = dir.path().join("nope.pntrmap");
+    let out = pntr(&["info", "--db", missing.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("nope.pntrmap"),
+        "{err}"
+    );
     let report = dir.path().join("eval.json");
     let out = pntr(&[
         "eval",
