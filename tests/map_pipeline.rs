@@ -43,6 +43,23 @@ fn load(path: &Path) -> Result<Map, String> {
     mapfile::load(path, |_| panic!("no onnx model in these maps")).map_err(|e| e.to_string())
 }
 
+/// Every query of `index` through `pipeline` on `map`: the evaluation report (printed).
+fn evaluate(index: &DatasetIndex, pipeline: &Pipeline, map: &Map) -> eval::EvalReport {
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    let report = eval::run(
+        &scenes,
+        &EvalOptions::default(),
+        &mut |q, _| {
+            let l = pipeline.localize(q)?;
+            Ok(Answer::of(&l, map))
+        },
+        &mut |_, _| {},
+    )
+    .unwrap();
+    eprintln!("{}", eval::table(&report));
+    report
+}
+
 #[test]
 fn map_round_trip_pipeline_and_refused_files() {
     let dir = tempfile::tempdir().unwrap();
@@ -205,18 +222,7 @@ fn classical_preset_localizes_with_orb_bow_and_pnp() {
     mapfile::save(&map, &path).unwrap();
     let map = Arc::new(load(&path).unwrap());
     let pipeline = Pipeline::new(map.clone(), stage, preset).unwrap();
-    let scenes: Vec<_> = index.scenes.iter().collect();
-    let report = eval::run(
-        &scenes,
-        &EvalOptions::default(),
-        &mut |q, _| {
-            let l = pipeline.localize(q)?;
-            Ok(Answer::of(&l, &map))
-        },
-        &mut |_, _| {},
-    )
-    .unwrap();
-    eprintln!("{}", eval::table(&report));
+    let report = evaluate(&index, &pipeline, &map);
     // BoW retrieval finds the right Point far above chance (1/5); ORB + PnP localises some queries
     // (a broken pipeline localises none).
     assert!(report.retrieval.point_at_1 >= 0.5, "{:?}", report.retrieval);
@@ -263,22 +269,10 @@ fn int8_preset_serves_a_map_built_with_the_float_backbone() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("built with"), "{e}");
-    let scenes: Vec<_> = index.scenes.iter().collect();
     let mut reports = Vec::new();
     for (preset, stage) in [(float, float_stage), (int8, int8_stage)] {
         let pipeline = Pipeline::new(map.clone(), stage, preset).unwrap();
-        let report = eval::run(
-            &scenes,
-            &EvalOptions::default(),
-            &mut |q, _| {
-                let l = pipeline.localize(q)?;
-                Ok(Answer::of(&l, &map))
-            },
-            &mut |_, _| {},
-        )
-        .unwrap();
-        eprintln!("{}", eval::table(&report));
-        reports.push(report);
+        reports.push(evaluate(&index, &pipeline, &map));
     }
     let (f, q) = (&reports[0], &reports[1]);
     assert!(

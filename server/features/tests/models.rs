@@ -104,12 +104,12 @@ fn keypoint_parity(
     (found, worst)
 }
 
+fn xfeat_from(file: &str) -> XFeat {
+    XFeat::load(&models().join(file), XFeatParams::default()).unwrap()
+}
+
 fn xfeat() -> XFeat {
-    XFeat::load(
-        &models().join("xfeat_backbone.onnx"),
-        XFeatParams::default(),
-    )
-    .unwrap()
+    xfeat_from("xfeat_backbone.onnx")
 }
 
 #[test]
@@ -246,14 +246,6 @@ fn mnn_and_orb_matches_on_synthetic_renders() {
     );
 }
 
-fn xfeat_int8() -> XFeat {
-    XFeat::load(
-        &models().join("xfeat_backbone_int8.onnx"),
-        XFeatParams::default(),
-    )
-    .unwrap()
-}
-
 #[test]
 fn int8_backbone_agrees_with_the_float_one() {
     // Renders of a scene the quantization never saw (it was calibrated on seed 11).
@@ -266,7 +258,7 @@ fn int8_backbone_agrees_with_the_float_one() {
     let planned = pntr_synth::plan_scene(&cfg, 0);
     let renderer = pntr_synth::Renderer::new(&planned.scene);
     let k = Intrinsics::hpointloc();
-    let (float, int8) = (xfeat(), xfeat_int8());
+    let (float, int8) = (xfeat(), xfeat_from("xfeat_backbone_int8.onnx"));
     let (mut kept, mut total, mut cosines) = (0usize, 0usize, Vec::new());
     for (i, pose) in planned.points[0].queries.iter().enumerate() {
         let rgb = renderer.render(pose, &k, i as u64).rgb;
