@@ -117,7 +117,8 @@ impl Calibration {
             return Err(bad(
                 path,
                 format!(
-                    "features {:?}; this build computes {:?}",
+                    "features {:?}; this build computes {:?} (a calibration from another build: \
+                     refit it with `pntr calibrate`)",
                     c.features, EVIDENCE_NAMES
                 ),
             ));
@@ -200,7 +201,7 @@ pub fn model_inputs(e: &Evidence) -> [f64; N_FEATURES] {
             logit(v[j])
         }
         "free_space_violation" | "views_violation" => log(v[j]),
-        "gray_correlation" | "views_gray" => z(v[j]),
+        "gray_correlation" | "views_gray" | "local_gray" | "views_local_gray" => z(v[j]),
         _ => v[j],
     })
 }
