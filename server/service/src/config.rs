@@ -128,6 +128,12 @@ pub struct Args {
     /// NOT_LOCALIZED) [default: the calibration's own, chosen for precision].
     #[arg(long, env = "PNTR_MIN_CONFIDENCE")]
     pub min_confidence: Option<f64>,
+    /// Serve every map with this preset instead of the one it was built with. Only a preset that
+    /// describes images as the map does is accepted: an `xfeat-mnn` map can be served by
+    /// `xfeat-mnn-int8` (queries through the int8 backbone, no rebuild) or `fast`, and back; a preset
+    /// of another extractor or global descriptor is refused at start [default: each map's own].
+    #[arg(long, env = "PNTR_PRESET")]
+    pub preset: Option<String>,
 }
 
 /// `cpu`, `cuda` or `cuda:N`.
@@ -168,6 +174,7 @@ struct FileSettings {
     tls_key: Option<PathBuf>,
     calibration: Option<PathBuf>,
     min_confidence: Option<f64>,
+    preset: Option<String>,
 }
 
 impl FileSettings {
@@ -245,6 +252,8 @@ pub struct Settings {
     pub calibration: Option<PathBuf>,
     /// LOCALIZED threshold on the confidence (`None`: the calibration's own).
     pub min_confidence: Option<f64>,
+    /// Preset every map is served with (`None`: each map's own, from its header).
+    pub preset: Option<String>,
 }
 
 impl std::fmt::Debug for Settings {
@@ -272,6 +281,7 @@ impl std::fmt::Debug for Settings {
             .field("tls", &self.tls)
             .field("calibration", &self.calibration)
             .field("min_confidence", &self.min_confidence)
+            .field("preset", &self.preset)
             .finish()
     }
 }
@@ -325,6 +335,7 @@ impl Settings {
             tls: None,
             calibration: None,
             min_confidence: None,
+            preset: None,
         }
     }
 
@@ -430,6 +441,7 @@ impl Settings {
             tls,
             calibration: args.calibration.or(file.calibration),
             min_confidence: args.min_confidence.or(file.min_confidence),
+            preset: args.preset.or(file.preset),
         };
         s.validate()?;
         Ok(s)
@@ -503,6 +515,10 @@ impl Settings {
         if let Some(p) = &self.calibration {
             pntr_pipeline::calibration::Calibration::load(p)
                 .or_else(|e| bad(format!("--calibration: {e}")))?;
+        }
+        if let Some(name) = &self.preset {
+            pntr_pipeline::preset::Preset::named(name)
+                .or_else(|e| bad(format!("--preset: {e}")))?;
         }
         if let Some(t) = &self.token {
             // Checked without echoing the value.

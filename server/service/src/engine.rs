@@ -27,6 +27,7 @@ use pntr_features::runtime::RuntimeOptions;
 use pntr_pipeline::map::Map;
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::{Localization, Pipeline, Query};
+use pntr_pipeline::preset::Preset;
 use pntr_pipeline::prior::LocalizeOptions;
 use pntr_pipeline::PipelineError;
 use pntr_retrieval::onnx_global::OnnxGlobal;
@@ -45,6 +46,8 @@ pub struct LoadedMap {
     pub map: Arc<Map>,
     /// Distinct (scene, Point) pairs of its images.
     pub points: usize,
+    /// The preset it is served with: its header's, or `pntr-server --preset` (same descriptors).
+    pub preset: Preset,
 }
 
 /// A frame waiting for a worker.
@@ -164,10 +167,36 @@ impl Engine {
                 .len();
             tracing::info!(map_id = %id, images = map.images.len(), file = %path.display(),
                 seconds = t.elapsed().as_secs_f64(), "map loaded");
+            let preset = match &s.preset {
+                Some(name) => Preset::named(name).map_err(|e| format!("--preset: {e}"))?,
+                None => map.header.preset.clone(),
+            };
+            let built = &map.header.preset;
+            if !pntr_features::config::same_descriptors(&built.extractor, &preset.extractor)
+                || built.global != preset.global
+            {
+                return Err(format!(
+                    "--preset {} cannot serve map `{id}` ({}): the map was built with preset {} \
+                     ({} + {}) and {} describes images with {} + {}, which the map cannot match",
+                    preset.name,
+                    path.display(),
+                    built.name,
+                    built.global,
+                    built.map_extractor(),
+                    preset.name,
+                    preset.global,
+                    preset.extractor
+                ));
+            }
+            if preset.name != built.name {
+                tracing::info!(map_id = %id, built_with = %built.name,
+                    served_with = %preset.name, "map served with another preset of the same descriptors");
+            }
             maps.push(LoadedMap {
                 id,
                 map: Arc::new(map),
                 points,
+                preset,
             });
         }
         let calibration = Arc::new(match &s.calibration {
@@ -188,7 +217,7 @@ impl Engine {
             let mut stages: HashMap<(String, String, usize), FeatureStage> = HashMap::new();
             let mut pipelines = Vec::with_capacity(maps.len());
             for m in &maps {
-                let preset = m.map.header.preset.clone();
+                let preset = m.preset.clone();
                 let key = (
                     preset.extractor.clone(),
                     preset.matcher.clone(),
@@ -216,7 +245,10 @@ impl Engine {
                     }
                 };
                 let p = Pipeline::new(m.map.clone(), stage, preset)
-                    .map_err(|e| format!("map `{}`: {e}", m.id))?
+                    .map_err(|e| match &s.preset {
+                        Some(name) => format!("--preset {name} cannot serve map `{}`: {e}", m.id),
+                        None => format!("map `{}`: {e}", m.id),
+                    })?
                     .with_calibration(calibration.clone(), Some(min_confidence));
                 pipelines.push(p);
             }

@@ -1,7 +1,7 @@
 //! The `pntr-server` binary itself: refuses bad settings with exit code 2, prints the bound ports on
 //! one stdout line, bounds the streams of one connection, closes connections whose peer stopped
-//! answering keep-alive PINGs, and on SIGTERM refuses new requests,
-//! finishes the ones it holds and exits 0.
+//! answering keep-alive PINGs, serves a map with another preset of the same descriptors (`--preset`),
+//! and on SIGTERM refuses new requests, finishes the ones it holds and exits 0.
 
 use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
@@ -189,6 +189,83 @@ impl Drop for KillOnDrop {
 }
 
 #[cfg(unix)]
+#[test]
+fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
+    let dir = tempfile::tempdir().unwrap();
+    // Built with `fast` (XFeat, LighterGlue); served with the int8 backbone and MNN, no rebuild.
+    let (db, _) = common::demo_map(dir.path());
+    let (child, addr, _) = spawn(&db, &["--workers", "1", "--preset", "xfeat-mnn-int8"]);
+    let _server = KillOnDrop(child);
+    runtime().block_on(async {
+        let url = format!("http://{addr}");
+        wait_serving(&url).await;
+        let mut c = LocalizerClient::connect(url).await.unwrap();
+        let info = c
+            .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(
+            (info.preset.as_str(), info.built_preset.as_str()),
+            ("xfeat-mnn-int8", "fast")
+        );
+        assert_eq!(
+            (info.extractor.as_str(), info.matcher.as_str()),
+            ("xfeat-int8", "mnn")
+        );
+        // Every query of the scene: the answers given are right, and most queries get one (this
+        // tiny two-Point map leaves one of its three queries without enough MNN matches).
+        let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
+        let (mut sent, mut right) = (0, 0);
+        for point in &index.scenes[0].points {
+            let p = point.open().unwrap();
+            for i in 0..p.count(pntr_dataset::Role::Query) {
+                let v = p.view(pntr_dataset::Role::Query, i).unwrap();
+                let r = c
+                    .localize(wire::raw_request(&v.rgb, &v.depth, None))
+                    .await
+                    .unwrap()
+                    .into_inner();
+                sent += 1;
+                if r.status == pntr_service::proto::Status::Localized as i32 {
+                    let pose = wire::pose(r.pose.as_ref()).unwrap();
+                    let e =
+                        (pose.translation.vector - v.world_from_camera.translation.vector).norm();
+                    assert!(e < 0.25, "{e} m off: {r:?}");
+                    right += 1;
+                }
+            }
+        }
+        assert!(
+            sent >= 3 && right * 3 >= sent * 2,
+            "{right} of {sent} localized"
+        );
+    });
+    // A preset of other descriptors (ORB, bag of words) cannot use this map: refused at start,
+    // naming both presets.
+    let out = Command::new(BIN)
+        .arg("--db")
+        .arg(&db)
+        .arg("--models")
+        .arg(models())
+        .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
+        .args(["--preset", "classical"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("fast") && err.contains("classical"), "{err}");
+    // An unknown preset is a setting error (exit 2) before any map is read.
+    let out = Command::new(BIN)
+        .arg("--db")
+        .arg(&db)
+        .args(["--preset", "xfeat-mnn-int4"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--preset"));
+}
+
 #[test]
 fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
     let dir = tempfile::tempdir().unwrap();
