@@ -196,6 +196,11 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
         confidence: r.confidence,
         estimate: None,
         threshold: Some(r.min_confidence),
+        covariance: if status == Some(Status::Localized) {
+            r.covariance.as_slice().try_into().ok()
+        } else {
+            None
+        },
         mode: match proto::Mode::try_from(r.mode) {
             Ok(proto::Mode::Global) => Some(Mode::Global),
             Ok(proto::Mode::Prior) => Some(Mode::Prior),

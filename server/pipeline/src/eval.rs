@@ -56,6 +56,8 @@ pub struct Answer {
     pub threshold: Option<f64>,
     /// Which path answered (`None` when unknown: an old server, a failed request).
     pub mode: Option<Mode>,
+    /// The 6x6 covariance of `pose` (map frame, ROS order, row-major), when LOCALIZED with one.
+    pub covariance: Option<[f64; 36]>,
 }
 
 impl Answer {
@@ -75,6 +77,7 @@ impl Answer {
             estimate: l.estimate.or(l.pose),
             threshold: None,
             mode: Some(l.mode),
+            covariance: l.pose.and(l.covariance.as_deref().copied()),
         }
     }
 }
@@ -168,6 +171,9 @@ pub struct EvalReport {
     /// Answers by the path that produced them (`GLOBAL`, `PRIOR`, `TRACKING`; `UNKNOWN` for failed
     /// requests and servers that do not say).
     pub modes: BTreeMap<String, usize>,
+    /// How well the reported covariances describe the position errors of the in-map LOCALIZED
+    /// answers that carry one.
+    pub covariance: CovarianceReport,
     /// Each in-map query's outcome, in evaluation order (for plots; not in the JSON).
     #[serde(skip)]
     pub per_query: Vec<QueryOutcome>,
@@ -175,6 +181,46 @@ pub struct EvalReport {
     /// in the JSON).
     #[serde(skip)]
     pub map_positions_m: Vec<(String, [f64; 3])>,
+}
+
+/// Consistency of the reported covariances with the true position errors (the NEES test of
+/// estimation theory, Bar-Shalom et al., 2001, restricted to position).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct CovarianceReport {
+    /// In-map LOCALIZED answers with a covariance.
+    pub answers: usize,
+    /// Share of them whose position error lies inside the covariance's 99% ellipsoid (squared
+    /// Mahalanobis distance at most 11.34, the chi-square quantile for 3 dof); 0.99 when consistent.
+    pub within_99: f64,
+    /// Median Mahalanobis distance of the position errors (about 1.54 when consistent).
+    pub median_mahalanobis: f64,
+    /// Median position standard deviation, sqrt(trace / 3), metres.
+    pub median_sigma_m: f64,
+}
+
+/// Chi-square 0.99 quantile for 3 degrees of freedom.
+const CHI2_3_99: f64 = 11.345;
+
+/// [`CovarianceReport`] of (position error in the map frame, metres; 6x6 covariance) pairs.
+pub fn covariance_report(answers: &[(nalgebra::Vector3<f64>, [f64; 36])]) -> CovarianceReport {
+    let mut d: Vec<f64> = Vec::new();
+    let mut sigma: Vec<f64> = Vec::new();
+    for (e, c) in answers {
+        let m = nalgebra::Matrix3::from_fn(|r, k| c[r * 6 + k]);
+        let Some(inv) = m.try_inverse() else { continue };
+        d.push(e.dot(&(inv * e)).max(0.0).sqrt());
+        sigma.push((m.trace() / 3.0).max(0.0).sqrt());
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    CovarianceReport {
+        answers: d.len(),
+        within_99: d.iter().filter(|&&x| x * x <= CHI2_3_99).count() as f64 / d.len().max(1) as f64,
+        median_mahalanobis: median(&mut d.clone()),
+        median_sigma_m: median(&mut sigma),
+    }
 }
 
 /// One in-map query's outcome.
@@ -343,6 +389,7 @@ pub fn run(
     let mut reported_threshold = None;
     let mut modes: BTreeMap<String, usize> = BTreeMap::new();
     let mut per_query: Vec<QueryOutcome> = Vec::new();
+    let mut covariances: Vec<(nalgebra::Vector3<f64>, [f64; 36])> = Vec::new();
     let t0 = Instant::now();
     for (n, &(pi, qi)) in picked.iter().enumerate() {
         let (entry, reader) = &readers[pi];
@@ -397,6 +444,9 @@ pub fn run(
             .entry(a.mode.map_or("UNKNOWN", |m| m.name()).to_string())
             .or_default() += 1;
         errors.push(a.pose.map(|p| pose_error(&p, &gt, opts.legacy)));
+        if let (Some(p), Some(c)) = (a.pose, a.covariance) {
+            covariances.push((p.translation.vector - gt.translation.vector, c));
+        }
         reported_threshold = a.threshold.or(reported_threshold);
         scored.push((
             a.confidence,
@@ -539,6 +589,7 @@ pub fn run(
             .unwrap_or(f64::NAN),
         prior_radius_m: opts.prior_radius_m,
         modes,
+        covariance: covariance_report(&covariances),
         per_query,
         map_positions_m: db_pose
             .values()
@@ -702,6 +753,13 @@ pub fn table(report: &EvalReport) -> String {
         "confidence: expected calibration error {:.3} over {} answers; LOCALIZED threshold {:.2}\n",
         report.calibration.ece, report.calibration.answers, report.min_confidence
     );
+    let c = &report.covariance;
+    if c.answers > 0 {
+        s += &format!(
+            "covariance: position error inside its 99% ellipsoid for {:.3} of {} LOCALIZED answers (0.99 if consistent); median error / sigma {:.2}, median sigma {:.3} m\n",
+            c.within_99, c.answers, c.median_mahalanobis, c.median_sigma_m
+        );
+    }
     s += "mean ms per query:";
     for k in [
         "resampling",

@@ -236,6 +236,17 @@ fn textured(sums: &[f64; 5], n: f64) -> bool {
 
 /// Move every valid sample of `from` into `to` with `to_from_from` and compare depth and grey.
 pub fn dense_check(from: &Thumb, to: &Thumb, to_from_from: &Isometry3<f64>) -> DenseCounts {
+    dense_check_every(from, to, to_from_from, 1)
+}
+
+/// [`dense_check`] on every `step`-th row and column of `from` (a `step`² share of the samples).
+pub fn dense_check_every(
+    from: &Thumb,
+    to: &Thumb,
+    to_from_from: &Isometry3<f64>,
+    step: u32,
+) -> DenseCounts {
+    let step = step.max(1) as usize;
     let mut c = DenseCounts::default();
     let kf = &from.intrinsics;
     let kt = &to.intrinsics;
@@ -247,9 +258,9 @@ pub fn dense_check(from: &Thumb, to: &Thumb, to_from_from: &Isometry3<f64>) -> D
         .collect();
     let tiles_across = from.width.div_ceil(LOCAL_TILE);
     let mut tiles = vec![[0.0f64; 6]; (tiles_across * from.height.div_ceil(LOCAL_TILE)) as usize];
-    for r in 0..from.height {
+    for r in (0..from.height).step_by(step) {
         let y = (r as f64 - kf.cy) / kf.fy;
-        for (col, &x) in (0..from.width).zip(&xs) {
+        for (col, &x) in (0..from.width).zip(&xs).step_by(step) {
             let Some(z) = from.depth_m(col, r) else {
                 continue;
             };
@@ -292,6 +303,53 @@ pub fn dense_check(from: &Thumb, to: &Thumb, to_from_from: &Isometry3<f64>) -> D
         }
     }
     c
+}
+
+/// Shifts of the query camera that [`aliases`] tries along each of its image axes, both ways, metres:
+/// 0.12 to 0.80 in steps of 4 cm (a tile period of a few centimetres more or less is still found: the
+/// correlation of a periodic texture stays high over about a tenth of its period).
+pub const ALIAS_SHIFTS_M: (f64, f64, f64) = (0.12, 0.80, 0.04);
+
+/// The largest shift of the query camera along its own x axis (`[0]`) and y axis (`[1]`), metres,
+/// under which the query's thumbnail fits the matched view as well as under `db_from_query` (0 when
+/// none does): as many samples land inside (at least half as many), depth agrees on nearly as many
+/// (within 5 points of the share) and the grey values correlate nearly as well (within 0.05, and at
+/// least 0.5). Shifts of [`ALIAS_SHIFTS_M`] both ways are tried, on every third thumbnail row and column.
+///
+/// A plane with a periodic texture filling the view (tiles, a grid, panelling, shelving) looks the
+/// same after a shift of one period: the keypoints may have been registered to any of the copies,
+/// and nothing in the frame says which. The registration's inlier residuals cannot show this, so the
+/// pipeline widens the answer's covariance along those axes by the shifts found.
+pub fn aliases(query: &Thumb, matched: &Thumb, db_from_query: &Isometry3<f64>) -> [f64; 2] {
+    const STEP: u32 = 3;
+    let base = dense_check_every(query, matched, db_from_query, STEP);
+    let (inside0, agree0, gray0) = (base.inside, base.agree_share(), base.gray_correlation());
+    let mut out = [0.0; 2];
+    if inside0 < 16 || gray0 < 0.5 {
+        return out;
+    }
+    let (lo, hi, by) = ALIAS_SHIFTS_M;
+    let n = ((hi - lo) / by).round() as usize;
+    for (axis, best) in out.iter_mut().enumerate() {
+        for k in (0..=n).rev() {
+            let d = lo + by * k as f64;
+            let fits = [d, -d].iter().any(|&s| {
+                let mut v = Vector3::zeros();
+                v[axis] = s;
+                // The camera moved by v in its own frame: db_from_query * (query_from_moved = +v).
+                let moved = db_from_query * nalgebra::Translation3::from(v);
+                let c = dense_check_every(query, matched, &moved, STEP);
+                c.inside * 2 >= inside0
+                    && c.agree_share() >= agree0 - 0.05
+                    && c.gray_correlation() >= (gray0 - 0.05).max(0.5)
+            });
+            if fits {
+                *best = d;
+                break;
+            }
+        }
+    }
+    out
 }
 
 /// Both directions: query samples into the database view and database samples into the query.
@@ -551,6 +609,56 @@ mod tests {
         assert_eq!(
             dense_check(&f, &t, &Isometry3::identity()).local_gray_correlation(),
             0.0
+        );
+    }
+
+    /// A fronto-parallel wall 1 m away filling the view, grey from `texture(x, y)` of its point
+    /// (metres).
+    fn flat_wall(texture: impl Fn(f64, f64) -> u8) -> Thumb {
+        let k = Intrinsics::hpointloc();
+        let (w, h) = (256u32, 256u32);
+        let mut rgb = vec![0u8; (w * h * 3) as usize];
+        for r in 0..h {
+            for c in 0..w {
+                let g = texture((c as f64 - k.cx) / k.fx, (r as f64 - k.cy) / k.fy);
+                let i = (r * w + c) as usize * 3;
+                rgb[i..i + 3].copy_from_slice(&[g, g, g]);
+            }
+        }
+        let rgb = RgbImage::new(w, h, rgb).unwrap();
+        let depth = DepthMap::from_metres(w, h, vec![1.0; (w * h) as usize]).unwrap();
+        Thumb::new(&rgb, &depth, &k)
+    }
+
+    #[test]
+    fn a_periodic_wall_has_aliases_and_a_random_one_has_none() {
+        // Tiles of 0.17 m: the texture repeats every 0.34 m both ways.
+        let tiles = flat_wall(|x, y| {
+            let parity = ((x / 0.17).floor() + (y / 0.17).floor()) as i64;
+            if parity.rem_euclid(2) == 0 {
+                50
+            } else {
+                190
+            }
+        });
+        let found = aliases(&tiles, &tiles, &Isometry3::identity());
+        for d in found {
+            // One or two periods (two still overlap the view by more than half).
+            let periods = d / 0.34;
+            assert!(
+                d > 0.0 && (periods - periods.round()).abs() < 0.15,
+                "{found:?}"
+            );
+        }
+        // A texture without period (a hash of 5 cm cells): the estimate is the only fit.
+        let random = flat_wall(|x, y| {
+            let (a, b) = ((x / 0.05).floor() as i64, (y / 0.05).floor() as i64);
+            let h = (a.wrapping_mul(73_856_093) ^ b.wrapping_mul(19_349_663)) as u64;
+            (h.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 56) as u8
+        });
+        assert_eq!(
+            aliases(&random, &random, &Isometry3::identity()),
+            [0.0, 0.0]
         );
     }
 
