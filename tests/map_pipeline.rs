@@ -275,6 +275,17 @@ fn int8_preset_serves_a_map_built_with_the_float_backbone() {
         reports.push(evaluate(&index, &pipeline, &map));
     }
     let (f, q) = (&reports[0], &reports[1]);
+    // Every LOCALIZED answer carries a covariance, and it describes the position errors to within a
+    // factor of two at the median (consistent: 1.54; ten times too small a covariance gives about
+    // 5 and more).
+    for r in &reports {
+        let c = &r.covariance;
+        assert_eq!(c.answers, r.localized, "{c:?}");
+        assert!(
+            (0.75..=3.0).contains(&c.median_mahalanobis) && c.within_99 >= 0.6,
+            "{c:?}"
+        );
+    }
     assert!(
         q.recall["0.25m_2deg"] >= f.recall["0.25m_2deg"] - 0.05,
         "int8 {:?} against float {:?}",
