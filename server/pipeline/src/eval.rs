@@ -190,7 +190,8 @@ pub struct CovarianceReport {
     /// In-map LOCALIZED answers with a covariance.
     pub answers: usize,
     /// Share of them whose position error lies inside the covariance's 99% ellipsoid (squared
-    /// Mahalanobis distance at most 11.34, the chi-square quantile for 3 dof); 0.99 when consistent.
+    /// Mahalanobis distance at most 11.34, the chi-square quantile for 3 dof); 0.99 when consistent,
+    /// NaN (null) with no answer. Covariances that are not positive definite are left out.
     pub within_99: f64,
     /// Median Mahalanobis distance of the position errors (about 1.54 when consistent).
     pub median_mahalanobis: f64,
@@ -207,9 +208,17 @@ pub fn covariance_report(answers: &[(nalgebra::Vector3<f64>, [f64; 36])]) -> Cov
     let mut sigma: Vec<f64> = Vec::new();
     for (e, c) in answers {
         let m = nalgebra::Matrix3::from_fn(|r, k| c[r * 6 + k]);
-        let Some(inv) = m.try_inverse() else { continue };
-        d.push(e.dot(&(inv * e)).max(0.0).sqrt());
-        sigma.push((m.trace() / 3.0).max(0.0).sqrt());
+        // A covariance that is not finite or not positive definite (a remote server's, say)
+        // describes nothing: such answers are left out rather than counted as inside.
+        let Some(chol) = nalgebra::Cholesky::new(m) else {
+            continue;
+        };
+        let q = e.dot(&chol.solve(e));
+        if !q.is_finite() {
+            continue;
+        }
+        d.push(q.sqrt());
+        sigma.push((m.trace() / 3.0).sqrt());
     }
     let median = |v: &mut Vec<f64>| {
         v.sort_by(f64::total_cmp);
@@ -217,7 +226,11 @@ pub fn covariance_report(answers: &[(nalgebra::Vector3<f64>, [f64; 36])]) -> Cov
     };
     CovarianceReport {
         answers: d.len(),
-        within_99: d.iter().filter(|&&x| x * x <= CHI2_3_99).count() as f64 / d.len().max(1) as f64,
+        within_99: if d.is_empty() {
+            f64::NAN
+        } else {
+            d.iter().filter(|&&x| x * x <= CHI2_3_99).count() as f64 / d.len() as f64
+        },
         median_mahalanobis: median(&mut d.clone()),
         median_sigma_m: median(&mut sigma),
     }
@@ -756,7 +769,7 @@ pub fn table(report: &EvalReport) -> String {
     let c = &report.covariance;
     if c.answers > 0 {
         s += &format!(
-            "covariance: position error inside its 99% ellipsoid for {:.3} of {} LOCALIZED answers (0.99 if consistent); median error / sigma {:.2}, median sigma {:.3} m\n",
+            "covariance: position error inside its 99% ellipsoid for {:.3} of {} LOCALIZED answers (0.99 if consistent); median Mahalanobis distance {:.2} (1.54 if consistent), median sigma {:.3} m\n",
             c.within_99, c.answers, c.median_mahalanobis, c.median_sigma_m
         );
     }

@@ -261,20 +261,7 @@ impl Pipeline {
     /// to the map.
     pub fn new(map: Arc<Map>, stage: FeatureStage, preset: Preset) -> Result<Self, PipelineError> {
         preset.validate()?;
-        let built = &map.header.preset;
-        if !pntr_features::config::same_descriptors(&built.extractor, &preset.extractor)
-            || built.global != preset.global
-        {
-            return Err(PipelineError::Config(format!(
-                "the map was built with {} + {} (preset {}); preset {} uses {} + {}",
-                built.global,
-                built.map_extractor(),
-                built.name,
-                preset.name,
-                preset.global,
-                preset.extractor
-            )));
-        }
+        preset.serves(&map.header.preset)?;
         let calibration = Arc::new(Calibration::embedded());
         let mut point_views: HashMap<(u32, u32), Vec<usize>> = HashMap::new();
         for (i, im) in map.images.iter().enumerate() {

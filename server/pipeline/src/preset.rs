@@ -161,6 +161,42 @@ impl Preset {
         }
     }
 
+    /// Whether this preset can run queries against a map built with preset `built`: its
+    /// descriptors (extractor, [`pntr_features::config::same_descriptors`]) and global descriptor
+    /// must be the map's. The error names both presets and, for a map of XFeat, the presets that can.
+    pub fn serves(&self, built: &Preset) -> Result<(), PipelineError> {
+        if pntr_features::config::same_descriptors(&built.extractor, &self.extractor)
+            && built.global == self.global
+        {
+            return Ok(());
+        }
+        let able: Vec<&str> = PRESETS
+            .iter()
+            .copied()
+            .filter(|n| {
+                Preset::named(n).is_ok_and(|p| {
+                    pntr_features::config::same_descriptors(&built.extractor, &p.extractor)
+                        && built.global == p.global
+                })
+            })
+            .collect();
+        Err(PipelineError::Config(format!(
+            "the map was built with {} + {} (preset {}); preset {} uses {} + {}, which that map \
+             cannot match (presets that can: {})",
+            built.global,
+            built.map_extractor(),
+            built.name,
+            self.name,
+            self.global,
+            self.extractor,
+            if able.is_empty() {
+                "none built in".to_string()
+            } else {
+                able.join(", ")
+            }
+        )))
+    }
+
     /// Check the combination before anything is loaded.
     pub fn validate(&self) -> Result<(), PipelineError> {
         let bad = |m: String| Err(PipelineError::Config(format!("preset {}: {m}", self.name)));

@@ -130,8 +130,10 @@ pub struct Args {
     pub min_confidence: Option<f64>,
     /// Serve every map with this preset instead of the one it was built with. Only a preset that
     /// describes images as the map does is accepted: an `xfeat-mnn` map can be served by
-    /// `xfeat-mnn-int8` (queries through the int8 backbone, no rebuild) or `fast`, and back; a preset
-    /// of another extractor or global descriptor is refused at start [default: each map's own].
+    /// `xfeat-mnn-int8` (queries through the int8 backbone, no rebuild), and back; a preset of
+    /// another extractor or global descriptor is refused at start. A preset with another matcher
+    /// (`fast` on an `xfeat-mnn` map) also runs, with a warning that the confidence calibration was
+    /// fitted for another preset [default: each map's own].
     #[arg(long, env = "PNTR_PRESET")]
     pub preset: Option<String>,
 }
@@ -517,8 +519,27 @@ impl Settings {
                 .or_else(|e| bad(format!("--calibration: {e}")))?;
         }
         if let Some(name) = &self.preset {
-            pntr_pipeline::preset::Preset::named(name)
-                .or_else(|e| bad(format!("--preset: {e}")))?;
+            // Named wrongly or unable to read a map's descriptors: refused before anything is bound.
+            let from = "--preset (PNTR_PRESET, `preset` in the config file)";
+            let preset = pntr_pipeline::preset::Preset::named(name).or_else(|e| match e {
+                pntr_pipeline::PipelineError::Config(m) => bad(format!("{from}: {m}")),
+                e => bad(format!("{from}: {e}")),
+            })?;
+            for path in &self.db {
+                // An unreadable header is the map loader's to report, with its own message.
+                if let Ok(h) = pntr_pipeline::mapfile::read_header(path) {
+                    preset.serves(&h.preset).or_else(|e| {
+                        bad(format!(
+                            "{from} {name} cannot serve {}: {}",
+                            path.display(),
+                            match e {
+                                pntr_pipeline::PipelineError::Config(m) => m,
+                                e => e.to_string(),
+                            }
+                        ))
+                    })?;
+                }
+            }
         }
         if let Some(t) = &self.token {
             // Checked without echoing the value.

@@ -172,22 +172,13 @@ impl Engine {
                 None => map.header.preset.clone(),
             };
             let built = &map.header.preset;
-            if !pntr_features::config::same_descriptors(&built.extractor, &preset.extractor)
-                || built.global != preset.global
-            {
-                return Err(format!(
-                    "--preset {} cannot serve map `{id}` ({}): the map was built with preset {} \
-                     ({} + {}) and {} describes images with {} + {}, which the map cannot match",
+            preset.serves(built).map_err(|e| {
+                format!(
+                    "--preset {} cannot serve map `{id}` ({}): {e}",
                     preset.name,
-                    path.display(),
-                    built.name,
-                    built.global,
-                    built.map_extractor(),
-                    preset.name,
-                    preset.global,
-                    preset.extractor
-                ));
-            }
+                    path.display()
+                )
+            })?;
             if preset.name != built.name {
                 tracing::info!(map_id = %id, built_with = %built.name,
                     served_with = %preset.name, "map served with another preset of the same descriptors");
@@ -245,10 +236,7 @@ impl Engine {
                     }
                 };
                 let p = Pipeline::new(m.map.clone(), stage, preset)
-                    .map_err(|e| match &s.preset {
-                        Some(name) => format!("--preset {name} cannot serve map `{}`: {e}", m.id),
-                        None => format!("map `{}`: {e}", m.id),
-                    })?
+                    .map_err(|e| format!("map `{}`: {e}", m.id))?
                     .with_calibration(calibration.clone(), Some(min_confidence));
                 pipelines.push(p);
             }

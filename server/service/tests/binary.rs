@@ -241,8 +241,8 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
             "{right} of {sent} localized"
         );
     });
-    // A preset of other descriptors (ORB, bag of words) cannot use this map: refused at start,
-    // naming both presets.
+    // A preset of other descriptors (ORB, bag of words) cannot use this map: a setting error (exit
+    // 2) before anything is bound, naming both presets and the ones that can.
     let out = Command::new(BIN)
         .arg("--db")
         .arg(&db)
@@ -252,9 +252,13 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
         .args(["--preset", "classical"])
         .output()
         .unwrap();
-    assert!(!out.status.success());
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stdout).is_empty());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("fast") && err.contains("classical"), "{err}");
+    assert!(
+        err.contains("preset fast") && err.contains("classical") && err.contains("xfeat-mnn-int8"),
+        "{err}"
+    );
     // An unknown preset is a setting error (exit 2) before any map is read.
     let out = Command::new(BIN)
         .arg("--db")
