@@ -21,7 +21,7 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Point2, Vector3};
 use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics, RgbImage};
 use pntr_features::config::FeatureStage;
-use pntr_features::mnn::Mnn;
+use pntr_features::mnn::{Mnn, MnnParams};
 use pntr_features::{Features, Matcher};
 use pntr_registration::covariance::{point_to_point_covariance, rotate_covariance};
 use pntr_registration::icp::{icp_matched, IcpParams};
@@ -72,6 +72,11 @@ pub const VERIFY_CANDIDATES: usize = 5;
 pub const MAX_NEARBY_VIEWS: usize = 12;
 /// Floor of the point noise in the covariance, metres (depth quantisation and keypoint jitter).
 pub const COVARIANCE_MIN_SIGMA_M: f64 = 0.01;
+/// MNN similarity floor of the second matching pass, run only when no candidate registered with
+/// the preset's floor (0.82): 0.78 brings back right matches lost to blur, noise and other light
+/// (BENCHMARKS.md, "The final matcher's similarity floor"), and as a fallback it cannot change an
+/// answer the first pass gives.
+pub const FALLBACK_MIN_SIMILARITY: f32 = 0.78;
 /// Factor on the covariance from the inlier residuals. Those residuals understate the pose's error
 /// (the inliers are the matches that fit within the noise bound, and they judge the pose they were
 /// fitted to): on the calibration scenes (seed 11, as rendered and with the frame effects) the
@@ -229,6 +234,8 @@ pub struct Pipeline {
     /// PnP settings.
     pub pnp: PnpParams,
     cheap: Mnn,
+    /// MNN with [`FALLBACK_MIN_SIMILARITY`], for frames whose candidates all failed to register.
+    fallback: Mnn,
     calibration: Arc<Calibration>,
     min_confidence: f64,
     /// Map indices of the images of each (scene, Point), for the nearby views of verification.
@@ -290,6 +297,12 @@ impl Pipeline {
             },
             preset,
             cheap: Mnn::default(),
+            fallback: Mnn {
+                params: MnnParams {
+                    min_similarity: FALLBACK_MIN_SIMILARITY,
+                    ..MnnParams::default()
+                },
+            },
             min_confidence: calibration.threshold,
             calibration,
             point_views,
@@ -706,16 +719,26 @@ impl Pipeline {
                 done.push(c);
             }
         }
+        let (mut valid, mut fewest) = self.registered(done);
+        // A second chance for a frame none of whose candidates registered (blur, sensor noise and
+        // other light push right matches under the floor): MNN again with a lower floor. Only then,
+        // so every answer the first pass gives stays as it was.
+        if valid.is_empty() && matcher_is_cheap && fq.binary.is_empty() {
+            pool.clear();
+            let mut again = Vec::with_capacity(finalists.len());
+            for &(id, rank) in &finalists {
+                let c = self.candidate(fq, q_pts, q, id, rank, &self.fallback, &mut times)?;
+                if let Some(w) = self.world_from_query(&c) {
+                    pool.push((c.image, w, c.inliers));
+                }
+                again.push(c);
+            }
+            let (v, f) = self.registered(again);
+            valid = v;
+            fewest = f.or(fewest);
+        }
         // Verification: dense checks of the best registrations; the calibrated probability chooses.
         let tv = Instant::now();
-        let mut valid: Vec<Candidate> = done
-            .into_iter()
-            .filter(|c| c.db_from_query.is_some())
-            .collect();
-        valid.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
-        let fewest = valid.last().map(|c| c.inliers);
-        valid.retain(|c| c.inliers >= self.preset.min_inliers);
-        valid.truncate(VERIFY_CANDIDATES);
         let thumb = (!valid.is_empty()).then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
         let thumb_ref = thumb.as_ref();
         // Refined before verification, so the dense checks judge the refined poses. (`pool`, for the
@@ -858,6 +881,20 @@ impl Pipeline {
             off_track: None,
             keyframe: None,
         })
+    }
+
+    /// The candidates with a registration, most inliers first, those with at least the preset's
+    /// `min_inliers` (at most [`VERIFY_CANDIDATES`]), and the inliers of the weakest registration.
+    fn registered(&self, done: Vec<Candidate>) -> (Vec<Candidate>, Option<usize>) {
+        let mut valid: Vec<Candidate> = done
+            .into_iter()
+            .filter(|c| c.db_from_query.is_some())
+            .collect();
+        valid.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
+        let fewest = valid.last().map(|c| c.inliers);
+        valid.retain(|c| c.inliers >= self.preset.min_inliers);
+        valid.truncate(VERIFY_CANDIDATES);
+        (valid, fewest)
     }
 
     /// `world_from_query` of a registered candidate, OpenCV camera axes.
