@@ -224,6 +224,7 @@ pub fn covariance_report(answers: &[(nalgebra::Vector3<f64>, [f64; 36])]) -> Cov
         v.sort_by(f64::total_cmp);
         v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
     };
+    let median_mahalanobis = median(&mut d);
     CovarianceReport {
         answers: d.len(),
         within_99: if d.is_empty() {
@@ -231,7 +232,7 @@ pub fn covariance_report(answers: &[(nalgebra::Vector3<f64>, [f64; 36])]) -> Cov
         } else {
             d.iter().filter(|&&x| x * x <= CHI2_3_99).count() as f64 / d.len() as f64
         },
-        median_mahalanobis: median(&mut d.clone()),
+        median_mahalanobis,
         median_sigma_m: median(&mut sigma),
     }
 }

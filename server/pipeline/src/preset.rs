@@ -165,20 +165,17 @@ impl Preset {
     /// descriptors (extractor, [`pntr_features::config::same_descriptors`]) and global descriptor
     /// must be the map's. The error names both presets and, for a map of XFeat, the presets that can.
     pub fn serves(&self, built: &Preset) -> Result<(), PipelineError> {
-        if pntr_features::config::same_descriptors(&built.extractor, &self.extractor)
-            && built.global == self.global
-        {
+        let can = |p: &Preset| {
+            pntr_features::config::same_descriptors(&built.extractor, &p.extractor)
+                && built.global == p.global
+        };
+        if can(self) {
             return Ok(());
         }
         let able: Vec<&str> = PRESETS
             .iter()
             .copied()
-            .filter(|n| {
-                Preset::named(n).is_ok_and(|p| {
-                    pntr_features::config::same_descriptors(&built.extractor, &p.extractor)
-                        && built.global == p.global
-                })
-            })
+            .filter(|n| Preset::named(n).is_ok_and(|p| can(&p)))
             .collect();
         Err(PipelineError::Config(format!(
             "the map was built with {} + {} (preset {}); preset {} uses {} + {}, which that map \

@@ -189,7 +189,7 @@ impl DenseCounts {
         if self.agree < 16 {
             return 0.0;
         }
-        pearson(&self.gray, self.agree as f64)
+        pearson(&self.gray, self.agree as f64).unwrap_or(0.0)
     }
 
     /// Grey correlation within tiles of [`LOCAL_TILE`] x [`LOCAL_TILE`] thumbnail pixels of the moved
@@ -215,23 +215,14 @@ pub const LOCAL_TILE: u32 = 4;
 /// Fewest agreeing samples a tile needs to count in the local correlation (of 16).
 const LOCAL_MIN_SAMPLES: f64 = 12.0;
 
-/// Pearson correlation from the sums `[a, b, aa, bb, ab]` of `n` pairs; 0 when either side has a
+/// Pearson correlation from the sums `[a, b, aa, bb, ab]` of `n` pairs; `None` when either side has a
 /// variance of at most one grey level squared (a flat surface: no texture to correlate).
-fn pearson(sums: &[f64; 5], n: f64) -> f64 {
+fn pearson(sums: &[f64; 5], n: f64) -> Option<f64> {
     let [sa, sb, saa, sbb, sab] = *sums;
     let cov = sab / n - sa * sb / (n * n);
     let va = saa / n - sa * sa / (n * n);
     let vb = sbb / n - sb * sb / (n * n);
-    if va <= 1.0 || vb <= 1.0 {
-        return 0.0;
-    }
-    (cov / (va * vb).sqrt()).clamp(-1.0, 1.0)
-}
-
-/// Whether a tile's sums show texture on both sides (the condition under which [`pearson`] is not 0).
-fn textured(sums: &[f64; 5], n: f64) -> bool {
-    let [sa, sb, saa, sbb, _] = *sums;
-    saa / n - sa * sa / (n * n) > 1.0 && sbb / n - sb * sb / (n * n) > 1.0
+    (va > 1.0 && vb > 1.0).then(|| (cov / (va * vb).sqrt()).clamp(-1.0, 1.0))
 }
 
 /// Move every valid sample of `from` into `to` with `to_from_from` and compare depth and grey.
@@ -296,9 +287,12 @@ pub fn dense_check_every(
         }
     }
     for t in &tiles {
-        let (sums, n) = (&[t[0], t[1], t[2], t[3], t[4]], t[5]);
-        if n >= LOCAL_MIN_SAMPLES && textured(sums, n) {
-            c.local[0] += n * pearson(sums, n);
+        let n = t[5];
+        if n < LOCAL_MIN_SAMPLES {
+            continue;
+        }
+        if let Some(r) = pearson(&[t[0], t[1], t[2], t[3], t[4]], n) {
+            c.local[0] += n * r;
             c.local[1] += n;
         }
     }
