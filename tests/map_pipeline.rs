@@ -299,3 +299,93 @@ fn int8_preset_serves_a_map_built_with_the_float_backbone() {
         f.localized_wrong
     );
 }
+
+#[test]
+fn a_noisy_depth_sensor_is_measured_and_its_far_matches_kept() {
+    // Queries with a poor depth sensor's noise (0.012 z^2: 4.8 cm at 2 m, 19 cm at 4 m), dropouts
+    // and lost edges against a clean map. The pipeline measures the noise on each frame and, for
+    // candidates the fixed 5 cm bound cannot register, registers again with bounds grown with the
+    // range: it must localize at least as many queries right as the fixed bound alone, with no
+    // more wrong answers, and answer clean frames exactly as the fixed bound does.
+    let dir = tempfile::tempdir().unwrap();
+    let index = pntr_tests::synthetic_dataset(dir.path(), 6, 6, 41);
+    let preset = Preset::named("xfeat-mnn").unwrap();
+    assert_eq!(preset.depth_noise_sigmas, 3.0);
+    let (map, stage) = build(&index, &preset);
+    let map = Arc::new(map);
+    let grown = Pipeline::new(map.clone(), stage.clone(), preset.clone()).unwrap();
+    let fixed_preset = Preset {
+        depth_noise_sigmas: 0.0,
+        ..preset
+    };
+    let fixed = Pipeline::new(map.clone(), stage, fixed_preset).unwrap();
+    let sensor = pntr_synth::effects::RobotEffects {
+        depth_noise_per_m2: 0.012,
+        ..pntr_synth::effects::RobotEffects::only(&["depth"]).unwrap()
+    };
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    let run = |pipeline: &Pipeline, noisy: bool| {
+        let mut seed = 0u64;
+        let mut measured = Vec::new();
+        let mut registered = 0usize;
+        let report = eval::run(
+            &scenes,
+            &EvalOptions::default(),
+            &mut |q, _| {
+                seed += 1;
+                let mut q = q.clone();
+                if noisy {
+                    sensor.apply(&mut q.rgb, &mut q.depth, seed);
+                }
+                measured.push(pntr_pipeline::depth_noise::depth_noise_per_m2(&q.depth));
+                let l = pipeline.localize(&q)?;
+                registered += l.verified.len();
+                Ok(Answer::of(&l, &map))
+            },
+            &mut |_, _| {},
+        )
+        .unwrap();
+        eprintln!("{}", eval::table(&report));
+        (report, measured, registered)
+    };
+    let (clean_fixed, k_clean, _) = run(&fixed, false);
+    let (clean_grown, _, _) = run(&grown, false);
+    assert!(k_clean.iter().all(|&k| k == 0.0), "{k_clean:?}");
+    let poses = |r: &eval::EvalReport| -> Vec<_> { r.per_query.iter().map(|q| q.error).collect() };
+    assert_eq!(poses(&clean_fixed), poses(&clean_grown));
+    let (noisy_fixed, k_noisy, registered_fixed) = run(&fixed, true);
+    let (noisy_grown, _, registered_grown) = run(&grown, true);
+    // Candidates the fixed bound lost to the far noise register with the grown bounds.
+    assert!(
+        registered_grown > registered_fixed,
+        "registered candidates: {registered_grown} with grown bounds, {registered_fixed} fixed"
+    );
+    let mut k = k_noisy.clone();
+    k.sort_by(f64::total_cmp);
+    let median = k[k.len() / 2];
+    assert!(
+        (0.009..=0.015).contains(&median),
+        "median measured noise {median} per metre for 0.012"
+    );
+    let right = |r: &eval::EvalReport| (r.recall["0.25m_2deg"] * r.queries as f64).round();
+    assert!(
+        right(&noisy_grown) >= right(&noisy_fixed),
+        "grown bounds {} right, fixed {}",
+        right(&noisy_grown),
+        right(&noisy_fixed)
+    );
+    assert!(noisy_grown.localized >= noisy_fixed.localized);
+    assert!(
+        noisy_grown.localized_wrong <= noisy_fixed.localized_wrong,
+        "{} wrong against {}",
+        noisy_grown.localized_wrong,
+        noisy_fixed.localized_wrong
+    );
+    eprintln!(
+        "noisy: fixed {} right of {} ({registered_fixed} candidates registered), grown {} \
+         ({registered_grown})",
+        right(&noisy_fixed),
+        noisy_fixed.queries,
+        right(&noisy_grown)
+    );
+}

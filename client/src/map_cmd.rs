@@ -117,10 +117,30 @@ pub struct EvalArgs {
     /// only), precision/recall over the confidence threshold, and a top-down map per scene.
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
+    /// Also write each in-map query's outcome to this file, one JSON object a line (`id`,
+    /// `position_m`, `error` (of the LOCALIZED pose), `estimate_error` (of the best pose found),
+    /// `retrieval_error` (of the top image's pose), each [metres, degrees] or null, `confidence`,
+    /// `right_point_rank` (where the query's own Point first appears among the candidates, or null)
+    /// and `reason` (why it is NOT_LOCALIZED, or null)): which queries failed, and at which stage.
+    #[arg(long, value_name = "FILE.jsonl")]
+    pub per_query: Option<PathBuf>,
 }
 
-/// Draw the `--plot` pictures of `report` and say where they went.
-fn plot_report(args: &EvalArgs, report: &EvalReport, what: &str) -> Result<()> {
+/// Write the `--per-query` lines and draw the `--plot` pictures of `report`, and say where they went.
+fn extra_outputs(args: &EvalArgs, report: &EvalReport, what: &str) -> Result<()> {
+    if let Some(path) = &args.per_query {
+        let mut text = String::new();
+        for q in &report.per_query {
+            text.push_str(&serde_json::to_string(q)?);
+            text.push('\n');
+        }
+        write_text(path, &text).with_context(|| format!("--per-query {}", path.display()))?;
+        eprintln!(
+            "{} query outcomes written to {}",
+            report.per_query.len(),
+            path.display()
+        );
+    }
     let Some(dir) = &args.plot else {
         return Ok(());
     };
@@ -523,7 +543,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         print!("{}", eval::table(&report));
         write_json(&args.json, &with_effects(&report, &args.effects)?)?;
         eprintln!("report written to {}", args.json.display());
-        return plot_report(args, &report, &format!("pntr-server at {addr}"));
+        return extra_outputs(args, &report, &format!("pntr-server at {addr}"));
     }
     let models = models_dir(args.models.as_deref())?;
     let map = match &args.db {
@@ -573,7 +593,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     print!("{}", eval::table(&report));
     write_json(&args.json, &with_effects(&report, &args.effects)?)?;
     eprintln!("report written to {}", args.json.display());
-    plot_report(args, &report, &format!("preset {}", preset.name))
+    extra_outputs(args, &report, &format!("preset {}", preset.name))
 }
 
 /// `pntr info --db FILE`: what a map file says about itself, from its header alone (fast on maps of

@@ -195,6 +195,7 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
         times,
         confidence: r.confidence,
         estimate: None,
+        reason: (!r.reason.is_empty()).then(|| r.reason.clone()),
         threshold: Some(r.min_confidence),
         covariance: if status == Some(Status::Localized) {
             r.covariance.as_slice().try_into().ok()

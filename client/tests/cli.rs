@@ -267,6 +267,7 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     );
     // Pictures: error distributions, precision/recall over the threshold, the scene from above.
     let plots = dir.path().join("plots");
+    let outcomes = dir.path().join("queries.jsonl");
     let out = pntr(&[
         "eval",
         "--dataset",
@@ -281,12 +282,39 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         report.to_str().unwrap(),
         "--plot",
         plots.to_str().unwrap(),
+        "--per-query",
+        outcomes.to_str().unwrap(),
     ]);
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    // One line per query, agreeing with the report: a LOCALIZED query has its error, and its
+    // best estimate is that pose.
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&outcomes)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len() as u64, r["queries"].as_u64().unwrap());
+    let localized = lines.iter().filter(|q| !q["error"].is_null()).count();
+    assert_eq!(localized as u64, r["localized"].as_u64().unwrap());
+    for q in &lines {
+        assert!(
+            q["id"].as_str().unwrap().starts_with("synth000/point"),
+            "{q}"
+        );
+        assert_eq!(q["position_m"].as_array().unwrap().len(), 3, "{q}");
+        if !q["error"].is_null() {
+            assert_eq!(q["error"], q["estimate_error"], "{q}");
+            assert!(
+                (0.0..=1.0).contains(&q["confidence"].as_f64().unwrap()),
+                "{q}"
+            );
+        }
+    }
     support::assert_picture(
         &plots,
         "errors_cdf",

@@ -58,6 +58,8 @@ pub struct Answer {
     pub mode: Option<Mode>,
     /// The 6x6 covariance of `pose` (map frame, ROS order, row-major), when LOCALIZED with one.
     pub covariance: Option<[f64; 36]>,
+    /// Why the frame is NOT_LOCALIZED (the check that failed), when it is not.
+    pub reason: Option<String>,
 }
 
 impl Answer {
@@ -78,6 +80,7 @@ impl Answer {
             threshold: None,
             mode: Some(l.mode),
             covariance: l.pose.and(l.covariance.as_deref().copied()),
+            reason: l.reason.clone(),
         }
     }
 }
@@ -252,6 +255,11 @@ pub struct QueryOutcome {
     pub retrieval_error: Option<(f64, f64)>,
     /// The calibrated confidence.
     pub confidence: f64,
+    /// Position (0 = first) of the first retrieved image of the query's own Point among the
+    /// candidates retrieval gave the matcher; `None` when none of them is.
+    pub right_point_rank: Option<usize>,
+    /// Why the query is NOT_LOCALIZED, as the localiser said.
+    pub reason: Option<String>,
 }
 
 /// How a localiser answered queries from places the map does not cover.
@@ -474,6 +482,8 @@ pub fn run(
             estimate_error: scored.last().and_then(|s| s.1),
             retrieval_error: None,
             confidence: a.confidence,
+            right_point_rank: None,
+            reason: a.reason.clone(),
         });
         let same_point = |id: &String| {
             db_pose
@@ -488,6 +498,7 @@ pub fn run(
         );
         if let Some(last) = per_query.last_mut() {
             last.retrieval_error = *retrieval_errors.last().expect("pushed above");
+            last.right_point_rank = a.retrieved.iter().position(same_point);
         }
         rr.point_at_1 += a.retrieved.first().is_some_and(same_point) as usize as f64;
         let chosen = a.matched.as_ref().or(a.retrieved.first());

@@ -9,6 +9,8 @@
 //!   atomically written file.
 //! - [`camera`]: any query camera brought to the map's pixel scale (resampling, undistortion), with
 //!   keypoints traced back to the query's own depth.
+//! - [`depth_noise`]: how noisy a frame's depth is (`k` of `sigma = k z^2`), measured on the frame,
+//!   which widens registration's bound with range for a real sensor's frame.
 //! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
 //! - [`shortlist`]: the global ranking's top images re-ranked by a vote of their strongest keypoints,
 //!   so look-alike rooms of a large map do not crowd the right one out of the candidates.
@@ -25,6 +27,7 @@
 
 pub mod calibration;
 pub mod camera;
+pub mod depth_noise;
 pub mod eval;
 pub mod map;
 pub mod mapfile;

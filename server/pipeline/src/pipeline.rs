@@ -26,13 +26,14 @@ use pntr_features::{Features, Matcher};
 use pntr_registration::covariance::{point_to_point_covariance, rotate_covariance};
 use pntr_registration::icp::{icp_matched, IcpParams};
 use pntr_registration::pnp::{pnp_ransac, PnpParams};
-use pntr_registration::teaser::{solve, TeaserParams};
+use pntr_registration::teaser::{solve, solve_with_bounds, TeaserParams};
 use pntr_registration::Rigid;
 use pntr_retrieval::index::Hit;
 use serde::Serialize;
 
 use crate::calibration::{choose, Calibration};
 use crate::camera::to_map_scale;
+use crate::depth_noise::RangeBounds;
 use crate::map::Map;
 use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
@@ -412,6 +413,7 @@ impl Pipeline {
         // Another camera's query is brought to the map's pixel scale; from here on `q` is the
         // resampled query and only the keypoints' depths come from the frame as sent.
         let resampled = to_map_scale(q, self.map_focal_px, self.map_pixels);
+        let q_sent = q;
         let q: &Query = &resampled.query;
         let tr = Instant::now();
         times.resampling = (tr - t0).as_secs_f64();
@@ -427,6 +429,15 @@ impl Pipeline {
             .iter()
             .map(|p| p[0].is_finite().then(|| vec3(*p)))
             .collect();
+        // Each keypoint's registration bound for a candidate the fixed bound cannot register: the
+        // preset's, widened with range when the frame's depth is noisy (a real sensor's; measured
+        // on the frame as sent, whose noise resampling would smooth, and only when first needed).
+        let q_bounds = RangeBounds::new(
+            &q_sent.depth,
+            &q_pts,
+            self.teaser.noise_bound,
+            self.preset.depth_noise_sigmas,
+        );
         let thumb = (opts.keyframe.is_some() || opts.want_keyframe)
             .then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
         let frame = Frame {
@@ -463,7 +474,7 @@ impl Pipeline {
                 self.shortlisted(&fq, &q_pts, deep, k)?
             };
             times.retrieval += ts.elapsed().as_secs_f64();
-            let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
+            let loc = self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, times, t0)?;
             let on_track = loc.pose.is_some_and(|p| off_track(&p, opts).is_none());
             if loc.status == Status::Localized && on_track {
                 let loc = Localization {
@@ -481,7 +492,7 @@ impl Pipeline {
             .search(&desc, self.shortlist_depth(shortlist))?;
         let hits = self.shortlisted(&fq, &q_pts, hits, shortlist)?;
         times.retrieval += t2.elapsed().as_secs_f64();
-        let loc = self.answer_from_candidates(&fq, &q_pts, q, hits, times, t0)?;
+        let loc = self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the
         // camera can be, given its last verified pose) is a look-alike, not the robot's position.
         let loc = match loc.pose.and_then(|p| off_track(&p, opts)) {
@@ -666,11 +677,14 @@ impl Pipeline {
     }
 
     /// Match, register and verify the retrieval candidates `hits` of the (resampled) query `q` with
-    /// features `fq` and back-projected keypoints `q_pts`; a GLOBAL answer.
+    /// features `fq`, back-projected keypoints `q_pts` and their range-grown registration bounds
+    /// `q_bounds` (for candidates the fixed bound cannot register); a GLOBAL answer.
+    #[allow(clippy::too_many_arguments)]
     fn answer_from_candidates(
         &self,
         fq: &Features,
         q_pts: &[Option<Vector3<f64>>],
+        q_bounds: &RangeBounds,
         q: &Query,
         hits: Vec<Hit>,
         mut times: StageTimes,
@@ -685,7 +699,8 @@ impl Pipeline {
         if self.preset.rerank && hits.len() > 1 {
             let mut scored = Vec::with_capacity(hits.len());
             for &(id, rank) in &finalists {
-                let c = self.candidate(fq, q_pts, q, id, rank, &self.cheap, &mut times)?;
+                let c =
+                    self.candidate(fq, q_pts, q_bounds, q, id, rank, &self.cheap, &mut times)?;
                 scored.push(c);
             }
             scored.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
@@ -706,6 +721,7 @@ impl Pipeline {
                 let c = self.candidate(
                     fq,
                     q_pts,
+                    q_bounds,
                     q,
                     id,
                     rank,
@@ -727,7 +743,8 @@ impl Pipeline {
             pool.clear();
             let mut again = Vec::with_capacity(finalists.len());
             for &(id, rank) in &finalists {
-                let c = self.candidate(fq, q_pts, q, id, rank, &self.fallback, &mut times)?;
+                let c =
+                    self.candidate(fq, q_pts, q_bounds, q, id, rank, &self.fallback, &mut times)?;
                 if let Some(w) = self.world_from_query(&c) {
                     pool.push((c.image, w, c.inliers));
                 }
@@ -1008,6 +1025,7 @@ impl Pipeline {
         &self,
         fq: &Features,
         q_pts: &[Option<Vector3<f64>>],
+        q_bounds: &RangeBounds,
         q: &Query,
         id: usize,
         rank: usize,
@@ -1068,7 +1086,18 @@ impl Pipeline {
                 }
                 c.pairs = src.len();
                 let (transform, inliers) = if self.preset.solver == Solver::Teaser {
-                    let r = solve(&src, &dst, &self.teaser);
+                    // The fixed bound first, so every registration it gives stays as it was (the
+                    // calibration was fitted on those); the range-grown bounds of a noisy frame
+                    // ([`crate::depth_noise`]) only for a candidate it cannot register, whose far
+                    // surfaces' right matches the fixed bound drops.
+                    let mut r = solve(&src, &dst, &self.teaser);
+                    if let (false, Some(b)) = (r.valid, q_bounds.get()) {
+                        let bounds: Vec<f64> = qa.iter().map(|&a| b[a]).collect();
+                        let wide = solve_with_bounds(&src, &dst, Some(&bounds), &self.teaser);
+                        if wide.valid {
+                            r = wide;
+                        }
+                    }
                     c.reason = r.reason;
                     (r.valid.then_some(r.transform), r.inliers)
                 } else {

@@ -62,6 +62,20 @@ pub struct Preset {
     pub solver: Solver,
     /// Fewest inliers for a LOCALIZED answer.
     pub min_inliers: usize,
+    /// For a frame whose depth is noisy (a real sensor's, measured on the frame:
+    /// [`crate::depth_noise`]), a TEASER candidate that the fixed noise bound cannot register is
+    /// registered again with each correspondence's bound grown by this many standard deviations of
+    /// the depth noise at its range (added in quadrature). Default 3 (also for maps written before
+    /// this field); 0 keeps the fixed bound alone.
+    #[serde(default = "default_depth_noise_sigmas")]
+    pub depth_noise_sigmas: f64,
+}
+
+/// [`Preset::depth_noise_sigmas`] of every built-in preset, and of maps written before the field.
+pub const DEFAULT_DEPTH_NOISE_SIGMAS: f64 = 3.0;
+
+fn default_depth_noise_sigmas() -> f64 {
+    DEFAULT_DEPTH_NOISE_SIGMAS
 }
 
 /// Names of the built-in presets.
@@ -100,6 +114,7 @@ impl Preset {
             final_candidates: 1,
             solver: Solver::Teaser,
             min_inliers: 12,
+            depth_noise_sigmas: DEFAULT_DEPTH_NOISE_SIGMAS,
         };
         Ok(match name {
             "fast" => base,
@@ -211,6 +226,12 @@ impl Preset {
         if self.candidates == 0 || self.final_candidates == 0 || self.keypoints == 0 {
             return bad("candidates, final_candidates and keypoints must be positive".into());
         }
+        if !(self.depth_noise_sigmas.is_finite() && self.depth_noise_sigmas >= 0.0) {
+            return bad(format!(
+                "depth_noise_sigmas is {}; it must be 0 (off) or a positive number of standard deviations",
+                self.depth_noise_sigmas
+            ));
+        }
         self.feature_config(PathBuf::new())
             .validate()
             .map_err(|e| PipelineError::Config(e.to_string()))
@@ -279,6 +300,15 @@ mod tests {
             ..Preset::named("fast").unwrap()
         };
         assert!(bad.validate().unwrap_err().to_string().contains("orb"));
+        let bad = Preset {
+            depth_noise_sigmas: -1.0,
+            ..Preset::named("xfeat-mnn").unwrap()
+        };
+        assert!(bad
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("depth_noise_sigmas"));
         // The int8 preset queries with the int8 backbone, describes maps with the float one and is
         // scored by the float preset's calibration.
         let int8 = Preset::named("xfeat-mnn-int8").unwrap();

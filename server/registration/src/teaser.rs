@@ -21,7 +21,7 @@ use std::time::Duration;
 use nalgebra::{Rotation3, Vector3};
 
 use crate::clique::{max_clique, Graph};
-use crate::kabsch::{kabsch, principal_spreads, weighted_rotation};
+use crate::kabsch::{principal_spreads, weighted_kabsch, weighted_rotation};
 use crate::Rigid;
 
 /// Solver parameters.
@@ -134,29 +134,38 @@ pub fn gnc_tls_rotation(
     Some(r)
 }
 
-/// Adaptive voting: the value with the most samples within `bound` of it, as the mean of that set.
-fn vote(values: &[f64], bound: f64) -> f64 {
-    // Sweep the interval endpoints: the depth of overlap of [v - bound, v + bound] intervals.
-    let mut ev: Vec<(f64, i32)> = Vec::with_capacity(values.len() * 2);
-    for &v in values {
-        ev.push((v - bound, 1));
-        ev.push((v + bound, -1));
+/// Adaptive voting: the value with the most samples within their bound of it (`bounds[i]` for
+/// `values[i]`), as the mean of that set weighted by `(bounds[0] / bound)^2` (the plain mean when
+/// every bound is the same).
+fn vote(values: &[f64], bounds: &[f64]) -> f64 {
+    // Sweep the interval endpoints: the depth of overlap of [v - b, v + b] intervals.
+    let mut ev: Vec<(f64, i32, f64)> = Vec::with_capacity(values.len() * 2);
+    for (&v, &b) in values.iter().zip(bounds) {
+        ev.push((v - b, 1, b));
+        ev.push((v + b, -1, b));
     }
     ev.sort_by(|x, y| x.0.total_cmp(&y.0).then(y.1.cmp(&x.1)));
     let (mut depth, mut best, mut at) = (0, 0, values[0]);
-    for (x, d) in ev {
+    for (x, d, b) in ev {
         depth += d;
         if depth > best {
             best = depth;
-            at = x + bound;
+            at = x + b;
         }
     }
-    let members: Vec<f64> = values
-        .iter()
-        .copied()
-        .filter(|v| (v - at).abs() <= bound)
-        .collect();
-    members.iter().sum::<f64>() / members.len().max(1) as f64
+    let (mut sum, mut total) = (0.0, 0.0);
+    for (&v, &b) in values.iter().zip(bounds) {
+        if (v - at).abs() <= b {
+            let w = (bounds[0] / b).powi(2);
+            sum += w * v;
+            total += w;
+        }
+    }
+    if total > 0.0 {
+        sum / total
+    } else {
+        0.0
+    }
 }
 
 fn tim_pairs(k: usize) -> Vec<(usize, usize)> {
@@ -226,12 +235,90 @@ pub fn consistency_graph(
     g
 }
 
+/// As [`consistency_graph`] with a bound per correspondence: i and j are joined when
+/// `| |s_i - s_j| - |d_i - d_j| | <= half[i] + half[j]` (`half`: each correspondence's share of the
+/// bound, metres).
+pub fn consistency_graph_bounded(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+    finite: &[bool],
+    half: &[f64],
+) -> Graph {
+    let n = src.len();
+    let soa = |pts: &[Vector3<f64>], k: usize| -> Vec<f32> {
+        pts.iter()
+            .zip(finite)
+            .map(|(p, &ok)| if ok { p[k] as f32 } else { f32::NAN })
+            .collect()
+    };
+    let (sx, sy, sz) = (soa(src, 0), soa(src, 1), soa(src, 2));
+    let (dx, dy, dz) = (soa(dst, 0), soa(dst, 1), soa(dst, 2));
+    let hb: Vec<f32> = half.iter().map(|&b| b as f32).collect();
+    let mut g = Graph::new(n);
+    let mut diff = vec![0f32; n];
+    for i in 0..n {
+        if !finite[i] {
+            continue;
+        }
+        let m = n - i - 1;
+        let (a, b, c) = (&sx[i + 1..], &sy[i + 1..], &sz[i + 1..]);
+        let (e, f, h) = (&dx[i + 1..], &dy[i + 1..], &dz[i + 1..]);
+        let t = &hb[i + 1..];
+        for j in 0..m {
+            let (u, v, w) = (a[j] - sx[i], b[j] - sy[i], c[j] - sz[i]);
+            let (x, y, z) = (e[j] - dx[i], f[j] - dy[i], h[j] - dz[i]);
+            let d = ((u * u + v * v + w * w).sqrt() - (x * x + y * y + z * z).sqrt()).abs();
+            // Negative when within the pair's bound; NaN (a non-finite partner) is not.
+            diff[j] = d - (hb[i] + t[j]);
+        }
+        for (j, &d) in diff[..m].iter().enumerate() {
+            if d <= 0.0 {
+                g.add_edge(i, i + 1 + j);
+            }
+        }
+    }
+    g
+}
+
 /// Register `src` to `dst` (paired by index) robustly.
 ///
 /// Both sets are first moved to their centroids (of the finite points), so coordinates far from the
 /// origin (UTM-sized, 1e6 m) lose nothing in the single-precision consistency graph; the answer is
 /// moved back: `dst = R (src - c_s) + t_c + c_d`.
 pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> TeaserResult {
+    solve_with_bounds(src, dst, None, p)
+}
+
+/// [`solve`] with a residual bound per correspondence (metres, parallel to `src`), in place of
+/// `p.noise_bound` for each: for a sensor whose noise depends on the point (depth noise growing
+/// with range, [`TeaserParams::noise_bound`] as its floor). Two correspondences are consistent
+/// when their distances agree within the sum of their bounds; the rotation's measurements are
+/// normalised by their pairs' bounds, the translation is voted with each value's own bound, and
+/// the polish weights each inlier by `(noise_bound / bound)^2`. `None` (or every bound equal to
+/// `noise_bound`) is exactly [`solve`]. A bound that is not finite and positive, or a slice of
+/// another length, gives an invalid result that says so.
+pub fn solve_with_bounds(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+    bounds: Option<&[f64]>,
+    p: &TeaserParams,
+) -> TeaserResult {
+    if let Some(b) = bounds {
+        if b.len() != src.len() {
+            return TeaserResult::invalid(
+                format!("{} bounds for {} correspondences", b.len(), src.len()),
+                0,
+                true,
+            );
+        }
+        if let Some(bad) = b.iter().find(|x| !(x.is_finite() && **x > 0.0)) {
+            return TeaserResult::invalid(
+                format!("a correspondence's noise bound is {bad} m; bounds must be positive"),
+                0,
+                true,
+            );
+        }
+    }
     let centroid = |pts: &[Vector3<f64>]| {
         let finite: Vec<&Vector3<f64>> = pts
             .iter()
@@ -245,7 +332,7 @@ pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> Te
     let (cs, cd) = (centroid(src), centroid(dst));
     let s: Vec<Vector3<f64>> = src.iter().map(|v| v - cs).collect();
     let d: Vec<Vector3<f64>> = dst.iter().map(|v| v - cd).collect();
-    let mut r = solve_centred(&s, &d, p);
+    let mut r = solve_centred(&s, &d, bounds, p);
     if r.valid {
         r.transform.translation += cd - r.transform.rotation * cs;
     }
@@ -253,7 +340,12 @@ pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> Te
 }
 
 /// [`solve`] on sets already near the origin.
-fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> TeaserResult {
+fn solve_centred(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+    bounds: Option<&[f64]>,
+    p: &TeaserParams,
+) -> TeaserResult {
     if src.len() != dst.len() {
         return TeaserResult::invalid(
             format!(
@@ -276,8 +368,20 @@ fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -
     let finite: Vec<bool> = (0..n)
         .map(|i| src[i].iter().chain(dst[i].iter()).all(|v| v.is_finite()))
         .collect();
+    let sc = p.cbar2.sqrt();
+    // Each correspondence's residual bound; a uniform one keeps the fast graph below.
+    let uniform = bounds.is_none_or(|b| b.iter().all(|&x| x == p.noise_bound));
+    let bound_of: Vec<f64> = match bounds {
+        Some(b) if !uniform => b.to_vec(),
+        _ => vec![p.noise_bound; n],
+    };
     // 1. Consistency graph of pairwise invariants.
-    let g = consistency_graph(src, dst, &finite, 2.0 * p.noise_bound * p.cbar2.sqrt());
+    let g = if uniform {
+        consistency_graph(src, dst, &finite, 2.0 * p.noise_bound * sc)
+    } else {
+        let half: Vec<f64> = bound_of.iter().map(|b| b * sc).collect();
+        consistency_graph_bounded(src, dst, &finite, &half)
+    };
     // 2. Maximum clique.
     let clique = max_clique(&g, p.clique_budget);
     let (k, exact) = (clique.vertices.len(), clique.exact);
@@ -293,10 +397,19 @@ fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -
     }
     let cs: Vec<Vector3<f64>> = clique.vertices.iter().map(|&i| src[i]).collect();
     let cd: Vec<Vector3<f64>> = clique.vertices.iter().map(|&i| dst[i]).collect();
-    // 3. Rotation from TIMs.
+    let cb: Vec<f64> = clique.vertices.iter().map(|&i| bound_of[i]).collect();
+    // 3. Rotation from TIMs, each scaled so that its pair's bound becomes the uniform one (a
+    // factor of exactly 1 when the bounds are uniform).
     let pairs = tim_pairs(k);
-    let ta: Vec<Vector3<f64>> = pairs.iter().map(|&(i, j)| cs[j] - cs[i]).collect();
-    let tb: Vec<Vector3<f64>> = pairs.iter().map(|&(i, j)| cd[j] - cd[i]).collect();
+    let scale = |i: usize, j: usize| 2.0 * p.noise_bound / (cb[i] + cb[j]);
+    let ta: Vec<Vector3<f64>> = pairs
+        .iter()
+        .map(|&(i, j)| (cs[j] - cs[i]) * scale(i, j))
+        .collect();
+    let tb: Vec<Vector3<f64>> = pairs
+        .iter()
+        .map(|&(i, j)| (cd[j] - cd[i]) * scale(i, j))
+        .collect();
     let tim_bound2 = p.cbar2 * (2.0 * p.noise_bound).powi(2);
     let Some(rotation) = gnc_tls_rotation(&ta, &tb, tim_bound2, p) else {
         return TeaserResult::invalid(
@@ -306,7 +419,7 @@ fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -
         );
     };
     // 4. Translation by adaptive voting per axis.
-    let bound = p.noise_bound * p.cbar2.sqrt();
+    let vote_bounds: Vec<f64> = cb.iter().map(|b| b * sc).collect();
     let mut translation = Vector3::zeros();
     for axis in 0..3 {
         let vals: Vec<f64> = cs
@@ -314,12 +427,12 @@ fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -
             .zip(&cd)
             .map(|(s, d)| (d - rotation * s)[axis])
             .collect();
-        translation[axis] = vote(&vals, bound);
+        translation[axis] = vote(&vals, &vote_bounds);
     }
     // 5. Inliers and a least-squares polish on them.
     let inliers_of = |t: &Rigid| -> Vec<usize> {
         (0..n)
-            .filter(|&i| finite[i] && (dst[i] - t.apply(&src[i])).norm() <= bound)
+            .filter(|&i| finite[i] && (dst[i] - t.apply(&src[i])).norm() <= bound_of[i] * sc)
             .collect()
     };
     let mut est = Rigid {
@@ -330,7 +443,11 @@ fn solve_centred(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -
     if inliers.len() >= 3 {
         let s: Vec<_> = inliers.iter().map(|&i| src[i]).collect();
         let d: Vec<_> = inliers.iter().map(|&i| dst[i]).collect();
-        if let Some(polished) = kabsch(&s, &d) {
+        let w: Vec<f64> = inliers
+            .iter()
+            .map(|&i| (p.noise_bound / bound_of[i]).powi(2))
+            .collect();
+        if let Some(polished) = weighted_kabsch(&s, &d, &w) {
             let again = inliers_of(&polished);
             if again.len() >= inliers.len() {
                 est = polished;

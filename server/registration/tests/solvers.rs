@@ -3,7 +3,7 @@
 use nalgebra::{Rotation3, Vector3};
 use pntr_registration::icp::{icp_clouds, icp_matched, IcpParams};
 use pntr_registration::problems::{errors, generate, Problem};
-use pntr_registration::teaser::{solve, TeaserParams};
+use pntr_registration::teaser::{solve, solve_with_bounds, TeaserParams};
 use pntr_registration::Rigid;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -352,4 +352,121 @@ fn every_solver_works_far_from_the_origin() {
     let centre = |t: &Rigid| t.to_isometry().inverse().translation.vector;
     let trans = (centre(&r.camera_from_points) - centre(&truth)).norm();
     assert!(rot < 0.5 && trans < 0.05, "PnP: {rot} deg, {trans} m");
+}
+
+/// A robot's frame against a clean map view: query points at 0.5-6 m with depth noise `k z^2`
+/// along each point's viewing ray, `outliers` of them replaced by random points.
+fn noisy_depth_problem(seed: u64, n: usize, outliers: f64, k: f64) -> (Problem, Vec<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let truth = Rigid {
+        rotation: Rotation3::from_euler_angles(0.1, -0.4, 0.2),
+        translation: Vector3::new(0.5, -0.2, 0.8),
+    };
+    let (mut src, mut dst, mut is_inlier, mut z) = (vec![], vec![], vec![], vec![]);
+    let unit = Normal::new(0.0, 1.0).unwrap();
+    for _ in 0..n {
+        let range = rng.gen_range(0.5..6.0);
+        let ray = Vector3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), 1.0);
+        let clean = ray * range;
+        let inlier = rng.gen::<f64>() >= outliers;
+        let d = if inlier {
+            truth.apply(&clean)
+        } else {
+            Vector3::new(
+                rng.gen_range(-4.0..4.0),
+                rng.gen_range(-4.0..4.0),
+                rng.gen_range(0.0..8.0),
+            )
+        };
+        // Depth noise moves the query point along its ray by k z^2.
+        let noisy = ray * (range + k * range * range * unit.sample(&mut rng));
+        src.push(noisy);
+        dst.push(d);
+        is_inlier.push(inlier);
+        z.push(range);
+    }
+    (
+        Problem {
+            src,
+            dst,
+            truth,
+            is_inlier,
+        },
+        z,
+    )
+}
+
+#[test]
+fn bounds_equal_to_the_noise_bound_are_exactly_the_plain_solver() {
+    let p = TeaserParams::default();
+    for seed in 0..3 {
+        let Problem { src, dst, .. } = generate(seed, 300, 0.7, NOISE_SIGMA_M);
+        let bounds = vec![p.noise_bound; src.len()];
+        let plain = solve(&src, &dst, &p);
+        let bounded = solve_with_bounds(&src, &dst, Some(&bounds), &p);
+        assert_eq!(plain, bounded, "seed {seed}");
+    }
+}
+
+#[test]
+fn bounds_that_grow_with_range_keep_a_noisy_sensor_s_far_inliers() {
+    // sigma = 0.003 z^2: 7.5 cm at 5 m. The fixed 5 cm bound drops most far points; bounds of
+    // 5 cm and three sigmas in quadrature keep them and give a pose at least as accurate.
+    let p = TeaserParams::default();
+    let k = 0.003;
+    let (mut fixed_found, mut bounded_found) = (0usize, 0usize);
+    for seed in 0..6 {
+        let (prob, z) = noisy_depth_problem(40 + seed, 300, 0.6, k);
+        let bounds: Vec<f64> = z
+            .iter()
+            .map(|z| (p.noise_bound.powi(2) + (3.0 * k * z * z).powi(2)).sqrt())
+            .collect();
+        let fixed = solve(&prob.src, &prob.dst, &p);
+        let bounded = solve_with_bounds(&prob.src, &prob.dst, Some(&bounds), &p);
+        assert!(bounded.valid, "seed {seed}: {:?}", bounded.reason);
+        let true_found = |r: &pntr_registration::TeaserResult| {
+            r.inliers.iter().filter(|&&i| prob.is_inlier[i]).count()
+        };
+        let false_found = bounded.inliers.len() - true_found(&bounded);
+        let true_inliers = prob.is_inlier.iter().filter(|&&b| b).count();
+        assert!(
+            true_found(&bounded) as f64 >= 0.85 * true_inliers as f64,
+            "seed {seed}: {} of {true_inliers} inliers kept",
+            true_found(&bounded)
+        );
+        assert!(
+            false_found <= 5,
+            "seed {seed}: {false_found} outliers taken"
+        );
+        let (rot, trans) = errors(&bounded.transform, &prob.truth);
+        assert!(
+            rot < 1.0 && trans < 0.05,
+            "seed {seed}: {rot} deg, {trans} m"
+        );
+        if fixed.valid {
+            let (frot, _) = errors(&fixed.transform, &prob.truth);
+            assert!(rot <= frot + 0.25, "seed {seed}: {rot} deg against {frot}");
+        }
+        fixed_found += if fixed.valid { true_found(&fixed) } else { 0 };
+        bounded_found += true_found(&bounded);
+    }
+    assert!(
+        bounded_found as f64 >= 1.3 * fixed_found as f64,
+        "inliers kept: {bounded_found} with bounds, {fixed_found} fixed"
+    );
+}
+
+#[test]
+fn bounds_of_another_length_or_not_positive_are_refused() {
+    let p = TeaserParams::default();
+    let Problem { src, dst, .. } = generate(7, 50, 0.0, NOISE_SIGMA_M);
+    let short = vec![0.05; 49];
+    let r = solve_with_bounds(&src, &dst, Some(&short), &p);
+    assert!(!r.valid && r.reason.unwrap().contains("49 bounds for 50"));
+    let mut bad = vec![0.05; 50];
+    bad[3] = -1.0;
+    let r = solve_with_bounds(&src, &dst, Some(&bad), &p);
+    assert!(!r.valid && r.reason.unwrap().contains("positive"));
+    bad[3] = f64::NAN;
+    assert!(!solve_with_bounds(&src, &dst, Some(&bad), &p).valid);
 }
