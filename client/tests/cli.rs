@@ -307,6 +307,13 @@ fn build_db_then_eval_write_the_documented_json_keys() {
             "{q}"
         );
         assert_eq!(q["position_m"].as_array().unwrap().len(), 3, "{q}");
+        let rank = &q["right_point_rank"];
+        assert!(
+            rank.is_null() || rank.as_u64().is_some_and(|r| r < 10),
+            "{q}"
+        );
+        // A NOT_LOCALIZED query says why; a LOCALIZED one has no reason.
+        assert_eq!(q["error"].is_null(), q["reason"].is_string(), "{q}");
         if !q["error"].is_null() {
             assert_eq!(q["error"], q["estimate_error"], "{q}");
             assert!(

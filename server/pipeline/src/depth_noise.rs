@@ -11,6 +11,11 @@
 //! curved surfaces give large second differences too, but they are a minority of an indoor frame's
 //! pixels, so the median absolute value (scaled to a standard deviation, 1.4826 MAD) ignores them.
 //!
+//! The estimate assumes noise independent from pixel to pixel. A sensor whose noise is correlated
+//! between neighbours (a stereo matcher's smoothing, a structured-light pattern's speckle) measures
+//! less than its true `k`, so the bounds grow less: the estimate errs toward the fixed bound, never
+//! toward wider ones.
+//!
 //! A rendered or fused depth (HPointLoc's, a mapping run's) measures near 0, and
 //! [`depth_noise_per_m2`] answers 0 below [`MIN_DEPTH_NOISE_PER_M2`], so such frames keep every
 //! registration bound as it was.
@@ -29,13 +34,17 @@ const SECOND_DIFFERENCE_SIGMA: f64 = 2.449_489_742_783_178;
 /// 1 / Phi^-1(3/4): a median absolute deviation of normal samples times this is their sigma.
 const MAD_TO_SIGMA: f64 = 1.482_602_218_505_602;
 
-/// The `k` of `sigma_z = k * z^2` for `depth` (metres; 0 = invalid), per metre, from the second
+/// The `k` of `sigma_z = k * z^2` for `depth` (metres; 0 = invalid), in 1/m, from the second
 /// differences of the inverse depth along rows and columns over every three consecutive valid
 /// pixels, on every third row and column (see the module docs). 0 when the frame measures below
-/// [`MIN_DEPTH_NOISE_PER_M2`] or has fewer than a few hundred valid triples. Cost: about 0.1 ms at
+/// [`MIN_DEPTH_NOISE_PER_M2`], has fewer than a few hundred valid triples, or has samples that
+/// disagree with its size. Cost: about 0.1 ms at
 /// 256 x 256.
 pub fn depth_noise_per_m2(depth: &DepthMap) -> f64 {
     let (w, h) = (depth.width as usize, depth.height as usize);
+    if depth.data.len() != w * h {
+        return 0.0;
+    }
     let inv: Vec<f32> = depth
         .data
         .iter()

@@ -1096,6 +1096,10 @@ impl Pipeline {
                         let wide = solve_with_bounds(&src, &dst, Some(&bounds), &self.teaser);
                         if wide.valid {
                             r = wide;
+                        } else if let (Some(fixed), Some(grown)) = (&r.reason, &wide.reason) {
+                            r.reason = Some(format!(
+                                "{fixed}; with bounds grown by the depth noise: {grown}"
+                            ));
                         }
                     }
                     c.reason = r.reason;

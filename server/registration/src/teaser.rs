@@ -201,48 +201,28 @@ pub fn consistency_graph(
     finite: &[bool],
     bound: f64,
 ) -> Graph {
-    let n = src.len();
-    let soa = |pts: &[Vector3<f64>], k: usize| -> Vec<f32> {
-        pts.iter()
-            .zip(finite)
-            .map(|(p, &ok)| if ok { p[k] as f32 } else { f32::NAN })
-            .collect()
-    };
-    let (sx, sy, sz) = (soa(src, 0), soa(src, 1), soa(src, 2));
-    let (dx, dy, dz) = (soa(dst, 0), soa(dst, 1), soa(dst, 2));
-    let bound = bound as f32;
-    let mut g = Graph::new(n);
-    let mut diff = vec![0f32; n];
-    for i in 0..n {
-        if !finite[i] {
-            continue;
-        }
-        let m = n - i - 1;
-        let (a, b, c) = (&sx[i + 1..], &sy[i + 1..], &sz[i + 1..]);
-        let (e, f, h) = (&dx[i + 1..], &dy[i + 1..], &dz[i + 1..]);
-        for j in 0..m {
-            let (u, v, w) = (a[j] - sx[i], b[j] - sy[i], c[j] - sz[i]);
-            let (x, y, z) = (e[j] - dx[i], f[j] - dy[i], h[j] - dz[i]);
-            diff[j] = ((u * u + v * v + w * w).sqrt() - (x * x + y * y + z * z).sqrt()).abs();
-        }
-        for (j, &d) in diff[..m].iter().enumerate() {
-            // NaN (a non-finite partner) compares false: no edge.
-            if d <= bound {
-                g.add_edge(i, i + 1 + j);
-            }
-        }
-    }
-    g
+    // Halving is exact, so each pair's beta_i + beta_j is `bound` again, bit for bit.
+    graph_within(src, dst, finite, &vec![(bound / 2.0) as f32; src.len()])
 }
 
 /// As [`consistency_graph`] with a bound per correspondence: i and j are joined when
-/// `| |s_i - s_j| - |d_i - d_j| | <= half[i] + half[j]` (`half`: each correspondence's share of the
-/// bound, metres).
+/// `| |s_i - s_j| - |d_i - d_j| | <= beta[i] + beta[j]` (`beta`: each correspondence's residual
+/// bound times `sqrt(cbar2)`, TEASER's beta_i, metres).
 pub fn consistency_graph_bounded(
     src: &[Vector3<f64>],
     dst: &[Vector3<f64>],
     finite: &[bool],
-    half: &[f64],
+    beta: &[f64],
+) -> Graph {
+    let beta: Vec<f32> = beta.iter().map(|&b| b as f32).collect();
+    graph_within(src, dst, finite, &beta)
+}
+
+fn graph_within(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+    finite: &[bool],
+    beta: &[f32],
 ) -> Graph {
     let n = src.len();
     let soa = |pts: &[Vector3<f64>], k: usize| -> Vec<f32> {
@@ -253,7 +233,6 @@ pub fn consistency_graph_bounded(
     };
     let (sx, sy, sz) = (soa(src, 0), soa(src, 1), soa(src, 2));
     let (dx, dy, dz) = (soa(dst, 0), soa(dst, 1), soa(dst, 2));
-    let hb: Vec<f32> = half.iter().map(|&b| b as f32).collect();
     let mut g = Graph::new(n);
     let mut diff = vec![0f32; n];
     for i in 0..n {
@@ -263,13 +242,13 @@ pub fn consistency_graph_bounded(
         let m = n - i - 1;
         let (a, b, c) = (&sx[i + 1..], &sy[i + 1..], &sz[i + 1..]);
         let (e, f, h) = (&dx[i + 1..], &dy[i + 1..], &dz[i + 1..]);
-        let t = &hb[i + 1..];
+        let t = &beta[i + 1..];
         for j in 0..m {
             let (u, v, w) = (a[j] - sx[i], b[j] - sy[i], c[j] - sz[i]);
             let (x, y, z) = (e[j] - dx[i], f[j] - dy[i], h[j] - dz[i]);
             let d = ((u * u + v * v + w * w).sqrt() - (x * x + y * y + z * z).sqrt()).abs();
-            // Negative when within the pair's bound; NaN (a non-finite partner) is not.
-            diff[j] = d - (hb[i] + t[j]);
+            // Not above 0 when within the pair's bound; NaN (a non-finite partner) compares false.
+            diff[j] = d - (beta[i] + t[j]);
         }
         for (j, &d) in diff[..m].iter().enumerate() {
             if d <= 0.0 {
@@ -291,8 +270,8 @@ pub fn solve(src: &[Vector3<f64>], dst: &[Vector3<f64>], p: &TeaserParams) -> Te
 
 /// [`solve`] with a residual bound per correspondence (metres, parallel to `src`), in place of
 /// `p.noise_bound` for each: for a sensor whose noise depends on the point (depth noise growing
-/// with range, [`TeaserParams::noise_bound`] as its floor). Two correspondences are consistent
-/// when their distances agree within the sum of their bounds; the rotation's measurements are
+/// with range). Two correspondences are consistent when their distances agree within the sum of
+/// their bounds times `sqrt(cbar2)`; the rotation's measurements are
 /// normalised by their pairs' bounds, the translation is voted with each value's own bound, and
 /// the polish weights each inlier by `(noise_bound / bound)^2`. `None` (or every bound equal to
 /// `noise_bound`) is exactly [`solve`]. A bound that is not finite and positive, or a slice of
@@ -379,8 +358,8 @@ fn solve_centred(
     let g = if uniform {
         consistency_graph(src, dst, &finite, 2.0 * p.noise_bound * sc)
     } else {
-        let half: Vec<f64> = bound_of.iter().map(|b| b * sc).collect();
-        consistency_graph_bounded(src, dst, &finite, &half)
+        let beta: Vec<f64> = bound_of.iter().map(|b| b * sc).collect();
+        consistency_graph_bounded(src, dst, &finite, &beta)
     };
     // 2. Maximum clique.
     let clique = max_clique(&g, p.clique_budget);

@@ -409,6 +409,30 @@ fn bounds_equal_to_the_noise_bound_are_exactly_the_plain_solver() {
 }
 
 #[test]
+fn equal_bounds_other_than_the_noise_bound_act_as_that_noise_bound() {
+    // Bounds of 8 cm for every pair go through the per-pair graph, scaled rotation measurements
+    // and per-value vote; they must find what the plain solver finds with an 8 cm noise bound.
+    let p = TeaserParams::default();
+    let wide = TeaserParams {
+        noise_bound: 0.08,
+        ..p.clone()
+    };
+    for seed in 0..3 {
+        let Problem { src, dst, .. } = generate(20 + seed, 300, 0.7, 0.02);
+        let bounded = solve_with_bounds(&src, &dst, Some(&vec![0.08; src.len()]), &p);
+        let plain = solve(&src, &dst, &wide);
+        assert!(bounded.valid && plain.valid, "seed {seed}");
+        assert_eq!(bounded.clique_size, plain.clique_size, "seed {seed}");
+        assert_eq!(bounded.inliers, plain.inliers, "seed {seed}");
+        let (rot, trans) = errors(&bounded.transform, &plain.transform);
+        assert!(
+            rot < 1e-6 && trans < 1e-9,
+            "seed {seed}: {rot} deg, {trans} m apart"
+        );
+    }
+}
+
+#[test]
 fn bounds_that_grow_with_range_keep_a_noisy_sensor_s_far_inliers() {
     // sigma = 0.003 z^2: 7.5 cm at 5 m. The fixed 5 cm bound drops most far points; bounds of
     // 5 cm and three sigmas in quadrature keep them and give a pose at least as accurate.
