@@ -201,8 +201,8 @@ pub fn consistency_graph(
     finite: &[bool],
     bound: f64,
 ) -> Graph {
-    // Halving is exact, so each pair's beta_i + beta_j is `bound` again, bit for bit.
-    graph_within(src, dst, finite, &vec![(bound / 2.0) as f32; src.len()])
+    let bound = bound as f32;
+    graph_within(src, dst, finite, |_, _| bound)
 }
 
 /// As [`consistency_graph`] with a bound per correspondence: i and j are joined when
@@ -215,14 +215,16 @@ pub fn consistency_graph_bounded(
     beta: &[f64],
 ) -> Graph {
     let beta: Vec<f32> = beta.iter().map(|&b| b as f32).collect();
-    graph_within(src, dst, finite, &beta)
+    graph_within(src, dst, finite, |i, j| beta[i] + beta[j])
 }
 
+/// The consistency graph with `bound(i, j)` for the pair i < j (a constant keeps the inner loop
+/// as vectorisable as a plain comparison).
 fn graph_within(
     src: &[Vector3<f64>],
     dst: &[Vector3<f64>],
     finite: &[bool],
-    beta: &[f32],
+    bound: impl Fn(usize, usize) -> f32,
 ) -> Graph {
     let n = src.len();
     let soa = |pts: &[Vector3<f64>], k: usize| -> Vec<f32> {
@@ -242,13 +244,12 @@ fn graph_within(
         let m = n - i - 1;
         let (a, b, c) = (&sx[i + 1..], &sy[i + 1..], &sz[i + 1..]);
         let (e, f, h) = (&dx[i + 1..], &dy[i + 1..], &dz[i + 1..]);
-        let t = &beta[i + 1..];
         for j in 0..m {
             let (u, v, w) = (a[j] - sx[i], b[j] - sy[i], c[j] - sz[i]);
             let (x, y, z) = (e[j] - dx[i], f[j] - dy[i], h[j] - dz[i]);
             let d = ((u * u + v * v + w * w).sqrt() - (x * x + y * y + z * z).sqrt()).abs();
             // Not above 0 when within the pair's bound; NaN (a non-finite partner) compares false.
-            diff[j] = d - (beta[i] + t[j]);
+            diff[j] = d - bound(i, i + 1 + j);
         }
         for (j, &d) in diff[..m].iter().enumerate() {
             if d <= 0.0 {
