@@ -351,15 +351,15 @@ fn solve_centred(
     let sc = p.cbar2.sqrt();
     // Each correspondence's residual bound; a uniform one keeps the fast graph below.
     let uniform = bounds.is_none_or(|b| b.iter().all(|&x| x == p.noise_bound));
-    let bound_of: Vec<f64> = match bounds {
-        Some(b) if !uniform => b.to_vec(),
-        _ => vec![p.noise_bound; n],
+    let bound_of = |i: usize| match bounds {
+        Some(b) if !uniform => b[i],
+        _ => p.noise_bound,
     };
     // 1. Consistency graph of pairwise invariants.
     let g = if uniform {
         consistency_graph(src, dst, &finite, 2.0 * p.noise_bound * sc)
     } else {
-        let beta: Vec<f64> = bound_of.iter().map(|b| b * sc).collect();
+        let beta: Vec<f64> = (0..n).map(|i| bound_of(i) * sc).collect();
         consistency_graph_bounded(src, dst, &finite, &beta)
     };
     // 2. Maximum clique.
@@ -377,7 +377,7 @@ fn solve_centred(
     }
     let cs: Vec<Vector3<f64>> = clique.vertices.iter().map(|&i| src[i]).collect();
     let cd: Vec<Vector3<f64>> = clique.vertices.iter().map(|&i| dst[i]).collect();
-    let cb: Vec<f64> = clique.vertices.iter().map(|&i| bound_of[i]).collect();
+    let cb: Vec<f64> = clique.vertices.iter().map(|&i| bound_of(i)).collect();
     // 3. Rotation from TIMs, each scaled so that its pair's bound becomes the uniform one (a
     // factor of exactly 1 when the bounds are uniform).
     let pairs = tim_pairs(k);
@@ -412,7 +412,7 @@ fn solve_centred(
     // 5. Inliers and a least-squares polish on them.
     let inliers_of = |t: &Rigid| -> Vec<usize> {
         (0..n)
-            .filter(|&i| finite[i] && (dst[i] - t.apply(&src[i])).norm() <= bound_of[i] * sc)
+            .filter(|&i| finite[i] && (dst[i] - t.apply(&src[i])).norm() <= bound_of(i) * sc)
             .collect()
     };
     let mut est = Rigid {
@@ -425,7 +425,7 @@ fn solve_centred(
         let d: Vec<_> = inliers.iter().map(|&i| dst[i]).collect();
         let w: Vec<f64> = inliers
             .iter()
-            .map(|&i| (p.noise_bound / bound_of[i]).powi(2))
+            .map(|&i| (p.noise_bound / bound_of(i)).powi(2))
             .collect();
         if let Some(polished) = weighted_kabsch(&s, &d, &w) {
             let again = inliers_of(&polished);
