@@ -8,8 +8,9 @@
 //! For QUERIES evenly spaced queries (default 300) of DATASET, against MAP: the share whose own
 //! Point is among the first k of (a) the map's global index, (b) that ranking re-ordered by the
 //! number of mutual matches of the 128 strongest keypoints, (c) by the shortlist's vote with 128
-//! keypoints (the 3D-consistent star), (d) the shortlist as the pipeline runs it (a second vote
-//! with 256 keypoints over the first's best 20; first 5 only). Environment: `DEPTH` (global
+//! keypoints (the highest core number of the matches' consistency graph), (d) the shortlist as the
+//! pipeline runs it (votes again with 256 keypoints over the first's best 20 and with 512 over the
+//! second's best 10; first 5 only), and how many distinct Points its 5 images show. Environment: `DEPTH` (global
 //! candidates, default 100), `INDEX` (re-index the map's own descriptors with this faiss index,
 //! e.g. `flat`, `pcaw512`, `auto`), `SCENES` (only the map's first N scenes, with `INDEX`).
 
@@ -22,7 +23,7 @@ use pntr_features::config::FeatureConfig;
 use pntr_features::mnn::Mnn;
 use pntr_features::Matcher;
 use pntr_pipeline::mapfile;
-use pntr_pipeline::shortlist::{Shortlist, COARSE_KEYPOINTS, SHORTLIST_KEYPOINTS};
+use pntr_pipeline::shortlist::{Shortlist, COARSE_KEYPOINTS, FINAL_KEYPOINTS};
 use pntr_retrieval::global::Descriptor;
 use pntr_retrieval::index::{GlobalIndex, Hit, IndexKind};
 
@@ -97,11 +98,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let step = (all.len() / want.max(1)).max(1);
     let picked: Vec<_> = all.into_iter().step_by(step).take(want).collect();
-    let shortlist = Shortlist::new(&map.images, SHORTLIST_KEYPOINTS);
+    let shortlist = Shortlist::new(&map.images, FINAL_KEYPOINTS);
     let mnn = Mnn::default();
     let names = ["global", "match count", "vote", "shortlist"];
     let mut at = vec![[0usize; KS.len()]; names.len()];
     let (mut search_s, mut vote_s, mut shortlist_s) = (0.0, 0.0, 0.0);
+    let mut distinct = 0usize;
     for (p, qi) in &picked {
         let v = p.open()?.view(Role::Query, *qi)?;
         let fq = stage.extractor.extract(&v.rgb)?;
@@ -172,6 +174,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let im = &map.images[h.id];
             map.header.scenes[im.scene as usize] == p.scene && im.point == p.index
         };
+        let mut points: Vec<(u32, u32)> = kept
+            .iter()
+            .map(|h| (map.images[h.id].scene, map.images[h.id].point))
+            .collect();
+        points.sort_unstable();
+        points.dedup();
+        distinct += points.len();
         for (row, ranking) in at.iter_mut().zip([&hits, &counted, &voted, &kept]) {
             let first = ranking.iter().position(right);
             for (c, &k) in row.iter_mut().zip(&KS) {
@@ -199,6 +208,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .collect();
         println!("| {name} | {} |", cells.join(" | "));
     }
+    println!(
+        "distinct Points among the shortlist's 5: {:.2}",
+        distinct as f64 / n
+    );
     println!(
         "ms per query: global search {:.2}, one vote {:.2}, shortlist {:.2}",
         search_s * 1e3 / n,

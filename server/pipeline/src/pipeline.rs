@@ -22,7 +22,7 @@ use nalgebra::{Isometry3, Point2, Vector3};
 use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics, RgbImage};
 use pntr_features::config::FeatureStage;
 use pntr_features::mnn::{Mnn, MnnParams};
-use pntr_features::{Features, Matcher};
+use pntr_features::{Features, Matcher, Matches};
 use pntr_registration::covariance::{point_to_point_covariance, rotate_covariance};
 use pntr_registration::icp::{icp_matched, IcpParams};
 use pntr_registration::pnp::{pnp_ransac, PnpParams};
@@ -39,7 +39,7 @@ use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
 use crate::refine::refine_dense;
-use crate::shortlist::{automatic_depth, Shortlist, SHORTLIST_KEYPOINTS};
+use crate::shortlist::{automatic_depth, Shortlist, Shortlisted, FINAL_KEYPOINTS};
 
 /// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
 /// turned more than it can have (`pose`: `world_from_camera`, map frame, map axes).
@@ -204,6 +204,14 @@ struct Frame<'a> {
     thumb: Option<&'a Thumb>,
 }
 
+/// How a candidate's matches are had: by a matcher, or already made (the shortlist's last vote,
+/// with the same matcher on the whole features).
+#[derive(Clone, Copy)]
+enum Matched<'a> {
+    By(&'a dyn Matcher),
+    Known(&'a Matches),
+}
+
 /// Registration of one candidate.
 #[derive(Debug, Clone)]
 struct Candidate {
@@ -283,7 +291,7 @@ impl Pipeline {
                 .map(|im| im.world_from_camera.translation.vector)
                 .collect(),
         );
-        let shortlist = Shortlist::new(&map.images, SHORTLIST_KEYPOINTS);
+        let shortlist = Shortlist::new(&map.images, FINAL_KEYPOINTS);
         Ok(Self {
             map,
             stage,
@@ -363,18 +371,19 @@ impl Pipeline {
     }
 
     /// The best `keep` of the global candidates `hits` by the shortlist's vote ([`Shortlist`]), or
-    /// `hits` as they are when there are no more than `keep`.
+    /// `hits` as they are when there are no more than `keep`; with the cheap matcher's matches of
+    /// those the last vote compared whole.
     fn shortlisted(
         &self,
         fq: &Features,
         q_pts: &[Option<Vector3<f64>>],
         hits: Vec<Hit>,
         keep: usize,
-    ) -> Result<Vec<Hit>, PipelineError> {
+    ) -> Result<Shortlisted, PipelineError> {
         if hits.len() <= keep {
-            return Ok(hits);
+            return Ok(Shortlisted::unmatched(hits));
         }
-        self.shortlist.rerank(
+        self.shortlist.rerank_matched(
             &self.map.images,
             fq,
             q_pts,
@@ -465,7 +474,7 @@ impl Pipeline {
             // by the global descriptor alone: its re-anchoring then keeps the views most like the
             // frame (voting there once re-anchored a clean drive on a view 0.3 m off).
             let hits = if opts.region_mode == Mode::Tracking {
-                self.map.retriever.search_among(&desc, k, &ids)?
+                Shortlisted::unmatched(self.map.retriever.search_among(&desc, k, &ids)?)
             } else {
                 let deep = self
                     .map
@@ -686,10 +695,14 @@ impl Pipeline {
         q_pts: &[Option<Vector3<f64>>],
         q_bounds: &RangeBounds,
         q: &Query,
-        hits: Vec<Hit>,
+        shortlisted: Shortlisted,
         mut times: StageTimes,
         t0: Instant,
     ) -> Result<Localization, PipelineError> {
+        let Shortlisted {
+            hits,
+            matches: known,
+        } = shortlisted;
         let matcher_is_cheap = self.preset.matcher == "mnn";
         let mut finalists: Vec<(usize, usize)> =
             hits.iter().enumerate().map(|(r, h)| (h.id, r)).collect();
@@ -699,8 +712,12 @@ impl Pipeline {
         if self.preset.rerank && hits.len() > 1 {
             let mut scored = Vec::with_capacity(hits.len());
             for &(id, rank) in &finalists {
-                let c =
-                    self.candidate(fq, q_pts, q_bounds, q, id, rank, &self.cheap, &mut times)?;
+                // The shortlist's last vote may have matched this pair already, with this matcher.
+                let cheap = match known.get(rank) {
+                    Some(Some(m)) => Matched::Known(m),
+                    _ => Matched::By(&self.cheap),
+                };
+                let c = self.candidate(fq, q_pts, q_bounds, q, id, rank, cheap, &mut times)?;
                 scored.push(c);
             }
             scored.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
@@ -725,7 +742,7 @@ impl Pipeline {
                     q,
                     id,
                     rank,
-                    self.stage.matcher.as_ref(),
+                    Matched::By(self.stage.matcher.as_ref()),
                     &mut times,
                 )?;
                 if let Some(w) = self.world_from_query(&c) {
@@ -743,8 +760,16 @@ impl Pipeline {
             pool.clear();
             let mut again = Vec::with_capacity(finalists.len());
             for &(id, rank) in &finalists {
-                let c =
-                    self.candidate(fq, q_pts, q_bounds, q, id, rank, &self.fallback, &mut times)?;
+                let c = self.candidate(
+                    fq,
+                    q_pts,
+                    q_bounds,
+                    q,
+                    id,
+                    rank,
+                    Matched::By(&self.fallback),
+                    &mut times,
+                )?;
                 if let Some(w) = self.world_from_query(&c) {
                     pool.push((c.image, w, c.inliers));
                 }
@@ -1019,7 +1044,7 @@ impl Pipeline {
         Some(out)
     }
 
-    /// Match the query against map image `id` and register.
+    /// Match the query against map image `id` (or take the matches already made) and register.
     #[allow(clippy::too_many_arguments)]
     fn candidate(
         &self,
@@ -1029,12 +1054,19 @@ impl Pipeline {
         q: &Query,
         id: usize,
         rank: usize,
-        matcher: &dyn Matcher,
+        matched: Matched,
         times: &mut StageTimes,
     ) -> Result<Candidate, PipelineError> {
         let t0 = Instant::now();
         let db = &self.map.images[id];
-        let m = matcher.match_features(fq, &db.features())?;
+        let made;
+        let m = match matched {
+            Matched::Known(m) => m,
+            Matched::By(matcher) => {
+                made = matcher.match_features(fq, &db.features())?;
+                &made
+            }
+        };
         let t1 = Instant::now();
         times.matching += (t1 - t0).as_secs_f64();
         let mut c = Candidate {

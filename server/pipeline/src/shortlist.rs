@@ -1,23 +1,27 @@
-//! A deeper shortlist: the global descriptor's top `depth` map images re-ranked by a vote of their
+//! A deeper shortlist: the global descriptor's top `depth` map images re-ranked by votes of their
 //! strongest keypoints, before the geometric stage takes the best few.
 //!
 //! Why: one aggregated vector per image (VLAD) ranks look-alike rooms of a large map close together.
 //! On a map of HPointLoc-All size (10,500 images of 35 procedural apartments) the right Point is
-//! among VLAD's first 5 for 0.69 of the queries but among its first 100 for 0.93.
+//! among VLAD's first 5 for 0.73 of the queries but among its first 100 for 0.94.
 //!
-//! The vote: mutual nearest neighbours between the query's and the image's strongest keypoints,
-//! scored by the largest set of matches whose 3D distances to one match agree with the query's (a
-//! star of the registration's consistency graph). Counting matches alone puts the right Point among
-//! the first 5 for 0.83 of those queries, the consistent star for 0.87, a second vote with twice the
-//! keypoints over the first's best 20 for 0.88 (BENCHMARKS.md, "A deeper shortlist"). Re-ranking
-//! a global shortlist by local matches is the classic second stage of image retrieval (Philbin et
-//! al., CVPR 2007, with a spatial check); the star is the cheap part of TEASER's pruning, so the
-//! geometric stage after it checks the survivors properly.
+//! A vote: mutual nearest neighbours between the query's and the image's strongest keypoints,
+//! scored by how many of those matches agree with one another in 3D: the highest core number of
+//! the registration's consistency graph (the largest `k` such that some matches each agree with
+//! `k` of the others). Three votes, each with more keypoints over the best of the one before:
+//! 128 keypoints over every candidate, 256 over the best 20, 512 over the best 10 with the
+//! registration's own bound. On that map the right Point is among the first 5 for 0.84 by
+//! counting matches, 0.87 after the first vote, 0.91 after the third (BENCHMARKS.md, "A deeper
+//! shortlist" and "Three votes"). Re-ranking a global shortlist by local matches is the classic
+//! second stage of image retrieval (Philbin et al., CVPR 2007, with a spatial check); the core
+//! number is a cheap upper bound of TEASER's maximum clique, so the geometric stage after it checks
+//! the survivors properly.
 //!
 //! Cost: one `k x k` similarity product per image voted on (`k` = [`COARSE_KEYPOINTS`], about 0.1
-//! ms on one core; [`SHORTLIST_KEYPOINTS`] in the second vote, about 0.35 ms). The depth grows with
-//! the square root of the map's size ([`automatic_depth`]): a one-apartment map votes on 20
-//! images, once; a 10,000-image map on 100, then 20 again.
+//! ms on one core; [`SHORTLIST_KEYPOINTS`] in the second vote, about 0.35 ms; [`FINAL_KEYPOINTS`]
+//! in the third, whose 10 images add about 2 ms a query). The depth grows with the square root of the map's size
+//! ([`automatic_depth`]): a one-apartment map votes on 20 images, then on its best 10; a
+//! 10,000-image map on 100, 20 and 10.
 
 use nalgebra::Vector3;
 use pntr_features::mnn::{mutual_nearest, Mnn, MnnBuffers};
@@ -38,6 +42,13 @@ pub const SHORTLIST_KEYPOINTS: usize = 256;
 /// first had more than that many).
 pub const FINE_FACTOR: usize = 4;
 
+/// Keypoints per image of the third vote (every keypoint a default map stores), over the second's
+/// best `FINAL_FACTOR * keep`, with the registration's own bound (half the others').
+pub const FINAL_KEYPOINTS: usize = 512;
+
+/// How many of the second vote's best, per candidate kept, the third vote looks at again.
+pub const FINAL_FACTOR: usize = 2;
+
 /// Most map images the automatic depth votes on, whatever the map's size (about 13 ms a query on
 /// one core); a preset's explicit `shortlist` is taken as it is.
 pub const MAX_DEPTH: usize = 128;
@@ -48,6 +59,26 @@ pub const MAX_DEPTH: usize = 128;
 pub fn automatic_depth(map_images: usize, keep: usize) -> usize {
     let by_size = (map_images as f64).sqrt().round() as usize;
     by_size.max(4 * keep).min(MAX_DEPTH).min(map_images)
+}
+
+/// The shortlist's candidates, with the vote's matches where they are the whole features'.
+#[derive(Debug, Clone, Default)]
+pub struct Shortlisted {
+    /// The candidates kept, best first, with their global scores.
+    pub hits: Vec<Hit>,
+    /// Aligned with `hits`: where the last vote compared every keypoint of the query and of the
+    /// image, its matches as the matcher gives them on the whole features (`(query, image)`
+    /// keypoint indices, query index ascending), so the geometric stage need not match that
+    /// pair again; `None` where the vote saw only the strongest keypoints.
+    pub matches: Vec<Option<Matches>>,
+}
+
+impl Shortlisted {
+    /// Candidates without known matches (not voted on, or fewer than wanted).
+    pub fn unmatched(hits: Vec<Hit>) -> Self {
+        let matches = vec![None; hits.len()];
+        Self { hits, matches }
+    }
 }
 
 /// The strongest keypoints of every map image, chosen once when the pipeline is made.
@@ -133,10 +164,12 @@ struct Scratch {
 }
 
 /// One vote: the mutual matches of the query's strongest keypoints (`q`, with their 3D points
-/// `q_points`) with the map image's at `indices`, scored by geometric consistency: the most
-/// matches whose 3D distances to one match agree with the query's within `bound_m` (the highest
-/// degree in TEASER's consistency graph, a cheap stand-in for its maximum clique), then the number
-/// of matches. An image or query without keypoints gets no votes.
+/// `q_points`) with the map image's at `indices`, scored by geometric consistency: the largest `k`
+/// such that some matches each agree with at least `k` of the others (their 3D distances agree
+/// with the query's within `bound_m`), the highest core number of TEASER's consistency graph, then
+/// the number of matches. The core number bounds the maximum clique (TEASER's inlier set) from
+/// above and, unlike one match's degree, is not raised by a match that agrees with many others
+/// that disagree among themselves. An image or query without keypoints gets no votes.
 fn vote(
     q: &Features,
     q_points: &[Option<Vector3<f64>>],
@@ -185,8 +218,8 @@ fn vote(
     }
     let finite = vec![true; s.src.len()];
     let g = consistency_graph(&s.src, &s.dst, &finite, bound_m);
-    let star = (0..g.len()).map(|i| g.degree(i)).max().unwrap_or(0);
-    Ok((star, s.matches.pairs.len()))
+    let core = g.core_numbers().into_iter().max().unwrap_or(0);
+    Ok((core, s.matches.pairs.len()))
 }
 
 impl Shortlist {
@@ -216,6 +249,33 @@ impl Shortlist {
         matcher: &Mnn,
         bound_m: f64,
     ) -> Result<Vec<Hit>, PipelineError> {
+        let voted = self.voted(
+            images,
+            query,
+            query_points,
+            hits,
+            keypoints,
+            matcher,
+            bound_m,
+            false,
+        )?;
+        Ok(voted.into_iter().map(|v| v.0).collect())
+    }
+
+    /// [`Shortlist::ranked_by_vote`], each hit with the vote's matches in the features' own
+    /// indices when `record` is set and the vote compared every keypoint of both sides.
+    #[allow(clippy::too_many_arguments)]
+    fn voted(
+        &self,
+        images: &[MapImage],
+        query: &Features,
+        query_points: &[Option<Vector3<f64>>],
+        hits: &[Hit],
+        keypoints: usize,
+        matcher: &Mnn,
+        bound_m: f64,
+        record: bool,
+    ) -> Result<Vec<(Hit, Option<Matches>)>, PipelineError> {
         let order = strongest_indices(&query.scores, keypoints);
         let q = gather(query, &order);
         let q_points: Vec<Option<Vector3<f64>>> = order
@@ -234,18 +294,36 @@ impl Shortlist {
             };
             let idx = &idx[..idx.len().min(keypoints)];
             let v = vote(&q, &q_points, im, idx, matcher, bound_m, &mut scratch)?;
-            voted.push((v, rank, *h));
+            let whole = record && order.len() == query.len() && idx.len() == im.keypoints.len();
+            let matches = whole.then(|| {
+                // Back to the features' own indices, in the order the matcher gives them.
+                let mut m: Vec<((u32, u32), f32)> = scratch
+                    .matches
+                    .pairs
+                    .iter()
+                    .zip(&scratch.matches.scores)
+                    .map(|(&(a, b), &s)| ((order[a as usize] as u32, idx[b as usize] as u32), s))
+                    .collect();
+                m.sort_by_key(|p| p.0);
+                Matches {
+                    pairs: m.iter().map(|p| p.0).collect(),
+                    scores: m.iter().map(|p| p.1).collect(),
+                }
+            });
+            voted.push((v, rank, *h, matches));
         }
         voted.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
-        Ok(voted.into_iter().map(|v| v.2).collect())
+        Ok(voted.into_iter().map(|v| (v.2, v.3)).collect())
     }
 
     /// The best `keep` of `hits` (global candidates, best first), with their global scores: all
     /// are voted on with [`COARSE_KEYPOINTS`] keypoints, the best `FINE_FACTOR * keep` again with
-    /// the (up to) [`SHORTLIST_KEYPOINTS`] strongest. A vote ([`vote`]) counts the mutual matches
-    /// of the query's and the image's strongest keypoints whose 3D distances agree within
-    /// `bound_m` (metres; the registration's consistency bound) with one match's; `query_points`
-    /// are the query's keypoints back-projected (OpenCV camera frame, `None` without depth).
+    /// the (up to) [`SHORTLIST_KEYPOINTS`] strongest, the best `FINAL_FACTOR * keep` of those a
+    /// third time with (up to) [`FINAL_KEYPOINTS`] and half the bound; a later vote runs only when
+    /// the list before it is longer than it keeps. A vote ([`vote`]) scores the mutual matches of
+    /// the query's and the image's strongest keypoints by how many agree with each other in 3D
+    /// within `bound_m` (metres; the registration's consistency bound); `query_points` are the
+    /// query's keypoints back-projected (OpenCV camera frame, `None` without depth).
     ///
     /// Errors: a hit outside `images`, or descriptors the matcher cannot compare (another
     /// extractor's).
@@ -260,25 +338,62 @@ impl Shortlist {
         matcher: &Mnn,
         bound_m: f64,
     ) -> Result<Vec<Hit>, PipelineError> {
+        let kept =
+            self.rerank_matched(images, query, query_points, hits, keep, matcher, bound_m)?;
+        Ok(kept.hits)
+    }
+
+    /// [`Shortlist::rerank`], with the last vote's matches of each candidate kept where they are
+    /// the whole features' ([`Shortlisted::matches`]).
+    ///
+    /// Errors: as [`Shortlist::rerank`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn rerank_matched(
+        &self,
+        images: &[MapImage],
+        query: &Features,
+        query_points: &[Option<Vector3<f64>>],
+        hits: &[Hit],
+        keep: usize,
+        matcher: &Mnn,
+        bound_m: f64,
+    ) -> Result<Shortlisted, PipelineError> {
         let coarse = COARSE_KEYPOINTS.min(self.keypoints);
-        let fine_n = FINE_FACTOR * keep;
-        let mut ranked =
-            self.ranked_by_vote(images, query, query_points, hits, coarse, matcher, bound_m)?;
-        // On a small map the first vote saw every candidate worth a second look already.
-        if hits.len() > fine_n && self.keypoints > coarse {
-            ranked.truncate(fine_n);
-            ranked = self.ranked_by_vote(
+        let mut ranked = self.voted(
+            images,
+            query,
+            query_points,
+            hits,
+            coarse,
+            matcher,
+            bound_m,
+            true,
+        )?;
+        // Each later vote looks again, with more keypoints, at the best of the one before; on a
+        // small map the first vote saw every candidate worth the second look already.
+        let later = [
+            (FINE_FACTOR * keep, SHORTLIST_KEYPOINTS, bound_m),
+            (FINAL_FACTOR * keep, FINAL_KEYPOINTS, 0.5 * bound_m),
+        ];
+        for (look_again, keypoints, bound_m) in later {
+            if ranked.len() <= look_again {
+                continue;
+            }
+            let best: Vec<Hit> = ranked[..look_again].iter().map(|v| v.0).collect();
+            ranked = self.voted(
                 images,
                 query,
                 query_points,
-                &ranked,
-                self.keypoints,
+                &best,
+                keypoints.min(self.keypoints),
                 matcher,
                 bound_m,
+                true,
             )?;
         }
         ranked.truncate(keep);
-        Ok(ranked)
+        let (hits, matches) = ranked.into_iter().unzip();
+        Ok(Shortlisted { hits, matches })
     }
 }
 
@@ -437,6 +552,109 @@ mod tests {
         assert_eq!(
             kept[0].id, 1,
             "20 consistent matches beat 30 scrambled ones"
+        );
+    }
+
+    #[test]
+    fn a_hub_agreeing_with_matches_that_disagree_does_not_outvote_a_rigid_set() {
+        // Image 0 matches all 30 query keypoints: the first at the same place, every other at
+        // its own distance from the first but in a scrambled direction, so each agrees with the
+        // first (one star of 29) and hardly with one another. Image 1 matches only 12, moved
+        // rigidly: 12 matches that all agree with one another.
+        let q = features(descriptors(30, 11), vec![1.0; 30]);
+        let centre = Vector3::new(0.0, 0.0, 3.0);
+        let at = |radius: f64, angle: f64| {
+            centre + radius * Vector3::new(angle.cos(), angle.sin(), 0.3 * (2.0 * angle).sin())
+        };
+        let q_points: Vec<Option<Vector3<f64>>> = (0..30)
+            .map(|i| {
+                Some(if i == 0 {
+                    centre
+                } else {
+                    at(0.4 + 0.07 * i as f64, 0.9 * i as f64)
+                })
+            })
+            .collect();
+        let mut hub = map_image(&q);
+        let mut rigid = map_image(&q);
+        let moved = Vector3::new(0.5, 0.1, -0.4);
+        for (i, qp) in q_points.iter().enumerate() {
+            let qp = qp.unwrap();
+            let p = if i == 0 {
+                centre
+            } else {
+                let r = (qp - centre).norm();
+                // The same distance from the first match, another direction.
+                centre + r * (at(1.0, 0.9 * i as f64 + 2.1 * i as f64) - centre).normalize()
+            };
+            hub.points[i] = [p.x as f32, p.y as f32, p.z as f32];
+            if i < 12 {
+                let p = qp + moved;
+                rigid.points[i] = [p.x as f32, p.y as f32, p.z as f32];
+            }
+        }
+        // The premise: the hub's star is larger than the whole rigid set.
+        let src: Vec<Vector3<f64>> = q_points.iter().map(|p| p.unwrap()).collect();
+        let dst: Vec<Vector3<f64>> = hub
+            .points
+            .iter()
+            .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
+            .collect();
+        let g = consistency_graph(&src, &dst, &[true; 30], 0.1);
+        assert!(g.degree(0) >= 29, "the hub agrees with every other match");
+        let images = vec![hub, rigid];
+        let hits: Vec<Hit> = (0..2).map(|id| Hit { id, score: 0.5 }).collect();
+        let list = Shortlist::new(&images, 64);
+        let kept = list
+            .rerank(&images, &q, &q_points, &hits, 1, &Mnn::default(), 0.1)
+            .unwrap();
+        assert_eq!(
+            kept[0].id, 1,
+            "12 mutually consistent matches beat a star of 29"
+        );
+    }
+
+    #[test]
+    fn the_last_vote_sees_keypoints_the_first_two_do_not() {
+        // The query's 40 descriptors. The decoy holds 10 of them among its strongest; the right
+        // image all 40, but as its keypoints 300 to 339, beyond the first two votes' 128 and 256.
+        let q = features(descriptors(40, 21), vec![1.0; 40]);
+        let descending = |n: usize| (0..n).map(|i| 1.0 - i as f32 / 1000.0).collect::<Vec<_>>();
+        let decoy = {
+            let mut d = q.descriptors[..10 * 64].to_vec();
+            d.extend_from_slice(&descriptors(50, 22));
+            features(d, descending(60))
+        };
+        let right = {
+            let mut d = descriptors(300, 23);
+            d.extend_from_slice(&q.descriptors);
+            features(d, descending(340))
+        };
+        let stranger = features(descriptors(60, 24), descending(60));
+        let images: Vec<MapImage> = [decoy, right, stranger].iter().map(map_image).collect();
+        let hits: Vec<Hit> = (0..3).map(|id| Hit { id, score: 0.5 }).collect();
+        let list = Shortlist::new(&images, FINAL_KEYPOINTS);
+        let kept = list
+            .rerank(&images, &q, &[], &hits, 1, &Mnn::default(), 0.1)
+            .unwrap();
+        assert_eq!(
+            kept[0].id, 1,
+            "40 matches among the weaker keypoints beat 10 strong ones"
+        );
+        let first_only = list
+            .ranked_by_vote(
+                &images,
+                &q,
+                &[],
+                &hits,
+                COARSE_KEYPOINTS,
+                &Mnn::default(),
+                0.1,
+            )
+            .unwrap();
+        assert_eq!(
+            first_only[0].id, 0,
+            "the first vote alone sees only the decoy's"
         );
     }
 
