@@ -351,8 +351,20 @@ fn a_noisy_depth_sensor_is_measured_and_its_far_matches_kept() {
     let (clean_fixed, k_clean, _) = run(&fixed, false);
     let (clean_grown, _, _) = run(&grown, false);
     assert!(k_clean.iter().all(|&k| k == 0.0), "{k_clean:?}");
-    let poses = |r: &eval::EvalReport| -> Vec<_> { r.per_query.iter().map(|q| q.error).collect() };
-    assert_eq!(poses(&clean_fixed), poses(&clean_grown));
+    // The same answers: both or neither LOCALIZED, errors equal to a micrometre (not bit for bit:
+    // the registration's clique search has a time budget, so on a loaded machine, as under the
+    // parallel test runner, two runs of one frame can differ by rounding).
+    assert_eq!(clean_fixed.per_query.len(), clean_grown.per_query.len());
+    for (a, b) in clean_fixed.per_query.iter().zip(&clean_grown.per_query) {
+        match (a.error, b.error) {
+            (None, None) => {}
+            (Some(a), Some(b)) => assert!(
+                (a.0 - b.0).abs() < 1e-6 && (a.1 - b.1).abs() < 1e-4,
+                "{a:?} vs {b:?}"
+            ),
+            other => panic!("clean frames answered differently: {other:?}"),
+        }
+    }
     let (noisy_fixed, k_noisy, registered_fixed) = run(&fixed, true);
     let (noisy_grown, _, registered_grown) = run(&grown, true);
     // Candidates the fixed bound lost to the far noise register with the grown bounds.

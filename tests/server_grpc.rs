@@ -682,10 +682,13 @@ fn overload_deadlines_auth_and_drain() {
         });
         pool_state(&running, 1, 0).await;
         let mut req = authed(request(v, ""), "t0ken-for-tests");
-        // Half a localization: ample to send the frame, short of the worker's remaining time.
-        // (A deadline that passes before the message is even received is answered by tonic's
-        // transport, as CANCELLED; the service answers DEADLINE_EXCEEDED from then on.)
-        let budget = Duration::from_secs_f64((single_s / 2.0).clamp(0.02, 0.5));
+        // Three quarters of a localization: ample to send the frame, short of the time the worker
+        // needs before it could answer (the rest of the first request's run, then this one's
+        // whole run). (A deadline that passes before the message is even received is answered
+        // by tonic's transport, as CANCELLED; the service answers DEADLINE_EXCEEDED from then on.
+        // Half a localization was at times too short to deliver the frame under the parallel
+        // test runner.)
+        let budget = Duration::from_secs_f64((0.75 * single_s).clamp(0.02, 0.5));
         req.set_timeout(budget);
         let e = c.localize(req).await.unwrap_err();
         assert_eq!(e.code(), Code::DeadlineExceeded, "{}", e.message());

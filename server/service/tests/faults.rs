@@ -222,13 +222,14 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
             pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
                 .await
                 .unwrap();
-        let answered = again.localize(req.clone()).await.unwrap().into_inner();
-        let single_s = answered
-            .timings
-            .iter()
-            .find(|t| t.stage == "total")
-            .unwrap()
-            .seconds;
+        // The fastest of three answers: the deadline below is half a localization, and one slow
+        // run (the parallel test runner loading the cores) would set it above a fast one.
+        let mut single_s = f64::INFINITY;
+        for _ in 0..3 {
+            let answered = again.localize(req.clone()).await.unwrap().into_inner();
+            let total = answered.timings.iter().find(|t| t.stage == "total");
+            single_s = single_s.min(total.unwrap().seconds);
+        }
 
         // A client that leaves while its request is *running*: the pipeline cannot be interrupted
         // mid-frame, so the worker finishes the frame and drops the answer; the gauges return to
