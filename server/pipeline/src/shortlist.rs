@@ -516,6 +516,22 @@ mod tests {
             .is_err());
     }
 
+    /// Which of two map images (0 or 1, equal global scores) the shortlist keeps for query `q`.
+    fn first_of_two(
+        a: MapImage,
+        b: MapImage,
+        q: &Features,
+        q_points: &[Option<Vector3<f64>>],
+    ) -> usize {
+        let images = vec![a, b];
+        let hits: Vec<Hit> = (0..2).map(|id| Hit { id, score: 0.5 }).collect();
+        let list = Shortlist::new(&images, 64);
+        let kept = list
+            .rerank(&images, q, q_points, &hits, 1, &Mnn::default(), 0.1)
+            .unwrap();
+        kept[0].id
+    }
+
     #[test]
     fn geometric_consistency_outvotes_more_matches() {
         // The query's 30 keypoints on a 3D grid. Image 1 matches 20 of them at the same 3D
@@ -543,14 +559,9 @@ mod tests {
             let s = q_points[(i * 7 + 3) % 30].unwrap();
             scrambled.points[i] = [s.x as f32, (s.y * 1.9) as f32, (s.z * 0.6) as f32];
         }
-        let images = vec![scrambled, consistent];
-        let hits: Vec<Hit> = (0..2).map(|id| Hit { id, score: 0.5 }).collect();
-        let list = Shortlist::new(&images, 64);
-        let kept = list
-            .rerank(&images, &q, &q_points, &hits, 1, &Mnn::default(), 0.1)
-            .unwrap();
         assert_eq!(
-            kept[0].id, 1,
+            first_of_two(scrambled, consistent, &q, &q_points),
+            1,
             "20 consistent matches beat 30 scrambled ones"
         );
     }
@@ -602,14 +613,9 @@ mod tests {
             .collect();
         let g = consistency_graph(&src, &dst, &[true; 30], 0.1);
         assert!(g.degree(0) >= 29, "the hub agrees with every other match");
-        let images = vec![hub, rigid];
-        let hits: Vec<Hit> = (0..2).map(|id| Hit { id, score: 0.5 }).collect();
-        let list = Shortlist::new(&images, 64);
-        let kept = list
-            .rerank(&images, &q, &q_points, &hits, 1, &Mnn::default(), 0.1)
-            .unwrap();
         assert_eq!(
-            kept[0].id, 1,
+            first_of_two(hub, rigid, &q, &q_points),
+            1,
             "12 mutually consistent matches beat a star of 29"
         );
     }
