@@ -704,6 +704,10 @@ impl Pipeline {
             matches: known,
         } = shortlisted;
         let matcher_is_cheap = self.preset.matcher == "mnn";
+        // One candidate of this frame matched (or its matches taken) and registered.
+        let register = |id: usize, rank: usize, matched: Matched, times: &mut StageTimes| {
+            self.candidate(fq, q_pts, q_bounds, q, id, rank, matched, times)
+        };
         let mut finalists: Vec<(usize, usize)> =
             hits.iter().enumerate().map(|(r, h)| (h.id, r)).collect();
         let mut done: Vec<Candidate> = Vec::new();
@@ -717,7 +721,7 @@ impl Pipeline {
                     Some(Some(m)) => Matched::Known(m),
                     _ => Matched::By(&self.cheap),
                 };
-                let c = self.candidate(fq, q_pts, q_bounds, q, id, rank, cheap, &mut times)?;
+                let c = register(id, rank, cheap, &mut times)?;
                 scored.push(c);
             }
             scored.sort_by(|a, b| b.inliers.cmp(&a.inliers).then(a.rank.cmp(&b.rank)));
@@ -735,11 +739,7 @@ impl Pipeline {
         }
         if done.is_empty() {
             for &(id, rank) in &finalists {
-                let c = self.candidate(
-                    fq,
-                    q_pts,
-                    q_bounds,
-                    q,
+                let c = register(
                     id,
                     rank,
                     Matched::By(self.stage.matcher.as_ref()),
@@ -760,16 +760,7 @@ impl Pipeline {
             pool.clear();
             let mut again = Vec::with_capacity(finalists.len());
             for &(id, rank) in &finalists {
-                let c = self.candidate(
-                    fq,
-                    q_pts,
-                    q_bounds,
-                    q,
-                    id,
-                    rank,
-                    Matched::By(&self.fallback),
-                    &mut times,
-                )?;
+                let c = register(id, rank, Matched::By(&self.fallback), &mut times)?;
                 if let Some(w) = self.world_from_query(&c) {
                     pool.push((c.image, w, c.inliers));
                 }
