@@ -251,6 +251,10 @@ pub struct QueryOutcome {
     pub error: Option<(f64, f64)>,
     /// (metres, degrees) error of the best pose found, LOCALIZED or not.
     pub estimate_error: Option<(f64, f64)>,
+    /// Where the best pose found lies from the true camera, metres, in the true camera's own axes
+    /// (Habitat: x right, y up, z backward); `None` without an estimate. Errors that run along one
+    /// axis by a fixed length (a texture's period, a room's symmetry) show here.
+    pub estimate_offset_camera_m: Option<[f64; 3]>,
     /// (metres, degrees) error of the top retrieved database pose used as the answer.
     pub retrieval_error: Option<(f64, f64)>,
     /// The calibrated confidence.
@@ -480,6 +484,9 @@ pub fn run(
             position_m: gt.translation.vector.into(),
             error: *errors.last().expect("pushed above"),
             estimate_error: scored.last().and_then(|s| s.1),
+            estimate_offset_camera_m: a.estimate.or(a.pose).map(|p| {
+                (gt.rotation.inverse() * (p.translation.vector - gt.translation.vector)).into()
+            }),
             retrieval_error: None,
             confidence: a.confidence,
             right_point_rank: None,

@@ -14,6 +14,8 @@
 //! - [`pipeline`]: retrieve, re-rank by geometry, match, back-project, register, verify, compose.
 //! - [`shortlist`]: the global ranking's top images re-ranked by a vote of their strongest keypoints,
 //!   so look-alike rooms of a large map do not crowd the right one out of the candidates.
+//! - [`alias`]: a registration locked onto a repeated texture one period off, found from the
+//!   residuals of the other matches and moved when the dense checks prefer the copy they support.
 //! - [`refine`]: a registered pose polished against the map view's whole depth (point-to-plane ICP
 //!   with the keypoint inliers).
 //! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
@@ -25,6 +27,7 @@
 //! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
 //!   separate, labelled mode).
 
+pub mod alias;
 pub mod calibration;
 pub mod camera;
 pub mod depth_noise;
@@ -38,6 +41,9 @@ pub mod prior;
 pub mod refine;
 pub mod shortlist;
 pub mod verify;
+
+#[cfg(test)]
+mod test_scenes;
 
 use std::path::PathBuf;
 

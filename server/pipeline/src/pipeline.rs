@@ -31,6 +31,7 @@ use pntr_registration::Rigid;
 use pntr_retrieval::index::Hit;
 use serde::Serialize;
 
+use crate::alias::resolve;
 use crate::calibration::{choose, Calibration};
 use crate::camera::to_map_scale;
 use crate::depth_noise::RangeBounds;
@@ -225,6 +226,11 @@ struct Candidate {
     inlier_src: Vec<Vector3<f64>>,
     inlier_dst: Vec<Vector3<f64>>,
     inlier_px: Vec<[f32; 2]>,
+    /// Every matched pair with depth on both sides (the solver's input): query points, database
+    /// points, query pixels. Empty for PnP.
+    pair_src: Vec<Vector3<f64>>,
+    pair_dst: Vec<Vector3<f64>>,
+    pair_px: Vec<[f32; 2]>,
 }
 
 /// A map with the feature stage and solvers that run on it. Cheap to share: `localize` takes `&self`
@@ -774,6 +780,17 @@ impl Pipeline {
         let tv = Instant::now();
         let thumb = (!valid.is_empty()).then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
         let thumb_ref = thumb.as_ref();
+        // A registration one texture period off moved onto the copy its other matches support.
+        if let Some(t) = thumb_ref {
+            for c in valid.iter_mut() {
+                if self.resolve_alias(c, t) {
+                    if let Some(w) = self.world_from_query(c) {
+                        pool.retain(|p| p.0 != c.image);
+                        pool.push((c.image, w, c.inliers));
+                    }
+                }
+            }
+        }
         // Refined before verification, so the dense checks judge the refined poses. (`pool`, for the
         // candidates' consensus, keeps the registrations' poses: within its 0.5 m / 10 deg
         // agreement the refinement's at most 0.3 m / 5 deg changes little.)
@@ -930,6 +947,27 @@ impl Pipeline {
         (valid, fewest)
     }
 
+    /// Move candidate `c`'s pose onto the rival its matches support when the dense checks prefer it
+    /// ([`crate::alias::resolve`]; the rival needs the preset's `min_inliers`, as any registration);
+    /// its inliers become the rival's. Returns whether it moved.
+    fn resolve_alias(&self, c: &mut Candidate, thumb: &Thumb) -> bool {
+        let Some(pose) = c.db_from_query else {
+            return false;
+        };
+        let db = &self.map.images[c.image].thumb;
+        let bound = self.teaser.noise_bound;
+        let min = self.preset.min_inliers;
+        let Some(r) = resolve(thumb, db, &pose, &c.pair_src, &c.pair_dst, bound, min) else {
+            return false;
+        };
+        c.db_from_query = Some(r.db_from_query);
+        c.inliers = r.inliers.len();
+        c.inlier_src = r.inliers.iter().map(|&i| c.pair_src[i]).collect();
+        c.inlier_dst = r.inliers.iter().map(|&i| c.pair_dst[i]).collect();
+        c.inlier_px = r.inliers.iter().map(|&i| c.pair_px[i]).collect();
+        true
+    }
+
     /// `world_from_query` of a registered candidate, OpenCV camera axes.
     fn world_from_query(&self, c: &Candidate) -> Option<Isometry3<f64>> {
         let db = &self.map.images[c.image];
@@ -1070,6 +1108,9 @@ impl Pipeline {
             inlier_src: Vec::new(),
             inlier_dst: Vec::new(),
             inlier_px: Vec::new(),
+            pair_src: Vec::new(),
+            pair_dst: Vec::new(),
+            pair_px: Vec::new(),
         };
         match self.preset.solver {
             Solver::Pnp => {
@@ -1139,6 +1180,9 @@ impl Pipeline {
                         c.inlier_dst.push(dst[i]);
                         c.inlier_px.push(fq.keypoints[qa[i]]);
                     }
+                    c.pair_px = qa.iter().map(|&a| fq.keypoints[a]).collect();
+                    c.pair_src = src;
+                    c.pair_dst = dst;
                 }
             }
         }
