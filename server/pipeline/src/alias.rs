@@ -13,12 +13,13 @@
 //!    gather in one place ([`translation_modes`]: the densest balls of radius `bound`, between
 //!    [`MIN_SHIFT_M`] and [`MAX_SHIFT_M`] from the pose, with as many matches as a registration
 //!    needs inliers).
-//! 2. Each mode is a rival pose: the registered pose moved by that translation, whose inliers are the
-//!    pairs within `bound` of it.
+//! 2. Each mode is a rival pose: the registered pose moved by that translation, refitted (least
+//!    squares) to the pairs within `bound` of it, which are its inliers.
 //! 3. The dense checks of both directions against the matched map view decide ([`resolve`]): the
-//!    rival replaces the registered pose when more of the query's samples agree with the view's depth
-//!    and their grey values correlate better; the repeated texture itself looks the same either way,
-//!    the walls, furniture and the texture's edges do not.
+//!    rival replaces the registered pose when a larger share of the query's samples agrees with the
+//!    view's depth and fewer see through its surfaces, or, the depth no worse, the grey values
+//!    correlate better within small tiles; the repeated texture itself looks the same either way, the
+//!    walls, furniture and the texture's edges do not.
 //!
 //! This is a hypothesis test between a few discrete poses, like the alias search of the answer's
 //! covariance ([`crate::verify::aliases`]), which widens the covariance when such a shift explains the
@@ -28,6 +29,8 @@
 use std::collections::HashMap;
 
 use nalgebra::{Isometry3, Point3, Translation3, Vector3};
+
+use pntr_registration::kabsch;
 
 use crate::verify::{dense_check_both, DenseCounts, Thumb};
 
@@ -44,7 +47,8 @@ pub const MAX_MODES: usize = 3;
 pub struct Mode {
     /// The translation (map view frame, metres) that moves the registered pose onto this one.
     pub shift: Vector3<f64>,
-    /// Indices of the pairs whose residual lies in the mode's ball.
+    /// Indices of the pairs whose residual lies in the mode's ball and in no denser mode's (not the
+    /// rival's inliers, which [`resolve`] counts around the mean shift).
     pub support: Vec<usize>,
 }
 
@@ -116,9 +120,13 @@ pub fn translation_modes(
     balls.sort_by(|a, b| b.1.len().cmp(&a.1.len()).then(a.0.cmp(&b.0)));
     let mut taken = vec![false; residuals.len()];
     let mut modes = Vec::new();
-    for (_, members) in balls {
+    for (centre, members) in balls {
         if modes.len() == MAX_MODES {
             break;
+        }
+        // A ball centred inside a denser mode is its fringe, not another translation.
+        if taken[centre] {
+            continue;
         }
         let free: Vec<usize> = members.into_iter().filter(|&k| !taken[k]).collect();
         if free.len() < min_support {
@@ -157,8 +165,9 @@ pub const GREY_MARGIN: f64 = 0.08;
 /// of the right copy stand where the map saw them) and the local grey correlation
 /// ([`DenseCounts::local_gray_correlation`]) no worse by more than [`GREY_SLACK`]. On grey, where the
 /// depth cannot tell (a shift along a flat wall): no more violations, no smaller agreeing share and a
-/// local grey correlation higher by [`GREY_MARGIN`]. Shares, not counts: a shift that moves part of
-/// the frame out of the view loses samples either way. Chosen by measurement (BENCHMARKS.md,
+/// local grey correlation higher by [`GREY_MARGIN`]. Agreement as shares, not counts: a shift that
+/// moves part of the frame out of the view loses samples either way (the grey test's "no more
+/// violations" counts them, as measured). Chosen by measurement (BENCHMARKS.md,
 /// "Registrations one texture period off"): against each alternative pose of the demo scene's robot
 /// captures and the truth, and end to end against depth alone, violation counts, and any gain in
 /// agreeing count and grey correlation.
@@ -177,10 +186,11 @@ fn better(rival: &DenseCounts, current: &DenseCounts) -> bool {
 
 /// Test the rival poses of [`translation_modes`] against the registered `db_from_query` with the
 /// dense checks of both directions between the query's thumbnail `query` and the matched map view's
-/// `db`; return the best rival that [`better`] prefers, or `None` to keep the registration. `src` and
-/// `dst` are all the matched pairs (parallel; query camera and map view frames, metres), `bound_m` the
-/// registration's noise bound, `min_support` the inliers a registration needs (a rival needs as
-/// many).
+/// `db`, densest mode first, each against the pose that has won so far; return the last winner, or
+/// `None` to keep the registration. A rival needs `min_support` inliers (the pairs within `bound_m` of
+/// it), as a registration does. `src` and `dst` are all the matched pairs (parallel; query camera and
+/// map view frames, metres), `bound_m` the registration's fixed noise bound (also for a candidate
+/// registered with bounds grown by the frame's depth noise: measured as it is).
 pub fn resolve(
     query: &Thumb,
     db: &Thumb,
@@ -194,28 +204,41 @@ pub fn resolve(
     if modes.is_empty() {
         return None;
     }
+    let within = |pose: &Isometry3<f64>| -> Vec<usize> {
+        src.iter()
+            .zip(dst)
+            .enumerate()
+            .filter(|(_, (s, d))| (*d - (pose * Point3::from(**s)).coords).norm() <= bound_m)
+            .map(|(i, _)| i)
+            .collect()
+    };
     let mut best = dense_check_both(query, db, db_from_query);
     let mut chosen = None;
     for m in modes {
-        let pose = Translation3::from(m.shift) * db_from_query;
+        // The registration moved by the mode's mean shift, then the least-squares pose of the pairs
+        // within the bound of it (the rotation too: the registration's was fitted to the aliased
+        // pairs), kept when as many pairs support it.
+        let shifted = Translation3::from(m.shift) * db_from_query;
+        let near = within(&shifted);
+        if near.len() < min_support {
+            continue;
+        }
+        let (s_in, d_in): (Vec<_>, Vec<_>) = near.iter().map(|&i| (src[i], dst[i])).unzip();
+        let fitted = kabsch(&s_in, &d_in)
+            .map(|r| r.to_isometry())
+            .map(|p| (within(&p), p))
+            .filter(|(inl, _)| inl.len() >= min_support);
+        let (inliers, pose) = fitted.unwrap_or((near, shifted));
         let counts = dense_check_both(query, db, &pose);
         if better(&counts, &best) {
             best = counts;
-            chosen = Some(pose);
+            chosen = Some(Resolved {
+                db_from_query: pose,
+                inliers,
+            });
         }
     }
-    let pose = chosen?;
-    let inliers = src
-        .iter()
-        .zip(dst)
-        .enumerate()
-        .filter(|(_, (s, d))| (*d - (pose * Point3::from(**s)).coords).norm() <= bound_m)
-        .map(|(i, _)| i)
-        .collect();
-    Some(Resolved {
-        db_from_query: pose,
-        inliers,
-    })
+    chosen
 }
 
 #[cfg(test)]
