@@ -294,6 +294,25 @@ mod tests {
     }
 
     #[test]
+    fn a_rival_wins_on_depth_or_on_grey_within_tiles_and_not_on_less() {
+        let current = DenseCounts::of(1000, 800, 100, 0.5);
+        // Depth: a higher agreeing share with fewer violations, grey within tiles a little worse.
+        assert!(better(&DenseCounts::of(1000, 900, 50, 0.46), &current));
+        // ... but not with more violations, a share only 4 points higher, or grey much worse.
+        assert!(!better(&DenseCounts::of(1000, 900, 110, 0.5), &current));
+        assert!(!better(&DenseCounts::of(1000, 840, 50, 0.5), &current));
+        assert!(!better(&DenseCounts::of(1000, 900, 50, 0.4), &current));
+        // Shares, not counts: half the samples inside the view, fewer of them agreeing, a higher share.
+        assert!(better(&DenseCounts::of(500, 450, 20, 0.5), &current));
+        // Grey alone: the depth no worse and grey within tiles higher by more than the margin...
+        assert!(better(&DenseCounts::of(1000, 800, 100, 0.6), &current));
+        // ... not by less, and not with more violations or a smaller agreeing share.
+        assert!(!better(&DenseCounts::of(1000, 800, 100, 0.55), &current));
+        assert!(!better(&DenseCounts::of(1000, 800, 101, 0.6), &current));
+        assert!(!better(&DenseCounts::of(1000, 790, 100, 0.6), &current));
+    }
+
+    #[test]
     fn the_matches_off_by_one_period_gather_in_one_mode() {
         let (src, dst) = pairs(25, 8);
         // Registered on the 25 aliased pairs: the 8 right ones are one period away.
