@@ -552,12 +552,15 @@ mod tests {
         for i in 0..30 {
             let p = q_points[i].unwrap() + Vector3::new(0.3, -0.2, 1.0);
             consistent.points[i] = if i < 20 {
-                [p.x as f32, p.y as f32, p.z as f32]
+                p.cast::<f32>().into()
             } else {
                 [f32::NAN; 3]
             };
             let s = q_points[(i * 7 + 3) % 30].unwrap();
-            scrambled.points[i] = [s.x as f32, (s.y * 1.9) as f32, (s.z * 0.6) as f32];
+            scrambled.points[i] = s
+                .component_mul(&Vector3::new(1.0, 1.9, 0.6))
+                .cast::<f32>()
+                .into();
         }
         assert_eq!(
             first_of_two(scrambled, consistent, &q, &q_points),
@@ -598,19 +601,15 @@ mod tests {
                 // The same distance from the first match, another direction.
                 centre + r * (at(1.0, 0.9 * i as f64 + 2.1 * i as f64) - centre).normalize()
             };
-            hub.points[i] = [p.x as f32, p.y as f32, p.z as f32];
+            hub.points[i] = p.cast::<f32>().into();
             if i < 12 {
                 let p = qp + moved;
-                rigid.points[i] = [p.x as f32, p.y as f32, p.z as f32];
+                rigid.points[i] = p.cast::<f32>().into();
             }
         }
         // The premise: the hub's star is larger than the whole rigid set.
         let src: Vec<Vector3<f64>> = q_points.iter().map(|p| p.unwrap()).collect();
-        let dst: Vec<Vector3<f64>> = hub
-            .points
-            .iter()
-            .map(|p| Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64))
-            .collect();
+        let dst: Vec<Vector3<f64>> = hub.points.iter().map(|&p| crate::verify::vec3(p)).collect();
         let g = consistency_graph(&src, &dst, &[true; 30], 0.1);
         assert!(g.degree(0) >= 29, "the hub agrees with every other match");
         assert_eq!(
