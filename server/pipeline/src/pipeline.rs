@@ -792,8 +792,9 @@ impl Pipeline {
             }
         }
         // Refined before verification, so the dense checks judge the refined poses. (`pool`, for the
-        // candidates' consensus, keeps the registrations' poses, or the alias stage's: within its
-        // 0.5 m / 10 deg agreement the refinement's at most 0.3 m / 5 deg changes little.)
+        // candidates' consensus, keeps the registrations' poses, or the alias stage's: giving it the
+        // refined poses instead changed one answer in 6,500 robot and clean queries, BENCHMARKS.md,
+        // "Dense refinement up to 10 degrees".)
         if let Some(t) = thumb_ref {
             for c in valid.iter_mut() {
                 let db = &self.map.images[c.image].thumb;
