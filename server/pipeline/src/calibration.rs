@@ -219,17 +219,36 @@ pub struct QuerySamples {
     pub rivals: Vec<Vec<usize>>,
 }
 
-/// The answer's confidence from each candidate's probability: `p_i * (1 - max rival p_j)`, the
-/// chance that candidate i is right and its strongest disagreeing rival is not (they cannot both be
-/// right). Returns (index of the most confident candidate, its confidence).
-pub fn choose(probabilities: &[f64], rivals: &[Vec<usize>]) -> Option<(usize, f64)> {
+/// A disagreeing rival with at least this share of a candidate's inliers counts with its whole
+/// probability in [`choose`]; one with fewer counts in proportion (a quarter of the inliers: half).
+/// Measured (BENCHMARKS.md, "Rivals weighed by their inliers"): at every threshold the same wrong
+/// answers and more right ones than counting every rival whole.
+pub const RIVAL_FULL_INLIER_SHARE: f64 = 0.5;
+
+/// The answer's confidence from each candidate's probability `probabilities[i]` and registration
+/// inliers `inliers[i]` (parallel slices): `p_i * (1 - max_j w_ij p_j)` over its disagreeing rivals
+/// `rivals[i]`, the chance that candidate i is right and its strongest rival is not (they cannot both
+/// be right), where `w_ij = min(1, inliers_j / (RIVAL_FULL_INLIER_SHARE * inliers_i))`: a rival held
+/// by a small fraction of candidate i's matches (a room's symmetry met by a few wall-texture matches)
+/// is weaker evidence that the place is ambiguous. Returns (index of the most confident candidate,
+/// its confidence), `None` without candidates.
+pub fn choose(
+    probabilities: &[f64],
+    inliers: &[usize],
+    rivals: &[Vec<usize>],
+) -> Option<(usize, f64)> {
+    let count = |i: usize| inliers.get(i).copied().unwrap_or(0) as f64;
     (0..probabilities.len())
         .map(|i| {
+            let own = count(i).max(1.0);
             let rival = rivals
                 .get(i)
                 .into_iter()
                 .flatten()
-                .map(|&j| probabilities[j])
+                .map(|&j| {
+                    let weight = (count(j) / (RIVAL_FULL_INLIER_SHARE * own)).min(1.0);
+                    weight * probabilities[j]
+                })
                 .fold(0.0, f64::max);
             (i, probabilities[i] * (1.0 - rival))
         })
@@ -326,7 +345,8 @@ pub fn fit(
         .iter()
         .filter_map(|q| {
             let p: Vec<f64> = q.candidates.iter().map(|s| c.probability(&s.0)).collect();
-            let (i, conf) = choose(&p, &q.rivals)?;
+            let inliers: Vec<usize> = q.candidates.iter().map(|s| s.0.inliers()).collect();
+            let (i, conf) = choose(&p, &inliers, &q.rivals)?;
             Some((conf, q.candidates[i].1))
         })
         .collect();
@@ -474,9 +494,29 @@ mod tests {
         std::fs::write(&path, &text[..text.len() / 3]).unwrap();
         assert!(Calibration::load(&path).is_err());
         // Rivals: a strong disagreeing rival lowers the answer's confidence.
-        let (i, conf) = choose(&[0.9, 0.8], &[vec![1], vec![0]]).unwrap();
+        let (i, conf) = choose(&[0.9, 0.8], &[40, 30], &[vec![1], vec![0]]).unwrap();
         assert_eq!(i, 0);
         assert!((conf - 0.9 * 0.2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_rival_with_a_fraction_of_the_inliers_counts_in_proportion() {
+        let rivals = [vec![1], vec![0]];
+        // 200 inliers against a rival pose of 20 (a symmetric wall's texture): the rival counts
+        // with 20 / (0.5 * 200) = 0.2 of its probability.
+        let (i, conf) = choose(&[0.99, 0.6], &[200, 20], &rivals).unwrap();
+        assert_eq!(i, 0);
+        assert!((conf - 0.99 * (1.0 - 0.2 * 0.6)).abs() < 1e-12, "{conf}");
+        // A rival with half the inliers or more counts whole, and the weaker candidate always meets
+        // its stronger rival whole.
+        let (_, conf) = choose(&[0.99, 0.6], &[200, 100], &rivals).unwrap();
+        assert!((conf - 0.99 * 0.4).abs() < 1e-12, "{conf}");
+        let (i, conf) = choose(&[0.6, 0.99], &[20, 200], &rivals).unwrap();
+        assert_eq!(i, 1);
+        assert!((conf - 0.99 * (1.0 - 0.2 * 0.6)).abs() < 1e-12, "{conf}");
+        // No candidates, no answer; one without rivals keeps its probability.
+        assert!(choose(&[], &[], &[]).is_none());
+        assert_eq!(choose(&[0.7], &[15], &[vec![]]), Some((0, 0.7)));
     }
 
     #[test]

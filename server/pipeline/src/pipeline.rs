@@ -139,7 +139,8 @@ pub struct Localization {
     /// The best pose found, even when verification rejected it (for evaluation and diagnostics).
     pub estimate: Option<Isometry3<f64>>,
     /// Calibrated confidence in 0..1 that `estimate` is within (1 m, 10 deg) of the truth: its
-    /// candidate's probability times the chance that its strongest disagreeing rival is wrong
+    /// candidate's probability times the chance that its strongest disagreeing rival is wrong, a
+    /// rival with under half the candidate's inliers weighed in proportion
     /// ([`crate::calibration::choose`]); LOCALIZED needs at least the pipeline's threshold. 0 without
     /// an estimate.
     pub confidence: f64,
@@ -847,7 +848,8 @@ impl Pipeline {
                     .collect()
             })
             .collect();
-        let chosen = choose(&probabilities, &rivals);
+        let inliers: Vec<usize> = scored.iter().map(|(c, _, _)| c.inliers).collect();
+        let chosen = choose(&probabilities, &inliers, &rivals);
         let verified: Vec<Verified> = scored
             .iter()
             .zip(&probabilities)

@@ -472,6 +472,11 @@ impl Evidence {
         ]
     }
 
+    /// The registration's inlier count, from [`Evidence::log_inliers`].
+    pub fn inliers(&self) -> usize {
+        (self.log_inliers.exp() - 1.0).round().max(0.0) as usize
+    }
+
     /// A one-line account of the checks, for NOT_LOCALIZED reasons.
     pub fn summary(&self) -> String {
         format!(
@@ -481,7 +486,7 @@ impl Evidence {
             100.0 * self.free_space_violation,
             self.gray_correlation,
             self.local_gray,
-            (self.log_inliers.exp() - 1.0).round(),
+            self.inliers(),
             100.0 * self.consensus,
             100.0 * self.rival_agree
         )
