@@ -221,8 +221,8 @@ pub struct QuerySamples {
 
 /// A disagreeing rival with at least this share of a candidate's inliers counts with its whole
 /// probability in [`choose`]; one with fewer counts in proportion (a quarter of the inliers: half).
-/// Measured (BENCHMARKS.md, "Rivals weighed by their inliers"): at every threshold the same wrong
-/// answers and more right ones than counting every rival whole.
+/// Measured (BENCHMARKS.md, "Rivals weighed by their inliers"): from the shipped threshold up, the
+/// same wrong answers and more right ones than counting every rival whole.
 pub const RIVAL_FULL_INLIER_SHARE: f64 = 0.5;
 
 /// The answer's confidence from each candidate's probability `probabilities[i]` and registration
@@ -237,6 +237,7 @@ pub fn choose(
     inliers: &[usize],
     rivals: &[Vec<usize>],
 ) -> Option<(usize, f64)> {
+    debug_assert_eq!(inliers.len(), probabilities.len(), "parallel slices");
     let count = |i: usize| inliers.get(i).copied().unwrap_or(0) as f64;
     (0..probabilities.len())
         .map(|i| {
