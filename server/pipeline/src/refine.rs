@@ -220,6 +220,25 @@ mod tests {
     use super::*;
     use crate::test_scenes::{noisy_room_view, room_view};
 
+    /// Twelve keypoint pairs in a 4 x 3 block of `query`'s thumbnail from `corner` (column, row):
+    /// their points in the query camera and, under `truth`, in the map view's with 1 cm noise.
+    fn bunched_pairs(
+        query: &Thumb,
+        truth: &Isometry3<f64>,
+        corner: (u32, u32),
+    ) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+        let k = query.intrinsics;
+        (0..12u32)
+            .map(|i| {
+                let (c, r) = (corner.0 + i % 4, corner.1 + i / 4);
+                let z = query.depth_m(c, r).unwrap();
+                let p = k.backproject(c as f64, r as f64, z).coords;
+                let noise = Vector3::new(0.01, -0.01, 0.005) * ((i % 3) as f64 - 1.0);
+                (p, (truth * Point3::from(p)).coords + noise)
+            })
+            .unzip()
+    }
+
     #[test]
     fn a_rotation_held_by_bunched_keypoints_is_corrected_by_the_depth() {
         let db_pose = Isometry3::identity();
@@ -230,17 +249,7 @@ mod tests {
         let db = room_view(&db_pose);
         let query = room_view(&truth);
         // Twelve keypoints bunched in one corner of the query image, their 3D pairs with 1 cm noise.
-        let k = query.intrinsics;
-        let mut src = Vec::new();
-        let mut dst = Vec::new();
-        for i in 0..12u32 {
-            let (c, r) = (40 + i % 4, 10 + i / 4);
-            let z = query.depth_m(c, r).unwrap();
-            let p = k.backproject(c as f64, r as f64, z).coords;
-            let noise = Vector3::new(0.01, -0.01, 0.005) * ((i % 3) as f64 - 1.0);
-            src.push(p);
-            dst.push((truth * Point3::from(p)).coords + noise);
-        }
+        let (src, dst) = bunched_pairs(&query, &truth, (40, 10));
         // The registration's answer: the right place, turned by 3 degrees.
         let off = UnitQuaternion::from_euler_angles(0.02, 0.045, -0.01);
         let init = Isometry3::from_parts(truth.translation, off * truth.rotation);
@@ -264,16 +273,7 @@ mod tests {
         );
         let db = room_view(&Isometry3::identity());
         let query = room_view(&truth);
-        let k = query.intrinsics;
-        let (mut src, mut dst) = (Vec::new(), Vec::new());
-        for i in 0..12u32 {
-            let (c, r) = (20 + i % 4, 40 + i / 4);
-            let z = query.depth_m(c, r).unwrap();
-            let p = k.backproject(c as f64, r as f64, z).coords;
-            let noise = Vector3::new(0.01, -0.01, 0.005) * ((i % 3) as f64 - 1.0);
-            src.push(p);
-            dst.push((truth * Point3::from(p)).coords + noise);
-        }
+        let (src, dst) = bunched_pairs(&query, &truth, (20, 40));
         let axis = Vector3::new(0.3, 1.0, -0.2).normalize();
         let off = UnitQuaternion::from_scaled_axis(axis * 6f64.to_radians());
         let init = Isometry3::from_parts(truth.translation, off * truth.rotation);
