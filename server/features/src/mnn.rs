@@ -92,6 +92,9 @@ pub struct MnnBuffers {
     /// Best similarity of every column so far, and its row.
     col_best: Vec<f32>,
     col_row: Vec<u32>,
+    /// The int8 screen's quantized sides and the pairs it lets through ([`screen`]).
+    #[cfg(target_arch = "x86_64")]
+    screen: screen::Buffers,
 }
 
 /// Lanes of the row-major pass: eight independent running maxima per row (one AVX register of
@@ -148,7 +151,9 @@ mod avx2 {
     pub fn lanes(row: &[f32], i: u32, col_best: &mut [f32], col_row: &mut [u32]) -> Lanes {
         assert!(available(), "AVX2 pass called on a CPU without AVX2");
         assert!(
-            row.len() % LANES == 0 && col_best.len() == row.len() && col_row.len() == row.len()
+            row.len().is_multiple_of(LANES)
+                && col_best.len() == row.len()
+                && col_row.len() == row.len()
         );
         // SAFETY: AVX2 is present (checked above); every load and store below is at j..j + 8 with
         // j + 8 <= row.len(), the length of all three slices (checked above).
@@ -239,6 +244,12 @@ fn scan_row(row: &[f32], i: u32, col_best: &mut [f32], col_row: &mut [u32]) -> (
 /// and per column in a single row-major pass of eight lanes (AVX2 where the CPU has it; the pass
 /// costs about a third of the product at 1024 x 1024, `benches/mnn.rs`); the first maximum wins
 /// ties. Nothing for `dim == 0` or an empty side.
+///
+/// Where the CPU has AVX-512 VNNI, there is no ratio test and the floor is at least
+/// [`screen::LOWEST_FLOOR`], an int8 product screens the pairs first ([`screen`]): only pairs whose
+/// similarity can reach the floor are computed in f32, and the matches are those of the full
+/// product (the same pairs; the similarities agree to float rounding, so only a tie within about
+/// 1e-6 could go the other way).
 pub fn mutual_nearest(
     a: &[f32],
     b: &[f32],
@@ -254,6 +265,26 @@ pub fn mutual_nearest(
     if n == 0 || m == 0 {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if screen::applies(dim, params) && screen::available() {
+        let (a, b) = (&a[..n * dim], &b[..m * dim]);
+        if screen::mutual_nearest(a, b, dim, params.min_similarity, &mut buf.screen, out) {
+            return;
+        }
+    }
+    mutual_nearest_full(a, b, dim, params, buf, out)
+}
+
+/// [`mutual_nearest`] from the whole f32 similarity matrix (`dim > 0`, both sides non-empty).
+fn mutual_nearest_full(
+    a: &[f32],
+    b: &[f32],
+    dim: usize,
+    params: &MnnParams,
+    buf: &mut MnnBuffers,
+    out: &mut Matches,
+) {
+    let (n, m) = (a.len() / dim, b.len() / dim);
     let av = ndarray::ArrayView2::from_shape((n, dim), &a[..n * dim]).expect("n whole rows");
     let bv = ndarray::ArrayView2::from_shape((m, dim), &b[..m * dim]).expect("m whole rows");
     // Grown, never cleared: with beta = 0 the product writes every entry without reading it
@@ -285,6 +316,343 @@ pub fn mutual_nearest(
         }
         out.pairs.push((i as u32, j));
         out.scores.push(s1);
+    }
+}
+
+/// An int8 screen for [`mutual_nearest`] with a high similarity floor.
+///
+/// A mutual match needs a cosine of at least the floor (0.82 for XFeat), which few pairs reach. Each
+/// descriptor is quantized to int8 with its own scale (`q = round(x * 127 / max|x|)`), and one
+/// AVX-512 VNNI product (`vpdpbusd`: 64 multiply-adds of bytes an instruction, four times the f32
+/// rate) gives every pair's approximate similarity with a bound on its error: with `e` the
+/// rounding of a descriptor (`|e| <= sqrt(dim) / (2 scale)`), `|a.b - qa.qb / (sa sb)| <=
+/// |a||eb| + |b||ea| + |ea||eb|`. A pair whose approximation plus its bound stays under the floor
+/// cannot be a match, nor the best of its row or column among those at the floor; the others are
+/// computed again in f32 and matched as the full product would match them: every similarity at
+/// or above the floor is among them, so each row's and each column's best at the floor is found
+/// (first maximum on ties), and a row whose best is under the floor matches nothing either way.
+/// Not used with a ratio test (it needs each row's second best, however low).
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+pub mod screen {
+    use crate::Matches;
+    use std::arch::x86_64::*;
+
+    /// Lowest similarity floor the screen is used for: under it too many pairs pass the screen
+    /// for it to pay.
+    pub const LOWEST_FLOOR: f32 = 0.5;
+
+    /// Columns of one AVX-512 register of i32 sums.
+    const COLS: usize = 16;
+
+    /// Rounding of the f32 arithmetic around the exact integer products, added to every bound.
+    const SLACK: f32 = 1e-4;
+
+    /// Buffers reused from call to call.
+    #[derive(Debug, Default)]
+    pub struct Buffers {
+        /// The rows (and their `dim`) that `qa` and the per-row values below were made from.
+        a_src: Vec<f32>,
+        a_dim: usize,
+        /// Rows of `a` as unsigned bytes (`q + 128`), row-major.
+        qa: Vec<u8>,
+        /// Per row of `a`: 1 / scale, the norm and the rounding bound.
+        a_inv: Vec<f32>,
+        a_norm: Vec<f32>,
+        a_err: Vec<f32>,
+        /// Rows of `b` as signed bytes packed for the kernel: for each group of 4 values, the
+        /// columns in blocks of [`COLS`], 4 bytes each (`[group][column][4]`, columns padded).
+        qb: Vec<i8>,
+        /// Per column of `b`: the sum of its bytes (undoes `a`'s offset), 1 / scale, norm, bound.
+        b_sum: Vec<i32>,
+        b_inv: Vec<f32>,
+        b_norm: Vec<f32>,
+        b_err: Vec<f32>,
+        /// One row's bytes.
+        row: Vec<i8>,
+        /// Pairs that pass the screen, with their f32 similarity.
+        pairs: Vec<(u32, u32, f32)>,
+        /// Per column: the best similarity among passing pairs and its row.
+        col_best: Vec<(f32, u32)>,
+    }
+
+    /// Whether the screen is sound and worth it for these settings.
+    pub fn applies(dim: usize, params: &super::MnnParams) -> bool {
+        params.ratio.is_none()
+            && params.min_similarity >= LOWEST_FLOOR
+            && dim > 0
+            && dim.is_multiple_of(4)
+            && dim <= 1024
+    }
+
+    /// Whether this CPU runs the screen (AVX-512 F, BW and VNNI).
+    pub fn available() -> bool {
+        std::is_x86_feature_detected!("avx512f")
+            && std::is_x86_feature_detected!("avx512bw")
+            && std::is_x86_feature_detected!("avx512vnni")
+    }
+
+    /// One row quantized into `q` (as long as `row`, a multiple of 4 values): 1 / scale, the
+    /// row's norm and its rounding bound, or `None` when a value is not finite. Every loop is
+    /// branch-free and vectorises.
+    #[inline]
+    fn quantize_row(row: &[f32], q: &mut [i8]) -> Option<(f32, f32, f32)> {
+        // Eight running maxima and sums.
+        let (mut top, mut sums) = ([0f32; 8], [0f32; 8]);
+        let chunks = row.chunks_exact(8);
+        let tail = chunks.remainder();
+        for c in chunks {
+            for l in 0..8 {
+                top[l] = top[l].max(c[l].abs());
+                sums[l] += c[l] * c[l];
+            }
+        }
+        for (l, &v) in tail.iter().enumerate() {
+            top[l] = top[l].max(v.abs());
+            sums[l] += v * v;
+        }
+        let amax = top.iter().fold(0f32, |a, &b| a.max(b));
+        let sq: f32 = sums.iter().sum();
+        // A NaN or an infinity anywhere makes the sum of squares non-finite.
+        if !sq.is_finite() {
+            return None;
+        }
+        if amax == 0.0 {
+            q.fill(0);
+            return Some((0.0, 0.0, 0.0));
+        }
+        let scale = 127.0 / amax;
+        // Round to nearest (ties to even) by the 1.5 * 2^23 trick: exact for |x| < 2^22, and
+        // |x| <= 127 here; no libm call.
+        const ROUND: f32 = 12_582_912.0;
+        for (o, &v) in q.iter_mut().zip(row) {
+            *o = ((v * scale + ROUND) - ROUND).clamp(-127.0, 127.0) as i8;
+        }
+        let half_sqrt_dim = 0.5 * (row.len() as f32).sqrt();
+        Some((amax / 127.0, sq.sqrt(), half_sqrt_dim / scale))
+    }
+
+    /// Mutual nearest neighbours of the rows of `a` (n x dim) and `b` (m x dim) with similarity at
+    /// least `floor`, appended to `out` as [`super::mutual_nearest`] would (rows ascending). False
+    /// (and nothing appended) when a value is not finite: the caller then runs the full product.
+    /// Call only where [`available`] and [`applies`].
+    pub fn mutual_nearest(
+        a: &[f32],
+        b: &[f32],
+        dim: usize,
+        floor: f32,
+        s: &mut Buffers,
+        out: &mut Matches,
+    ) -> bool {
+        assert!(
+            available() && dim.is_multiple_of(4) && dim > 0,
+            "screen called where it does not apply"
+        );
+        let (n, m) = (a.len() / dim, b.len() / dim);
+        let blocks = m.div_ceil(COLS);
+        let groups = dim / 4;
+        s.row.clear();
+        s.row.resize(dim, 0);
+        // A vote matches one query against image after image: its side is quantized once, and
+        // again only when the rows differ from the last call's.
+        if !(s.a_dim == dim && s.a_src.as_slice() == a) {
+            s.a_src.clear();
+            s.a_dim = 0;
+            s.qa.clear();
+            s.qa.resize(n * dim, 128);
+            for v in [&mut s.a_inv, &mut s.a_norm, &mut s.a_err] {
+                v.clear();
+            }
+            for (x, qa) in a.chunks_exact(dim).zip(s.qa.chunks_exact_mut(dim)) {
+                let Some((inv, norm, err)) = quantize_row(x, &mut s.row) else {
+                    return false;
+                };
+                // Unsigned for `vpdpbusd`: q + 128, undone with the columns' sums.
+                for (o, &v) in qa.iter_mut().zip(&s.row) {
+                    *o = (v as u8) ^ 0x80;
+                }
+                s.a_inv.push(inv);
+                s.a_norm.push(norm);
+                s.a_err.push(err);
+            }
+            s.a_src.extend_from_slice(a);
+            s.a_dim = dim;
+        }
+        for v in [&mut s.b_inv, &mut s.b_norm, &mut s.b_err] {
+            v.clear();
+        }
+        s.qb.clear();
+        s.qb.resize(groups * blocks * COLS * 4, 0);
+        s.b_sum.clear();
+        s.b_sum.resize(blocks * COLS, 0);
+        let stride = blocks * COLS * 4;
+        for (c, x) in b.chunks_exact(dim).enumerate() {
+            let Some((inv, norm, err)) = quantize_row(x, &mut s.row) else {
+                return false;
+            };
+            for (g, four) in s.row.chunks_exact(4).enumerate() {
+                s.qb[g * stride + c * 4..g * stride + c * 4 + 4].copy_from_slice(four);
+            }
+            s.b_sum[c] = s.row.iter().map(|&v| v as i32).sum();
+            s.b_inv.push(inv);
+            s.b_norm.push(norm);
+            s.b_err.push(err);
+        }
+        for v in [&mut s.b_inv, &mut s.b_norm, &mut s.b_err] {
+            v.resize(blocks * COLS, 0.0);
+        }
+        s.pairs.clear();
+        // SAFETY: AVX-512 F/BW/VNNI are present (asserted above); `screen_pairs` reads `qa` rows
+        // of `dim` bytes, `qb` groups of `blocks * COLS * 4` bytes and the per-column vectors of
+        // `blocks * COLS` values, which are the lengths set above.
+        unsafe { screen_pairs(s, n, m, dim, floor) };
+        // Tiles of rows emit block by block: back to row order, columns ascending.
+        s.pairs.sort_unstable_by_key(|p| (p.0, p.1));
+        // The passing pairs in f32, then the full product's rule among them.
+        for p in s.pairs.iter_mut() {
+            let (i, j) = (p.0 as usize, p.1 as usize);
+            p.2 = dot(&a[i * dim..(i + 1) * dim], &b[j * dim..(j + 1) * dim]);
+        }
+        s.col_best.clear();
+        s.col_best.resize(m, (f32::NEG_INFINITY, 0));
+        for &(i, j, v) in &s.pairs {
+            let c = &mut s.col_best[j as usize];
+            if v > c.0 {
+                *c = (v, i);
+            }
+        }
+        // Pairs are in row order, columns ascending within a row.
+        let mut k = 0;
+        while k < s.pairs.len() {
+            let i = s.pairs[k].0;
+            let (mut bj, mut b1) = (0u32, f32::NEG_INFINITY);
+            while k < s.pairs.len() && s.pairs[k].0 == i {
+                let (_, j, v) = s.pairs[k];
+                if v > b1 {
+                    (bj, b1) = (j, v);
+                }
+                k += 1;
+            }
+            if b1 >= floor && s.col_best[bj as usize].1 == i {
+                out.pairs.push((i, bj));
+                out.scores.push(b1);
+            }
+        }
+        true
+    }
+
+    /// The dot product of two rows, in eight running sums (vectorised).
+    fn dot(x: &[f32], y: &[f32]) -> f32 {
+        let mut acc = [0f32; 8];
+        let (xc, yc) = (x.chunks_exact(8), y.chunks_exact(8));
+        let (xr, yr) = (xc.remainder(), yc.remainder());
+        for (p, q) in xc.zip(yc) {
+            for l in 0..8 {
+                acc[l] += p[l] * q[l];
+            }
+        }
+        let tail: f32 = xr.iter().zip(yr).map(|(p, q)| p * q).sum();
+        acc.iter().sum::<f32>() + tail
+    }
+
+    /// Rows and column blocks screened together: independent sums, so the multiply-adds overlap,
+    /// and each loaded row group and column block serves several of them.
+    const ROWS: usize = 4;
+    const BLOCKS: usize = 4;
+
+    /// Every pair whose approximate similarity plus its bound reaches `floor`, into `s.pairs`.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    unsafe fn screen_pairs(s: &mut Buffers, n: usize, m: usize, dim: usize, floor: f32) {
+        let blocks = m.div_ceil(COLS);
+        let mut i = 0;
+        while i < n {
+            let rows = ROWS.min(n - i);
+            let mut blk = 0;
+            while blk < blocks {
+                let count = BLOCKS.min(blocks - blk);
+                if rows == ROWS && count == BLOCKS {
+                    tile::<ROWS, BLOCKS>(s, i, blk, m, dim, floor);
+                } else {
+                    for r in 0..rows {
+                        for k in 0..count {
+                            tile::<1, 1>(s, i + r, blk + k, m, dim, floor);
+                        }
+                    }
+                }
+                blk += count;
+            }
+            i += rows;
+        }
+    }
+
+    /// [`screen_pairs`] for rows `i0..i0 + R` and column blocks `b0..b0 + C`.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    unsafe fn tile<const R: usize, const C: usize>(
+        s: &mut Buffers,
+        i0: usize,
+        b0: usize,
+        m: usize,
+        dim: usize,
+        floor: f32,
+    ) {
+        let blocks = m.div_ceil(COLS);
+        let stride = blocks * COLS * 4;
+        let floor_v = _mm512_set1_ps(floor - SLACK);
+        let offset = _mm512_set1_epi32(128);
+        let mut acc = [[_mm512_setzero_si512(); C]; R];
+        for g in 0..dim / 4 {
+            let mut bv = [_mm512_setzero_si512(); C];
+            for (k, b) in bv.iter_mut().enumerate() {
+                *b = _mm512_loadu_si512(
+                    s.qb.as_ptr().add(g * stride + (b0 + k) * COLS * 4) as *const _
+                );
+            }
+            for (r, acc) in acc.iter_mut().enumerate() {
+                let four =
+                    (s.qa.as_ptr().add((i0 + r) * dim + g * 4) as *const i32).read_unaligned();
+                let av = _mm512_set1_epi32(four);
+                for (a, b) in acc.iter_mut().zip(&bv) {
+                    *a = _mm512_dpbusd_epi32(*a, av, *b);
+                }
+            }
+        }
+        for k in 0..C {
+            let c = (b0 + k) * COLS;
+            let sum = _mm512_mullo_epi32(
+                offset,
+                _mm512_loadu_si512(s.b_sum.as_ptr().add(c) as *const _),
+            );
+            let b_inv = _mm512_loadu_ps(s.b_inv.as_ptr().add(c));
+            let b_norm = _mm512_loadu_ps(s.b_norm.as_ptr().add(c));
+            let b_err = _mm512_loadu_ps(s.b_err.as_ptr().add(c));
+            let valid = if c + COLS > m {
+                ((1u32 << (m - c)) - 1) as u16
+            } else {
+                u16::MAX
+            };
+            for (r, acc) in acc.iter().enumerate() {
+                let i = i0 + r;
+                let (a_inv, a_norm, a_err) = (
+                    _mm512_set1_ps(s.a_inv[i]),
+                    _mm512_set1_ps(s.a_norm[i]),
+                    _mm512_set1_ps(s.a_err[i]),
+                );
+                let dot = _mm512_sub_epi32(acc[k], sum);
+                let approx = _mm512_mul_ps(_mm512_mul_ps(_mm512_cvtepi32_ps(dot), a_inv), b_inv);
+                // |a| eb + |b| ea + ea eb
+                let bound = _mm512_add_ps(
+                    _mm512_add_ps(_mm512_mul_ps(a_norm, b_err), _mm512_mul_ps(b_norm, a_err)),
+                    _mm512_mul_ps(a_err, b_err),
+                );
+                let mut mask =
+                    _mm512_cmp_ps_mask::<_CMP_GE_OQ>(_mm512_add_ps(approx, bound), floor_v) & valid;
+                while mask != 0 {
+                    let l = mask.trailing_zeros() as usize;
+                    mask &= mask - 1;
+                    s.pairs.push((i as u32, (c + l) as u32, 0.0));
+                }
+            }
+        }
     }
 }
 
@@ -467,6 +835,60 @@ mod tests {
                 assert_eq!((cb, cr), (pb, pr), "columns, m {m}, {levels} levels");
             }
         }
+    }
+
+    #[test]
+    #[cfg(target_arch = "x86_64")]
+    fn the_int8_screen_keeps_exactly_the_full_products_matches() {
+        if !screen::available() {
+            eprintln!("skipped: this CPU has no AVX-512 VNNI, so the screen never runs here");
+            return;
+        }
+        // Near copies at several noise levels, so similarities crowd the floor from both sides.
+        let a = features(512, 64, 11);
+        let mut total = 0;
+        for (trial, mix) in [0.2f32, 0.45, 0.6, 0.75].into_iter().enumerate() {
+            let noise = features(480, 64, 20 + trial as u64);
+            let mut b = noise.clone();
+            for j in 0..480 {
+                let i = (j * 13 + trial) % 512;
+                let mixed: Vec<f32> = a
+                    .descriptor(i)
+                    .iter()
+                    .zip(noise.descriptor(j))
+                    .map(|(x, y)| x + mix * y)
+                    .collect();
+                let norm = mixed.iter().map(|v| v * v).sum::<f32>().sqrt();
+                b.descriptors[j * 64..(j + 1) * 64]
+                    .iter_mut()
+                    .zip(&mixed)
+                    .for_each(|(d, v)| *d = v / norm);
+            }
+            for floor in [0.5, 0.7, 0.82, 0.9] {
+                let p = MnnParams {
+                    min_similarity: floor,
+                    ..MnnParams::default()
+                };
+                assert!(screen::applies(64, &p));
+                let (mut screened, mut full) = (Matches::default(), Matches::default());
+                let mut buf = MnnBuffers::default();
+                mutual_nearest(
+                    &a.descriptors,
+                    &b.descriptors,
+                    64,
+                    &p,
+                    &mut buf,
+                    &mut screened,
+                );
+                mutual_nearest_full(&a.descriptors, &b.descriptors, 64, &p, &mut buf, &mut full);
+                assert_eq!(screened.pairs, full.pairs, "noise {mix}, floor {floor}");
+                for (x, y) in screened.scores.iter().zip(&full.scores) {
+                    assert!((x - y).abs() < 1e-5, "{x} {y}");
+                }
+                total += full.pairs.len();
+            }
+        }
+        assert!(total > 1000, "{total} matches over all cases");
     }
 
     #[test]
