@@ -72,11 +72,15 @@ impl RgbImage {
 
     /// Luminance (Rec. 601) as f32 in 0..255, row-major: what keypoint extractors take.
     pub fn to_gray(&self) -> Vec<f32> {
-        self.data
-            .chunks_exact(3)
-            .map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32)
-            .collect()
+        self.data.chunks_exact(3).map(luminance).collect()
     }
+}
+
+/// Luminance (0..255, ITU-R BT.601 weights) of one RGB pixel (`rgb[0..3]`), as [`RgbImage::to_gray`]
+/// gives it.
+#[inline]
+pub fn luminance(rgb: &[u8]) -> f32 {
+    0.299 * rgb[0] as f32 + 0.587 * rgb[1] as f32 + 0.114 * rgb[2] as f32
 }
 
 /// Planar depth in metres; 0.0 marks a pixel without a valid measurement.

@@ -395,7 +395,7 @@ pub mod screen {
     /// One row quantized into `q` (as long as `row`, a multiple of 4 values): 1 / scale, the
     /// row's norm and its rounding bound, or `None` when a value is not finite. Every loop is
     /// branch-free and vectorises.
-    #[inline]
+    #[inline(always)]
     fn quantize_row(row: &[f32], q: &mut [i8]) -> Option<(f32, f32, f32)> {
         // Eight running maxima and sums.
         let (mut top, mut sums) = ([0f32; 8], [0f32; 8]);
@@ -426,36 +426,33 @@ pub mod screen {
         // |x| <= 127 here; no libm call.
         const ROUND: f32 = 12_582_912.0;
         for (o, &v) in q.iter_mut().zip(row) {
-            *o = ((v * scale + ROUND) - ROUND).clamp(-127.0, 127.0) as i8;
+            *o = ((v * scale + ROUND) - ROUND).clamp(-127.0, 127.0) as i32 as i8;
         }
         let half_sqrt_dim = 0.5 * (row.len() as f32).sqrt();
         Some((amax / 127.0, sq.sqrt(), half_sqrt_dim / scale))
     }
 
-    /// Mutual nearest neighbours of the rows of `a` (n x dim) and `b` (m x dim) with similarity at
-    /// least `floor`, appended to `out` as [`super::mutual_nearest`] would (rows ascending). False
-    /// (and nothing appended) when a value is not finite: the caller then runs the full product.
-    /// Call only where [`available`] and [`applies`].
-    pub fn mutual_nearest(
-        a: &[f32],
-        b: &[f32],
-        dim: usize,
-        floor: f32,
-        s: &mut Buffers,
-        out: &mut Matches,
-    ) -> bool {
-        assert!(
-            available() && dim.is_multiple_of(4) && dim > 0,
-            "screen called where it does not apply"
-        );
+    /// Whether two slices hold the same values bit for bit (one `memcmp`, where comparing as
+    /// floats would go value by value).
+    fn same_bits(x: &[f32], y: &[f32]) -> bool {
+        // SAFETY: any initialised f32 is four initialised bytes; the views cover exactly the
+        // slices and live no longer than the borrows.
+        let bytes =
+            |v: &[f32]| unsafe { std::slice::from_raw_parts(v.as_ptr() as *const u8, v.len() * 4) };
+        x.len() == y.len() && bytes(x) == bytes(y)
+    }
+
+    /// Both sides quantized into `s` (the query side `a` only when it differs from the last
+    /// call's); false when a value is not finite.
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    unsafe fn quantize_sides(s: &mut Buffers, a: &[f32], b: &[f32], dim: usize) -> bool {
         let (n, m) = (a.len() / dim, b.len() / dim);
-        let blocks = m.div_ceil(COLS);
-        let groups = dim / 4;
+        let (blocks, groups) = (m.div_ceil(COLS), dim / 4);
         s.row.clear();
         s.row.resize(dim, 0);
         // A vote matches one query against image after image: its side is quantized once, and
         // again only when the rows differ from the last call's.
-        if !(s.a_dim == dim && s.a_src.as_slice() == a) {
+        if !(s.a_dim == dim && same_bits(&s.a_src, a)) {
             s.a_src.clear();
             s.a_dim = 0;
             s.qa.clear();
@@ -501,18 +498,50 @@ pub mod screen {
         for v in [&mut s.b_inv, &mut s.b_norm, &mut s.b_err] {
             v.resize(blocks * COLS, 0.0);
         }
+        true
+    }
+
+    /// The f32 similarity of every screened pair (`(row of a, row of b, _)`).
+    #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
+    unsafe fn similarities(pairs: &mut [(u32, u32, f32)], a: &[f32], b: &[f32], dim: usize) {
+        for p in pairs.iter_mut() {
+            let (i, j) = (p.0 as usize, p.1 as usize);
+            p.2 = dot(&a[i * dim..(i + 1) * dim], &b[j * dim..(j + 1) * dim]);
+        }
+    }
+
+    /// Mutual nearest neighbours of the rows of `a` (n x dim) and `b` (m x dim) with similarity at
+    /// least `floor`, appended to `out` as [`super::mutual_nearest`] would (rows ascending). False
+    /// (and nothing appended) when a value is not finite: the caller then runs the full product.
+    /// Call only where [`available`] and [`applies`].
+    pub fn mutual_nearest(
+        a: &[f32],
+        b: &[f32],
+        dim: usize,
+        floor: f32,
+        s: &mut Buffers,
+        out: &mut Matches,
+    ) -> bool {
+        assert!(
+            available() && dim.is_multiple_of(4) && dim > 0,
+            "screen called where it does not apply"
+        );
+        let (n, m) = (a.len() / dim, b.len() / dim);
+        // SAFETY: AVX-512 F/BW/VNNI are present (asserted above), all `quantize_sides` needs.
+        if !unsafe { quantize_sides(s, a, b, dim) } {
+            return false;
+        }
         s.pairs.clear();
         // SAFETY: AVX-512 F/BW/VNNI are present (asserted above); `screen_pairs` reads `qa` rows
         // of `dim` bytes, `qb` groups of `blocks * COLS * 4` bytes and the per-column vectors of
-        // `blocks * COLS` values, which are the lengths set above.
+        // `blocks * COLS` values (`blocks = m / COLS` rounded up), the lengths `quantize_sides` set.
         unsafe { screen_pairs(s, n, m, dim, floor) };
         // Tiles of rows emit block by block: back to row order, columns ascending.
         s.pairs.sort_unstable_by_key(|p| (p.0, p.1));
         // The passing pairs in f32, then the full product's rule among them.
-        for p in s.pairs.iter_mut() {
-            let (i, j) = (p.0 as usize, p.1 as usize);
-            p.2 = dot(&a[i * dim..(i + 1) * dim], &b[j * dim..(j + 1) * dim]);
-        }
+        // SAFETY: as above; `similarities` indexes `a` and `b` by the pairs' rows and columns,
+        // which are below `n` and `m`.
+        unsafe { similarities(&mut s.pairs, a, b, dim) };
         s.col_best.clear();
         s.col_best.resize(m, (f32::NEG_INFINITY, 0));
         for &(i, j, v) in &s.pairs {
@@ -542,6 +571,7 @@ pub mod screen {
     }
 
     /// The dot product of two rows, in eight running sums (vectorised).
+    #[inline(always)]
     fn dot(x: &[f32], y: &[f32]) -> f32 {
         let mut acc = [0f32; 8];
         let (xc, yc) = (x.chunks_exact(8), y.chunks_exact(8));

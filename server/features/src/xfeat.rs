@@ -212,24 +212,42 @@ impl XFeat {
         let mut keypoints = Vec::with_capacity(scored.len());
         let mut scores = Vec::with_capacity(scored.len());
         let mut descriptors = Vec::with_capacity(scored.len() * XFEAT_DIM);
+        // The feature map with the channels of each cell side by side (h x w x c), so each of a
+        // keypoint's 16 taps adds to all channels at once (vectorised). Per channel the sum runs over
+        // the taps in the same order as one channel at a time, so the descriptors are the same.
+        let (fc, fh, fw) = (feats.c, feats.h, feats.w);
+        let mut cells = vec![0f32; fc * fh * fw];
+        for c in 0..fc {
+            for (k, &v) in feats.data[c * fh * fw..(c + 1) * fh * fw]
+                .iter()
+                .enumerate()
+            {
+                cells[k * fc + c] = v;
+            }
+        }
+        let mut v = vec![0f32; fc];
         for &(s, x, y) in &scored {
-            let (sx, sy) = (
-                Map::src(x as f32, hw, feats.w),
-                Map::src(y as f32, hh, feats.h),
-            );
+            let (sx, sy) = (Map::src(x as f32, hw, fw), Map::src(y as f32, hh, fh));
             let (x0, y0) = (sx.floor(), sy.floor());
             let (wx, wy) = (cubic_weights(sx - x0), cubic_weights(sy - y0));
             let (x0, y0) = (x0 as i64, y0 as i64);
             let start = descriptors.len();
-            for c in 0..feats.c {
-                let mut v = 0.0;
-                for (j, wyj) in wy.iter().enumerate() {
-                    for (i, wxi) in wx.iter().enumerate() {
-                        v += wyj * wxi * feats.at(c, y0 - 1 + j as i64, x0 - 1 + i as i64);
+            v.fill(0.0);
+            for (j, wyj) in wy.iter().enumerate() {
+                for (i, wxi) in wx.iter().enumerate() {
+                    let (yy, xx) = (y0 - 1 + j as i64, x0 - 1 + i as i64);
+                    // Zero padding: a tap outside the map adds nothing.
+                    if xx < 0 || yy < 0 || xx >= fw as i64 || yy >= fh as i64 {
+                        continue;
+                    }
+                    let w = wyj * wxi;
+                    let cell = (yy as usize * fw + xx as usize) * fc;
+                    for (acc, &f) in v.iter_mut().zip(&cells[cell..cell + fc]) {
+                        *acc += w * f;
                     }
                 }
-                descriptors.push(v);
             }
+            descriptors.extend_from_slice(&v);
             let norm = descriptors[start..]
                 .iter()
                 .map(|v| v * v)

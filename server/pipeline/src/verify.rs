@@ -72,18 +72,19 @@ impl Thumb {
         };
         let mut depth_mm = vec![0u16; (w * h) as usize];
         let mut gray = vec![0u8; (w * h) as usize];
-        let mut block = Vec::new();
+        let mut block = Vec::with_capacity((s * s) as usize);
         let stride = rgb.width as usize;
-        let luminance = rgb.to_gray();
         for r in 0..h {
             for c in 0..w {
                 block.clear();
                 let mut sum = 0.0f32;
                 let mut n = 0u32;
                 for y in r * s..((r + 1) * s).min(rgb.height) {
+                    let row = y as usize * stride;
                     for x in c * s..((c + 1) * s).min(rgb.width) {
-                        let i = y as usize * stride + x as usize;
-                        sum += luminance[i];
+                        let i = row + x as usize;
+                        // Pixel by pixel (no image-sized copy of the grey image).
+                        sum += pntr_core::image::luminance(&rgb.data[i * 3..i * 3 + 3]);
                         n += 1;
                         let d = depth.data.get(i).copied().unwrap_or(0.0);
                         if d.is_finite() && d > 0.0 {
