@@ -187,6 +187,53 @@ struct Search<'g> {
     /// The colouring's two working sets.
     uncoloured: Bits,
     class: Bits,
+    /// The complement matching's vertex order.
+    class_order: Vec<(usize, usize)>,
+}
+
+/// The size of a matching of the non-edges among `p` (greedy, the vertices with the fewest
+/// non-neighbours in `p` first, which keeps it near the maximum). `free` and `order` are working
+/// buffers.
+fn complement_matching(
+    g: &Graph,
+    p: &[u64],
+    free: &mut Bits,
+    order: &mut Vec<(usize, usize)>,
+) -> usize {
+    let size = bit_count(p);
+    order.clear();
+    for v in bits_iter(p) {
+        let joined: usize = p
+            .iter()
+            .zip(g.row(v))
+            .map(|(a, b)| (a & b).count_ones() as usize)
+            .sum();
+        order.push((size - 1 - joined, v));
+    }
+    order.sort_unstable();
+    free.clear();
+    free.extend_from_slice(p);
+    let mut matched = 0;
+    for &(_, v) in order.iter() {
+        if free[v / 64] & (1 << (v % 64)) == 0 {
+            continue;
+        }
+        let row = g.row(v);
+        for w in 0..free.len() {
+            let mut apart = free[w] & !row[w];
+            if w == v / 64 {
+                apart &= !(1 << (v % 64));
+            }
+            if apart != 0 {
+                let u = w * 64 + apart.trailing_zeros() as usize;
+                bit_clear(free, u);
+                bit_clear(free, v);
+                matched += 1;
+                break;
+            }
+        }
+    }
+    matched
 }
 
 /// Greedy colouring of `p` into `out`: vertices in colour-class order with their colour (1-based).
@@ -225,6 +272,15 @@ impl Search<'_> {
             self.levels.resize_with(depth + 2, Default::default);
         }
         let (mut p, mut order) = std::mem::take(&mut self.levels[depth]);
+        // No clique in `p` is larger than |p| minus a matching of the pairs of `p` that are not
+        // joined (each such pair loses at least one vertex): nearly complete candidate sets, where
+        // the colouring bound is weak, are settled here.
+        let size = bit_count(&p);
+        let matched = complement_matching(self.g, &p, &mut self.uncoloured, &mut self.class_order);
+        if clique.len() + size - matched <= self.best.len().max(self.floor) {
+            self.levels[depth] = (p, order);
+            return;
+        }
         colour(
             self.g,
             &p,
@@ -337,6 +393,7 @@ pub fn max_clique(g: &Graph, budget: Duration) -> CliqueResult {
             levels: vec![(p, Vec::new())],
             uncoloured: Vec::with_capacity(g.words),
             class: Vec::with_capacity(g.words),
+            class_order: Vec::new(),
         };
         s.expand(&mut Vec::new(), 0);
         exact = !s.aborted;
