@@ -432,6 +432,45 @@ pub mod screen {
         Some((amax / 127.0, sq.sqrt(), half_sqrt_dim / scale))
     }
 
+    /// [`quantize_row`] sixteen values at a time with AVX-512 where the row allows it (a multiple
+    /// of 16 values): the same scale and bound, values rounded to nearest by the conversion.
+    /// Safety: call only where AVX-512 F and BW are present (from [`quantize_sides`]); every load
+    /// and store is at `k..k + 16` with `k + 16 <= row.len() == q.len()` (checked first).
+    #[inline(always)]
+    unsafe fn quantize(row: &[f32], q: &mut [i8]) -> Option<(f32, f32, f32)> {
+        if !row.len().is_multiple_of(16) || q.len() != row.len() {
+            return quantize_row(row, q);
+        }
+        let abs_mask = _mm512_set1_epi32(0x7fff_ffff);
+        let (mut top, mut sums) = (_mm512_setzero_ps(), _mm512_setzero_ps());
+        for k in (0..row.len()).step_by(16) {
+            let v = _mm512_loadu_ps(row.as_ptr().add(k));
+            let a = _mm512_castsi512_ps(_mm512_and_si512(_mm512_castps_si512(v), abs_mask));
+            top = _mm512_max_ps(top, a);
+            sums = _mm512_add_ps(sums, _mm512_mul_ps(v, v));
+        }
+        let sq = _mm512_reduce_add_ps(sums);
+        // A NaN or an infinity anywhere makes the sum of squares non-finite.
+        if !sq.is_finite() {
+            return None;
+        }
+        let amax = _mm512_reduce_max_ps(top);
+        if amax == 0.0 {
+            q.fill(0);
+            return Some((0.0, 0.0, 0.0));
+        }
+        let scale = 127.0 / amax;
+        let sv = _mm512_set1_ps(scale);
+        for k in (0..row.len()).step_by(16) {
+            let v = _mm512_mul_ps(_mm512_loadu_ps(row.as_ptr().add(k)), sv);
+            // Rounded to nearest (the default rounding mode), then saturated to i8.
+            let b = _mm512_cvtsepi32_epi8(_mm512_cvtps_epi32(v));
+            _mm_storeu_si128(q.as_mut_ptr().add(k) as *mut __m128i, b);
+        }
+        let half_sqrt_dim = 0.5 * (row.len() as f32).sqrt();
+        Some((amax / 127.0, sq.sqrt(), half_sqrt_dim / scale))
+    }
+
     /// Whether two slices hold the same values bit for bit (one `memcmp`, where comparing as
     /// floats would go value by value).
     fn same_bits(x: &[f32], y: &[f32]) -> bool {
@@ -461,7 +500,7 @@ pub mod screen {
                 v.clear();
             }
             for (x, qa) in a.chunks_exact(dim).zip(s.qa.chunks_exact_mut(dim)) {
-                let Some((inv, norm, err)) = quantize_row(x, &mut s.row) else {
+                let Some((inv, norm, err)) = quantize(x, &mut s.row) else {
                     return false;
                 };
                 // Unsigned for `vpdpbusd`: q + 128, undone with the columns' sums.
@@ -484,7 +523,7 @@ pub mod screen {
         s.b_sum.resize(blocks * COLS, 0);
         let stride = blocks * COLS * 4;
         for (c, x) in b.chunks_exact(dim).enumerate() {
-            let Some((inv, norm, err)) = quantize_row(x, &mut s.row) else {
+            let Some((inv, norm, err)) = quantize(x, &mut s.row) else {
                 return false;
             };
             for (g, four) in s.row.chunks_exact(4).enumerate() {
