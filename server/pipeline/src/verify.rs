@@ -256,10 +256,17 @@ struct DenseScratch {
     /// Per sampled column of the row at hand: the depth (metres, 0 where invalid), the moved
     /// point's depth and its pixel coordinates in the other view plus one half.
     z: Vec<f64>,
+    moved: MovedRow,
+    tiles: Vec<[f64; 6]>,
+}
+
+/// One row of samples after [`move_row`]: per sampled column, the moved point's depth and its
+/// pixel coordinates in the other view plus one half.
+#[derive(Default)]
+struct MovedRow {
     qz: Vec<f64>,
     pu: Vec<f64>,
     pv: Vec<f64>,
-    tiles: Vec<[f64; 6]>,
 }
 
 thread_local! {
@@ -285,15 +292,8 @@ struct Projection {
 /// Where the depth is invalid or the point lies behind the camera the values are meaningless and
 /// the caller skips them.
 #[inline(always)]
-fn move_row(
-    m: &Projection,
-    xs: &[f64],
-    z: &[f64],
-    y: f64,
-    qz: &mut [f64],
-    pu: &mut [f64],
-    pv: &mut [f64],
-) {
+fn move_row(m: &Projection, xs: &[f64], z: &[f64], y: f64, out: &mut MovedRow) {
+    let MovedRow { qz, pu, pv } = out;
     let n = xs
         .len()
         .min(z.len())
@@ -316,41 +316,24 @@ fn move_row(
 /// [`move_row`] compiled for AVX (four lanes of f64), chosen at run time where the CPU has it.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-fn move_row_avx(
-    m: &Projection,
-    xs: &[f64],
-    z: &[f64],
-    y: f64,
-    qz: &mut [f64],
-    pu: &mut [f64],
-    pv: &mut [f64],
-) {
-    move_row(m, xs, z, y, qz, pu, pv)
+fn move_row_avx(m: &Projection, xs: &[f64], z: &[f64], y: f64, out: &mut MovedRow) {
+    move_row(m, xs, z, y, out)
 }
 
 /// [`move_row`], on AVX where this CPU has it (the same results: IEEE arithmetic lane by lane, no
 /// fused multiply-add).
-#[allow(clippy::too_many_arguments)]
-fn move_row_best(
-    m: &Projection,
-    xs: &[f64],
-    z: &[f64],
-    y: f64,
-    qz: &mut [f64],
-    pu: &mut [f64],
-    pv: &mut [f64],
-) {
+fn move_row_best(m: &Projection, xs: &[f64], z: &[f64], y: f64, out: &mut MovedRow) {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx") {
         #[allow(unsafe_code)]
         // SAFETY: the CPU has AVX (checked on the line above), the only requirement of the
         // target feature; the function itself is safe code.
         unsafe {
-            move_row_avx(m, xs, z, y, qz, pu, pv)
+            move_row_avx(m, xs, z, y, out)
         };
         return;
     }
-    move_row(m, xs, z, y, qz, pu, pv)
+    move_row(m, xs, z, y, out)
 }
 
 /// [`dense_check`] on every `step`-th row and column of `from` (a `step`² share of the samples).
@@ -399,7 +382,7 @@ fn dense_check_with(
     let col_of = |i: usize| (i * step) as u32;
     s.xs.clear();
     s.xs.extend((0..n).map(|i| (col_of(i) as f64 - kf.cx) / kf.fx));
-    for b in [&mut s.z, &mut s.qz, &mut s.pu, &mut s.pv] {
+    for b in [&mut s.z, &mut s.moved.qz, &mut s.moved.pu, &mut s.moved.pv] {
         b.clear();
         b.resize(n, 0.0);
     }
@@ -417,19 +400,19 @@ fn dense_check_with(
             let d = row[col_of(i) as usize];
             *z = if d > 0 { d as f64 / 1000.0 } else { 0.0 };
         }
-        move_row_best(&m, &s.xs, &s.z, y, &mut s.qz, &mut s.pu, &mut s.pv);
+        move_row_best(&m, &s.xs, &s.z, y, &mut s.moved);
         for i in 0..n {
             let col = col_of(i);
             if row[col as usize] == 0 {
                 continue;
             }
             c.valid += 1;
-            let qz = s.qz[i];
+            let qz = s.moved.qz[i];
             // `Intrinsics::project`: behind the camera; `pixel_of`: outside the view.
             if qz <= 1e-9 {
                 continue;
             }
-            let (pu, pv) = (s.pu[i], s.pv[i]);
+            let (pu, pv) = (s.moved.pu[i], s.moved.pv[i]);
             if !(pu >= 0.0 && pv >= 0.0 && pu < tw && pv < th) {
                 continue;
             }
