@@ -92,7 +92,12 @@ pub struct Shortlist {
 /// Indices of the `n` highest `scores`, best first (ties keep the lower index first).
 fn strongest_indices(scores: &[f32], n: usize) -> Vec<u16> {
     let mut order: Vec<u16> = (0..scores.len().min(u16::MAX as usize) as u16).collect();
-    order.sort_by(|&a, &b| scores[b as usize].total_cmp(&scores[a as usize]));
+    // Ties by index: the order of a stable sort.
+    order.sort_unstable_by(|&a, &b| {
+        scores[b as usize]
+            .total_cmp(&scores[a as usize])
+            .then(a.cmp(&b))
+    });
     order.truncate(n);
     order
 }
@@ -304,7 +309,8 @@ impl Shortlist {
                     .zip(&scratch.matches.scores)
                     .map(|(&(a, b), &s)| ((order[a as usize] as u32, idx[b as usize] as u32), s))
                     .collect();
-                m.sort_by_key(|p| p.0);
+                // Unique keys (one match per query keypoint): the unstable sort's order is the stable one's.
+                m.sort_unstable_by_key(|p| p.0);
                 Matches {
                     pairs: m.iter().map(|p| p.0).collect(),
                     scores: m.iter().map(|p| p.1).collect(),
@@ -312,7 +318,7 @@ impl Shortlist {
             });
             voted.push((v, rank, *h, matches));
         }
-        voted.sort_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
+        voted.sort_unstable_by(|a, b| b.0.cmp(&a.0).then(a.1.cmp(&b.1)));
         Ok(voted.into_iter().map(|v| (v.2, v.3)).collect())
     }
 

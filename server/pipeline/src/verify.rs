@@ -88,7 +88,8 @@ impl Thumb {
                         n += 1;
                         let d = depth.data.get(i).copied().unwrap_or(0.0);
                         if d.is_finite() && d > 0.0 {
-                            block.push(d);
+                            // Positive finite floats order as their bit patterns do.
+                            block.push(d.to_bits());
                         }
                     }
                 }
@@ -96,8 +97,9 @@ impl Thumb {
                 gray[o] = (sum / n.max(1) as f32).round().clamp(0.0, 255.0) as u8;
                 if block.len() * 2 >= n as usize && !block.is_empty() {
                     let m = block.len() / 2;
-                    let (_, med, _) = block.select_nth_unstable_by(m, |a, b| a.total_cmp(b));
-                    depth_mm[o] = (*med * 1000.0).round().clamp(1.0, 65535.0) as u16;
+                    let (_, med, _) = block.select_nth_unstable(m);
+                    let med = f32::from_bits(*med);
+                    depth_mm[o] = (med * 1000.0).round().clamp(1.0, 65535.0) as u16;
                 }
             }
         }

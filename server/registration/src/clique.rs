@@ -187,34 +187,56 @@ struct Search<'g> {
     /// The colouring's two working sets.
     uncoloured: Bits,
     class: Bits,
-    /// The complement matching's vertex order.
-    class_order: Vec<(usize, usize)>,
+    /// The complement matching's buffers.
+    matching: MatchingScratch,
+}
+
+/// Working buffers of [`complement_matching`], reused from node to node.
+#[derive(Default)]
+struct MatchingScratch {
+    free: Bits,
+    /// Each vertex of `p` (ascending) with its number of non-neighbours in `p`.
+    keyed: Vec<(usize, usize)>,
+    /// Counting sort's bucket starts, one per possible count.
+    starts: Vec<usize>,
+    /// The vertices by (non-neighbours, index).
+    order: Vec<usize>,
 }
 
 /// The size of a matching of the non-edges among `p` (greedy, the vertices with the fewest
-/// non-neighbours in `p` first, which keeps it near the maximum). `free` and `order` are working
-/// buffers.
-fn complement_matching(
-    g: &Graph,
-    p: &[u64],
-    free: &mut Bits,
-    order: &mut Vec<(usize, usize)>,
-) -> usize {
+/// non-neighbours in `p` first, ties by index, which keeps it near the maximum).
+fn complement_matching(g: &Graph, p: &[u64], s: &mut MatchingScratch) -> usize {
     let size = bit_count(p);
-    order.clear();
+    s.keyed.clear();
     for v in bits_iter(p) {
         let joined: usize = p
             .iter()
             .zip(g.row(v))
             .map(|(a, b)| (a & b).count_ones() as usize)
             .sum();
-        order.push((size - 1 - joined, v));
+        s.keyed.push((size - 1 - joined, v));
     }
-    order.sort_unstable();
-    free.clear();
-    free.extend_from_slice(p);
+    // Counting sort by the count, stable, so ties stay in index order: the order of sorting the
+    // (count, index) pairs, in time linear in |p|.
+    s.starts.clear();
+    s.starts.resize(size + 1, 0);
+    for &(k, _) in &s.keyed {
+        s.starts[k + 1] += 1;
+    }
+    for i in 1..s.starts.len() {
+        s.starts[i] += s.starts[i - 1];
+    }
+    s.order.clear();
+    s.order.resize(size, 0);
+    for &(k, v) in &s.keyed {
+        s.order[s.starts[k]] = v;
+        s.starts[k] += 1;
+    }
+    s.free.clear();
+    s.free.extend_from_slice(p);
+    let free = &mut s.free;
     let mut matched = 0;
-    for &(_, v) in order.iter() {
+    for &v in s.order.iter() {
         if free[v / 64] & (1 << (v % 64)) == 0 {
             continue;
         }
@@ -276,7 +298,7 @@ impl Search<'_> {
         // joined (each such pair loses at least one vertex): nearly complete candidate sets, where
         // the colouring bound is weak, are settled here.
         let size = bit_count(&p);
-        let matched = complement_matching(self.g, &p, &mut self.uncoloured, &mut self.class_order);
+        let matched = complement_matching(self.g, &p, &mut self.matching);
         if clique.len() + size - matched <= self.best.len().max(self.floor) {
             self.levels[depth] = (p, order);
             return;
@@ -344,7 +366,7 @@ pub fn max_clique(g: &Graph, budget: Duration) -> CliqueResult {
     // and nearly complete graphs without the O(m) core decomposition.
     let degree: Vec<usize> = (0..g.len()).map(|v| g.degree(v)).collect();
     let mut by_degree: Vec<usize> = (0..g.len()).collect();
-    by_degree.sort_by_key(|&v| (std::cmp::Reverse(degree[v]), v));
+    by_degree.sort_unstable_by_key(|&v| (std::cmp::Reverse(degree[v]), v));
     let mut best = greedy_from(g, by_degree[0], &by_degree);
     if best.len() == degree[by_degree[0]] + 1 {
         best.sort_unstable();
@@ -357,7 +379,7 @@ pub fn max_clique(g: &Graph, budget: Duration) -> CliqueResult {
     let upper = core.iter().copied().max().unwrap_or(0) + 1;
     // Greedy lower bound from the highest-core vertices.
     let mut by_core: Vec<usize> = (0..g.len()).collect();
-    by_core.sort_by_key(|&v| (std::cmp::Reverse(core[v]), v));
+    by_core.sort_unstable_by_key(|&v| (std::cmp::Reverse(core[v]), v));
     for &v in by_core.iter().take(64) {
         if core[v] < best.len() || start.elapsed() > budget / 2 {
             break;
@@ -393,7 +415,7 @@ pub fn max_clique(g: &Graph, budget: Duration) -> CliqueResult {
             levels: vec![(p, Vec::new())],
             uncoloured: Vec::with_capacity(g.words),
             class: Vec::with_capacity(g.words),
-            class_order: Vec::new(),
+            matching: MatchingScratch::default(),
         };
         s.expand(&mut Vec::new(), 0);
         exact = !s.aborted;

@@ -138,8 +138,9 @@ pub fn query(req: &proto::LocalizeRequest, limits: &Limits) -> Result<Query, Sta
 /// Refuse a depth image whose values are implausible for its declared unit, naming the unit they look
 /// like; also refuse one without a valid pixel.
 fn check_depth_unit(depth: &DepthMap, encoding: i32) -> Result<(), Status> {
-    // A strided sample of at most ~64k valid pixels is plenty for a median.
-    let stride = (depth.data.len() / 65_536).max(1);
+    // A strided sample of at most ~8k valid pixels is plenty for a median whose plausible range
+    // spans two orders of magnitude.
+    let stride = (depth.data.len() / 8_192).max(1);
     let mut valid: Vec<f32> = depth
         .data
         .iter()
