@@ -38,6 +38,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+import trim  # models/trim.py, beside this file
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 OPSET = 18
 
@@ -237,6 +239,8 @@ def main():
             err = np.abs(r.numpy() - g).max()
             print(f"xfeat_backbone {tuple(t.shape)} {name}: max |onnx - torch| = {err:.2e}")
             assert err < 1e-4, name
+    # pntr runs the trimmed graph: the grey input, the softmax and the normalisation move to Rust.
+    trim.trim(path)
 
     # Reference sparse output of the upstream pipeline, for the Rust parity test.
     out_a = xf.detectAndCompute(ta, top_k=1024)[0]

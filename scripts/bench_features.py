@@ -41,8 +41,10 @@ def main():
     rng = np.random.default_rng(0)
     rows = []
     for h, w in ((256, 256), (480, 640)):
-        img = rng.random((1, 3, h, w), dtype=np.float32)
-        rows.append((f"xfeat {w}x{h}", median_ms(a.iters, lambda: x.run(None, {"image": img}))))
+        # The trimmed backbone (models/trim.py) takes the grey plane; an exported one, RGB.
+        name = x.get_inputs()[0].name
+        img = rng.random((1, 1 if name == "gray" else 3, h, w), dtype=np.float32)
+        rows.append((f"xfeat {w}x{h}", median_ms(a.iters, lambda: x.run(None, {name: img}))))
     def matcher_rows(name, sess, dim, iters):
         for k in (256, 512, 1024):
             kp = (rng.random((1, k, 2)) * [640, 480]).astype(np.float32)

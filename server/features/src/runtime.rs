@@ -153,6 +153,18 @@ impl OnnxModel {
         inputs: &[&str],
         outputs: &[&str],
     ) -> Result<Self, FeatureError> {
+        Self::load_layout(path, opts, &[(inputs, outputs)]).map(|(m, _)| m)
+    }
+
+    /// Load `path` and find the first of `layouts` (each the input and the output names a graph
+    /// of one version of a model has) that the model follows; returns the model and that layout's
+    /// index. Errors: the file is missing or not a model ONNX Runtime can load, or the model has
+    /// none of the layouts (the message names what the first one lacks).
+    pub fn load_layout(
+        path: &Path,
+        opts: &RuntimeOptions,
+        layouts: &[(&[&str], &[&str])],
+    ) -> Result<(Self, usize), FeatureError> {
         let (_, env) = init(None)?;
         let err = |message: String| FeatureError::Model {
             path: path.display().to_string(),
@@ -175,21 +187,45 @@ impl OnnxModel {
         let session = build().map_err(|e| err(format!("cannot load: {e}")))?;
         let have_in: Vec<&str> = session.inputs().iter().map(|o| o.name()).collect();
         let have_out: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
-        for (kind, want, have) in [("input", inputs, &have_in), ("output", outputs, &have_out)] {
-            for w in want {
-                if !have.contains(w) {
-                    return Err(err(format!(
+        // What the layout lacks, if anything.
+        let lacks = |inputs: &[&str], outputs: &[&str]| -> Option<String> {
+            for (kind, want, have) in [("input", inputs, &have_in), ("output", outputs, &have_out)]
+            {
+                if let Some(w) = want.iter().find(|w| !have.contains(w)) {
+                    return Some(format!(
                         "has no {kind} `{w}` (its {kind}s: {})",
                         have.join(", ")
-                    )));
+                    ));
+                }
+            }
+            None
+        };
+        let mut first_lack = None;
+        let mut found = None;
+        for (i, (inputs, outputs)) in layouts.iter().enumerate() {
+            match lacks(inputs, outputs) {
+                None => {
+                    found = Some(i);
+                    break;
+                }
+                Some(why) => {
+                    first_lack.get_or_insert(why);
                 }
             }
         }
-        Ok(Self {
-            path: path.to_path_buf(),
-            session: Mutex::new(session),
-            provider,
-        })
+        let Some(layout) = found else {
+            return Err(err(
+                first_lack.unwrap_or_else(|| "no layout to check".into())
+            ));
+        };
+        Ok((
+            Self {
+                path: path.to_path_buf(),
+                session: Mutex::new(session),
+                provider,
+            },
+            layout,
+        ))
     }
 
     /// The execution provider in use: "cpu" or "cuda".

@@ -4,12 +4,18 @@
 //! output by the parity test): 5x5 non-maximum suppression over the keypoint heatmap with threshold
 //! 0.05, score = heatmap (nearest) x reliability (bilinear), top-k by score, descriptors sampled
 //! bicubically (PyTorch `grid_sample`, zero padding, A = -0.75) and L2-normalised.
+//!
+//! The committed backbones are trimmed (`models/trim.py`): the graph takes the grey image (the mean
+//! of the R, G and B planes) and ends before the keypoint softmax and the descriptors' L2
+//! normalisation, which run here ([`heatmap_from_logits`], [`normalize_cells`]): ONNX Runtime spent
+//! about a fifth of the backbone's time on one thread in those layout-bound steps. A backbone as
+//! `models/export.py` writes it (input `image`, outputs `feats`, `heatmap`, `reliability`) loads too.
 
 use std::path::Path;
 
 use pntr_core::RgbImage;
 
-use crate::runtime::{OnnxModel, RuntimeOptions};
+use crate::runtime::{OnnxModel, RuntimeOptions, Tensor};
 use crate::{Extractor, FeatureError, Features};
 
 /// XFeat settings.
@@ -38,7 +44,29 @@ impl Default for XFeatParams {
 pub struct XFeat {
     model: OnnxModel,
     params: XFeatParams,
+    layout: Layout,
 }
+
+/// Which graph a backbone file holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Layout {
+    /// `models/trim.py`'s: `gray` in; `descriptor_map`, `keypoint_logits`, `reliability` out.
+    Trimmed,
+    /// `models/export.py`'s: `image` in; `feats`, `heatmap`, `reliability` out.
+    Exported,
+}
+
+/// Input and output names of each [`Layout`], in the enum's order.
+const LAYOUTS: [(&[&str], &[&str]); 2] = [
+    (
+        &["gray"],
+        &["descriptor_map", "keypoint_logits", "reliability"],
+    ),
+    (&["image"], &["feats", "heatmap", "reliability"]),
+];
+
+/// Keypoint logits per cell of the backbone: 64 pixel positions of an 8 x 8 cell and a dustbin.
+const LOGITS: usize = 65;
 
 /// Descriptor length of XFeat.
 pub const XFEAT_DIM: usize = 64;
@@ -130,16 +158,91 @@ pub fn planar_rgb(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
     planar
 }
 
+/// The grey plane XFeat's network starts from, `oh` x `ow`: the mean of the planar R, G and B in
+/// 0..1 ([`planar_rgb`]), added in that order and divided by 3, as the exported graph's `ReduceMean`.
+pub fn gray_plane(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    if (oh, ow) != (h, w) {
+        let p = resize_planar(img, oh, ow);
+        let n = oh * ow;
+        return (0..n)
+            .map(|i| (p[i] + p[n + i] + p[2 * n + i]) / 3.0)
+            .collect();
+    }
+    let s = 1.0 / 255.0;
+    img.data
+        .chunks_exact(3)
+        .map(|px| (px[0] as f32 * s + px[1] as f32 * s + px[2] as f32 * s) / 3.0)
+        .collect()
+}
+
+/// XFeat's full-resolution keypoint heatmap, (8 h8) x (8 w8) row-major, from its keypoint logits
+/// (planar, [`LOGITS`] x h8 x w8): the softmax over each cell's 65 logits, the dustbin dropped, the
+/// 64 others laid out as the cell's 8 x 8 pixels (channel 8 a + b is the cell's row a, column b),
+/// as upstream XFeat's `get_kpts_heatmap`.
+pub fn heatmap_from_logits(logits: &[f32], h8: usize, w8: usize) -> Vec<f32> {
+    let cells = h8 * w8;
+    debug_assert_eq!(logits.len(), LOGITS * cells);
+    let mut max = vec![f32::NEG_INFINITY; cells];
+    for plane in logits.chunks_exact(cells) {
+        for (m, &v) in max.iter_mut().zip(plane) {
+            *m = m.max(v);
+        }
+    }
+    let mut sum = vec![0f32; cells];
+    let mut e = vec![0f32; LOGITS * cells];
+    for (out, plane) in e.chunks_exact_mut(cells).zip(logits.chunks_exact(cells)) {
+        for k in 0..cells {
+            let v = (plane[k] - max[k]).exp();
+            out[k] = v;
+            sum[k] += v;
+        }
+    }
+    let w = 8 * w8;
+    let mut heat = vec![0f32; cells * 64];
+    for (ch, plane) in e.chunks_exact(cells).take(64).enumerate() {
+        let (a, b) = (ch / 8, ch % 8);
+        for i in 0..h8 {
+            let row = &mut heat[(8 * i + a) * w..(8 * i + a + 1) * w];
+            for j in 0..w8 {
+                row[8 * j + b] = plane[i * w8 + j] / sum[i * w8 + j];
+            }
+        }
+    }
+    heat
+}
+
+/// Divide each cell's descriptor (planar, `channels` x `cells`) by its L2 norm (at least 1e-12, as
+/// PyTorch's `F.normalize`), in place.
+pub fn normalize_cells(data: &mut [f32], channels: usize, cells: usize) {
+    debug_assert_eq!(data.len(), channels * cells);
+    let mut norm = vec![0f32; cells];
+    for plane in data.chunks_exact(cells) {
+        for (n, &v) in norm.iter_mut().zip(plane) {
+            *n += v * v;
+        }
+    }
+    for n in &mut norm {
+        *n = n.sqrt().max(1e-12);
+    }
+    for plane in data.chunks_exact_mut(cells) {
+        for (v, &n) in plane.iter_mut().zip(&norm) {
+            *v /= n;
+        }
+    }
+}
+
 impl XFeat {
-    /// Load the backbone model (`models/xfeat_backbone.onnx`).
+    /// Load the backbone model (`models/xfeat_backbone.onnx`), trimmed (`models/trim.py`) or as
+    /// exported. Errors: the file is missing, not loadable, or follows neither graph layout.
     pub fn load(path: &Path, params: XFeatParams) -> Result<Self, FeatureError> {
-        let model = OnnxModel::load(
-            path,
-            &params.runtime,
-            &["image"],
-            &["feats", "heatmap", "reliability"],
-        )?;
-        Ok(Self { model, params })
+        let (model, i) = OnnxModel::load_layout(path, &params.runtime, &LAYOUTS)?;
+        let layout = [Layout::Trimmed, Layout::Exported][i];
+        Ok(Self {
+            model,
+            params,
+            layout,
+        })
     }
 
     /// The execution provider in use.
@@ -287,32 +390,76 @@ impl Extractor for XFeat {
             )));
         }
         let (rh, rw) = (h / 32 * 32, w / 32 * 32);
-        let input = planar_rgb(image, rh, rw);
-        let out = self.model.run(
-            &[("image", vec![1, 3, rh, rw], &input)],
-            &["feats", "heatmap", "reliability"],
-        )?;
-        let map = |i: usize| -> Result<Map, FeatureError> {
+        let shape_of = |out: &[Tensor], i: usize| -> Result<[usize; 3], FeatureError> {
             let (s, d) = &out[i];
             if s.len() != 4 || s[0] != 1 || s.iter().product::<usize>() != d.len() {
                 return Err(FeatureError::Inference(format!(
                     "unexpected output shape {s:?}"
                 )));
             }
-            Ok(Map {
-                c: s[1],
-                h: s[2],
-                w: s[3],
-                data: d,
-            })
+            Ok([s[1], s[2], s[3]])
         };
-        let (feats, heat, rel) = (map(0)?, map(1)?, map(2)?);
-        if feats.c != XFEAT_DIM || (heat.h, heat.w) != (rh, rw) {
-            return Err(FeatureError::Inference(format!(
-                "outputs do not follow the XFeat contract: feats {} channels, heatmap {}x{}",
-                feats.c, heat.h, heat.w
-            )));
-        }
+        let contract = |what: String| {
+            FeatureError::Inference(format!("outputs do not follow the XFeat contract: {what}"))
+        };
+        let (feats, f, heat, rel): (Vec<f32>, [usize; 3], Vec<f32>, Tensor) = match self.layout {
+            Layout::Exported => {
+                let input = planar_rgb(image, rh, rw);
+                let mut out = self.model.run(
+                    &[("image", vec![1, 3, rh, rw], &input)],
+                    &["feats", "heatmap", "reliability"],
+                )?;
+                let (f, hm) = (shape_of(&out, 0)?, shape_of(&out, 1)?);
+                shape_of(&out, 2)?;
+                if f[0] != XFEAT_DIM || (hm[1], hm[2]) != (rh, rw) {
+                    return Err(contract(format!(
+                        "feats {} channels, heatmap {}x{}",
+                        f[0], hm[1], hm[2]
+                    )));
+                }
+                let rel = out.pop().expect("three outputs");
+                let heat = out.pop().expect("three outputs").1;
+                (out.pop().expect("three outputs").1, f, heat, rel)
+            }
+            Layout::Trimmed => {
+                let input = gray_plane(image, rh, rw);
+                let mut out = self.model.run(
+                    &[("gray", vec![1, 1, rh, rw], &input)],
+                    &["descriptor_map", "keypoint_logits", "reliability"],
+                )?;
+                let (f, l) = (shape_of(&out, 0)?, shape_of(&out, 1)?);
+                shape_of(&out, 2)?;
+                if f[0] != XFEAT_DIM || l[0] != LOGITS || (l[1] * 8, l[2] * 8) != (rh, rw) {
+                    return Err(contract(format!(
+                        "descriptor map {} channels, keypoint logits {} channels of {}x{}",
+                        f[0], l[0], l[1], l[2]
+                    )));
+                }
+                let rel = out.pop().expect("three outputs");
+                let heat = heatmap_from_logits(&out.pop().expect("three outputs").1, l[1], l[2]);
+                let mut feats = out.pop().expect("three outputs").1;
+                normalize_cells(&mut feats, f[0], f[1] * f[2]);
+                (feats, f, heat, rel)
+            }
+        };
+        let feats = Map {
+            c: f[0],
+            h: f[1],
+            w: f[2],
+            data: &feats,
+        };
+        let heat = Map {
+            c: 1,
+            h: rh,
+            w: rw,
+            data: &heat,
+        };
+        let rel = Map {
+            c: rel.0[1],
+            h: rel.0[2],
+            w: rel.0[3],
+            data: &rel.1,
+        };
         Ok(self.sparse(
             &feats,
             &heat,
@@ -324,5 +471,65 @@ impl Extractor for XFeat {
 
     fn name(&self) -> &'static str {
         "xfeat"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_heatmap_puts_each_logit_at_its_pixel_of_the_cell() {
+        // 2 x 3 cells; in each, one logit far above the others, at a channel that depends on the cell.
+        let (h8, w8) = (2, 3);
+        let cells = h8 * w8;
+        let mut logits = vec![0f32; LOGITS * cells];
+        let channel = |k: usize| (k * 11 + 5) % 64;
+        for k in 0..cells {
+            logits[channel(k) * cells + k] = 30.0;
+        }
+        let heat = heatmap_from_logits(&logits, h8, w8);
+        assert_eq!(heat.len(), 64 * cells);
+        for k in 0..cells {
+            let (i, j) = (k / w8, k % w8);
+            let (a, b) = (channel(k) / 8, channel(k) % 8);
+            let peak = heat[(8 * i + a) * 8 * w8 + 8 * j + b];
+            assert!(peak > 0.999, "cell {k}: {peak}");
+        }
+        // Softmax over 65 with the dustbin: each cell's 64 pixels sum to 1 minus the dustbin's share.
+        let uniform = heatmap_from_logits(&vec![0f32; LOGITS * cells], h8, w8);
+        assert!(uniform.iter().all(|&v| (v - 1.0 / 65.0).abs() < 1e-7));
+    }
+
+    #[test]
+    fn cells_come_out_unit_length_and_a_zero_cell_stays_zero() {
+        let cells = 3;
+        let mut d: Vec<f32> = (0..4 * cells).map(|i| (i % 5) as f32 - 1.0).collect();
+        for c in 0..4 {
+            d[c * cells + 2] = 0.0;
+        }
+        normalize_cells(&mut d, 4, cells);
+        for k in 0..2 {
+            let n: f32 = (0..4).map(|c| d[c * cells + k].powi(2)).sum();
+            assert!((n - 1.0).abs() < 1e-6, "cell {k}: {n}");
+        }
+        assert!((0..4).all(|c| d[c * cells + 2] == 0.0));
+    }
+
+    #[test]
+    fn the_grey_plane_is_the_mean_of_the_colour_planes() {
+        let img = RgbImage::new(
+            32,
+            32,
+            (0..32 * 32 * 3).map(|i| (i * 7 % 256) as u8).collect(),
+        )
+        .unwrap();
+        let g = gray_plane(&img, 32, 32);
+        let p = planar_rgb(&img, 32, 32);
+        let n = 32 * 32;
+        for i in 0..n {
+            let want = (p[i] + p[n + i] + p[2 * n + i]) / 3.0;
+            assert!((g[i] - want).abs() <= 1e-7, "{i}: {} vs {want}", g[i]);
+        }
     }
 }

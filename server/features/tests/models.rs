@@ -337,7 +337,7 @@ fn bad_models_and_images_are_clear_errors() {
         .unwrap_err()
         .to_string();
     assert!(
-        wrong.contains("has no input `kpts0`") && wrong.contains("image"),
+        wrong.contains("has no input `kpts0`") && wrong.contains("gray"),
         "{wrong}"
     );
     // A file that is not a model at all.
