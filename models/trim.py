@@ -14,14 +14,17 @@ and the L2 normalisation of the descriptor map. This rewrites a model in place s
   normalisation), `keypoint_logits` [1, 65, H/8, W/8] (before the softmax) and `reliability`
   [1, 1, H/8, W/8] as before;
 
-and drops every node only the removed ends used. The same rewrite applies to the float model and to
-its int8 version (models/quantize.py; run quantize.py on the float model first, then trim both).
-A model already trimmed is left as it is. pntr loads either layout (`pntr_features::xfeat`).
+and drops every node only the removed ends used. `export.py` trims the float model it exports, and
+`quantize.py` quantizes the trimmed float model, so its int8 model comes out trimmed; this script is
+for files exported before (it rewrites an int8 model of the exported layout the same way). A model
+already trimmed is left as it is. pntr loads either layout (`pntr_features::xfeat`).
 """
 import os
 import sys
+import tempfile
 
 import onnx
+import onnx.numpy_helper
 from onnx import TensorProto, helper
 
 
@@ -41,6 +44,46 @@ def trim(path):
     if len(means) != 1 or len(norms) != 1 or len(softmaxes) != 1:
         sys.exit(f"{path}: not XFeat's exported backbone (one ReduceMean of `image`, one ReduceL2 "
                  f"and one Softmax expected; found {len(means)}, {len(norms)}, {len(softmaxes)})")
+    consts = {t.name: onnx.numpy_helper.to_array(t) for t in g.initializer}
+    for n in g.node:
+        if n.op_type == "Constant":
+            consts[n.output[0]] = onnx.numpy_helper.to_array(n.attribute[0].t)
+
+    def axes(node):
+        given = [a.ints for a in node.attribute if a.name == "axes"]
+        if given:
+            return list(given[0])
+        return [int(v) for v in consts.get(node.input[1], [])] if len(node.input) > 1 else []
+
+    def attr(node, name, default):
+        return next((onnx.helper.get_attribute_value(a) for a in node.attribute if a.name == name), default)
+
+    # The three ends must be the ones the Rust side replaces: over the channel axis, dims kept.
+    for node, what in ((means[0], "ReduceMean"), (norms[0], "ReduceL2")):
+        if axes(node) != [1] or attr(node, "keepdims", 1) != 1:
+            sys.exit(f"{path}: {what} over axes {axes(node)}, keepdims {attr(node, 'keepdims', 1)}; "
+                     "expected the channel axis [1], dims kept")
+    if attr(softmaxes[0], "axis", -1) != 1:
+        sys.exit(f"{path}: Softmax over axis {attr(softmaxes[0], 'axis', -1)}; expected 1")
+    made = producer_of(g)
+
+    def upstream(tensor):
+        seen, stack = set(), [tensor]
+        while stack:
+            t = stack.pop()
+            if t in seen:
+                continue
+            seen.add(t)
+            n = made.get(t)
+            if n is not None:
+                stack.extend(i for i in n.input if i)
+        return seen
+
+    if softmaxes[0].output[0] not in upstream("heatmap"):
+        sys.exit(f"{path}: the Softmax does not feed `heatmap`")
+    feats = made.get("feats")
+    if feats is None or feats.op_type != "Div" or feats.input[0] != norms[0].input[0]:
+        sys.exit(f"{path}: `feats` is not the descriptor map divided by its ReduceL2 norm")
     gray_tensor = means[0].output[0]
     descriptors = norms[0].input[0]
     logits = softmaxes[0].input[0]
@@ -102,9 +145,16 @@ def trim(path):
     del g.value_info[:]
     g.value_info.extend(infos)
     onnx.checker.check_model(model)
-    tmp = path + ".tmp"
-    onnx.save(model, tmp)
-    os.replace(tmp, path)
+    # A temporary file beside the model, renamed over it once written whole.
+    fd, tmp = tempfile.mkstemp(prefix=os.path.basename(path) + ".", suffix=".tmp",
+                               dir=os.path.dirname(os.path.abspath(path)))
+    os.close(fd)
+    try:
+        onnx.save(model, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        os.unlink(tmp)
+        raise
     print(f"{path}: trimmed to {len(kept)} nodes; input gray, outputs {', '.join(wanted)}")
 
 

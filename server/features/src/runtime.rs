@@ -159,7 +159,7 @@ impl OnnxModel {
     /// Load `path` and find the first of `layouts` (each the input and the output names a graph
     /// of one version of a model has) that the model follows; returns the model and that layout's
     /// index. Errors: the file is missing or not a model ONNX Runtime can load, or the model has
-    /// none of the layouts (the message names what the first one lacks).
+    /// none of the layouts (the message names what each one lacks).
     pub fn load_layout(
         path: &Path,
         opts: &RuntimeOptions,
@@ -200,7 +200,7 @@ impl OnnxModel {
             }
             None
         };
-        let mut first_lack = None;
+        let mut lacking = Vec::new();
         let mut found = None;
         for (i, (inputs, outputs)) in layouts.iter().enumerate() {
             match lacks(inputs, outputs) {
@@ -208,15 +208,22 @@ impl OnnxModel {
                     found = Some(i);
                     break;
                 }
-                Some(why) => {
-                    first_lack.get_or_insert(why);
-                }
+                Some(why) => lacking.push(why),
             }
         }
         let Some(layout) = found else {
-            return Err(err(
-                first_lack.unwrap_or_else(|| "no layout to check".into())
-            ));
+            // One layout: its gap; several: each layout's, so a model of the second layout with one
+            // name wrong is not told what the first lacks.
+            return Err(err(match lacking.len() {
+                0 => "no layout to check".into(),
+                1 => lacking.remove(0),
+                _ => lacking
+                    .iter()
+                    .enumerate()
+                    .map(|(i, why)| format!("as layout {}: {why}", i + 1))
+                    .collect::<Vec<_>>()
+                    .join("; "),
+            }));
         };
         Ok((
             Self {

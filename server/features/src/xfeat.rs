@@ -9,7 +9,8 @@
 //! of the R, G and B planes) and ends before the keypoint softmax and the descriptors' L2
 //! normalisation, which run here ([`heatmap_from_logits`], [`normalize_cells`]): ONNX Runtime spent
 //! about a fifth of the backbone's time on one thread in those layout-bound steps. A backbone as
-//! `models/export.py` writes it (input `image`, outputs `feats`, `heatmap`, `reliability`) loads too.
+//! `torch.onnx.export` writes it in `models/export.py` before the trim (input `image`, outputs
+//! `feats`, `heatmap`, `reliability`; the committed files before 63fe413) loads too.
 
 use std::path::Path;
 
@@ -52,7 +53,8 @@ pub struct XFeat {
 enum Layout {
     /// `models/trim.py`'s: `gray` in; `descriptor_map`, `keypoint_logits`, `reliability` out.
     Trimmed,
-    /// `models/export.py`'s: `image` in; `feats`, `heatmap`, `reliability` out.
+    /// The graph as exported, before `models/trim.py`: `image` in; `feats`, `heatmap`,
+    /// `reliability` out.
     Exported,
 }
 
@@ -409,12 +411,10 @@ impl Extractor for XFeat {
                     &[("image", vec![1, 3, rh, rw], &input)],
                     &["feats", "heatmap", "reliability"],
                 )?;
-                let (f, hm) = (shape_of(&out, 0)?, shape_of(&out, 1)?);
-                shape_of(&out, 2)?;
-                if f[0] != XFEAT_DIM || (hm[1], hm[2]) != (rh, rw) {
+                let (f, hm, r) = (shape_of(&out, 0)?, shape_of(&out, 1)?, shape_of(&out, 2)?);
+                if f[0] != XFEAT_DIM || hm != [1, rh, rw] || r != [1, f[1], f[2]] {
                     return Err(contract(format!(
-                        "feats {} channels, heatmap {}x{}",
-                        f[0], hm[1], hm[2]
+                        "feats {f:?}, heatmap {hm:?}, reliability {r:?} (channels, rows, columns) for a {rh}x{rw} input"
                     )));
                 }
                 let rel = out.pop().expect("three outputs");
@@ -427,12 +427,14 @@ impl Extractor for XFeat {
                     &[("gray", vec![1, 1, rh, rw], &input)],
                     &["descriptor_map", "keypoint_logits", "reliability"],
                 )?;
-                let (f, l) = (shape_of(&out, 0)?, shape_of(&out, 1)?);
-                shape_of(&out, 2)?;
-                if f[0] != XFEAT_DIM || l[0] != LOGITS || (l[1] * 8, l[2] * 8) != (rh, rw) {
+                let (f, l, r) = (shape_of(&out, 0)?, shape_of(&out, 1)?, shape_of(&out, 2)?);
+                let cells = [rh / 8, rw / 8];
+                if f != [XFEAT_DIM, cells[0], cells[1]]
+                    || l != [LOGITS, cells[0], cells[1]]
+                    || r != [1, cells[0], cells[1]]
+                {
                     return Err(contract(format!(
-                        "descriptor map {} channels, keypoint logits {} channels of {}x{}",
-                        f[0], l[0], l[1], l[2]
+                        "descriptor map {f:?}, keypoint logits {l:?}, reliability {r:?} (channels, rows, columns) for a {rh}x{rw} input"
                     )));
                 }
                 let rel = out.pop().expect("three outputs");

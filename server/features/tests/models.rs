@@ -340,6 +340,15 @@ fn bad_models_and_images_are_clear_errors() {
         wrong.contains("has no input `kpts0`") && wrong.contains("gray"),
         "{wrong}"
     );
+    // A matcher given as XFeat's backbone: neither graph layout, and the error names what each lacks.
+    let neither = XFeat::load(&models().join("lighterglue.onnx"), XFeatParams::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        neither.contains("as layout 1: has no input `gray`")
+            && neither.contains("as layout 2: has no input `image`"),
+        "{neither}"
+    );
     // A file that is not a model at all.
     let dir = std::env::temp_dir().join(format!("pntr-features-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
