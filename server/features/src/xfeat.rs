@@ -181,8 +181,9 @@ pub fn gray_plane(img: &RgbImage, oh: usize, ow: usize) -> Vec<f32> {
 /// XFeat's full-resolution keypoint heatmap, (8 h8) x (8 w8) row-major, from its keypoint logits
 /// (planar, [`LOGITS`] x h8 x w8): the softmax over each cell's 65 logits, the dustbin dropped, the
 /// 64 others laid out as the cell's 8 x 8 pixels (channel 8 a + b is the cell's row a, column b),
-/// as upstream XFeat's `get_kpts_heatmap`.
-pub fn heatmap_from_logits(logits: &[f32], h8: usize, w8: usize) -> Vec<f32> {
+/// as upstream XFeat's `get_kpts_heatmap`. The logits are overwritten (with the softmax's
+/// exponentials), which spares a frame-sized buffer.
+pub fn heatmap_from_logits(logits: &mut [f32], h8: usize, w8: usize) -> Vec<f32> {
     let cells = h8 * w8;
     debug_assert_eq!(logits.len(), LOGITS * cells);
     let mut max = vec![f32::NEG_INFINITY; cells];
@@ -192,17 +193,16 @@ pub fn heatmap_from_logits(logits: &[f32], h8: usize, w8: usize) -> Vec<f32> {
         }
     }
     let mut sum = vec![0f32; cells];
-    let mut e = vec![0f32; LOGITS * cells];
-    for (out, plane) in e.chunks_exact_mut(cells).zip(logits.chunks_exact(cells)) {
+    for plane in logits.chunks_exact_mut(cells) {
         for k in 0..cells {
             let v = (plane[k] - max[k]).exp();
-            out[k] = v;
+            plane[k] = v;
             sum[k] += v;
         }
     }
     let w = 8 * w8;
     let mut heat = vec![0f32; cells * 64];
-    for (ch, plane) in e.chunks_exact(cells).take(64).enumerate() {
+    for (ch, plane) in logits.chunks_exact(cells).take(64).enumerate() {
         let (a, b) = (ch / 8, ch % 8);
         for i in 0..h8 {
             let row = &mut heat[(8 * i + a) * w..(8 * i + a + 1) * w];
@@ -438,7 +438,8 @@ impl Extractor for XFeat {
                     )));
                 }
                 let rel = out.pop().expect("three outputs");
-                let heat = heatmap_from_logits(&out.pop().expect("three outputs").1, l[1], l[2]);
+                let heat =
+                    heatmap_from_logits(&mut out.pop().expect("three outputs").1, l[1], l[2]);
                 let mut feats = out.pop().expect("three outputs").1;
                 normalize_cells(&mut feats, f[0], f[1] * f[2]);
                 (feats, f, heat, rel)
@@ -490,7 +491,7 @@ mod tests {
         for k in 0..cells {
             logits[channel(k) * cells + k] = 30.0;
         }
-        let heat = heatmap_from_logits(&logits, h8, w8);
+        let heat = heatmap_from_logits(&mut logits, h8, w8);
         assert_eq!(heat.len(), 64 * cells);
         for k in 0..cells {
             let (i, j) = (k / w8, k % w8);
@@ -499,7 +500,7 @@ mod tests {
             assert!(peak > 0.999, "cell {k}: {peak}");
         }
         // Softmax over 65 with the dustbin: each cell's 64 pixels sum to 1 minus the dustbin's share.
-        let uniform = heatmap_from_logits(&vec![0f32; LOGITS * cells], h8, w8);
+        let uniform = heatmap_from_logits(&mut vec![0f32; LOGITS * cells], h8, w8);
         assert!(uniform.iter().all(|&v| (v - 1.0 / 65.0).abs() < 1e-7));
     }
 
