@@ -132,13 +132,22 @@ pub fn refine_dense(
     let kd = &db.intrinsics;
     let mut est = *db_from_query;
     for _ in 0..ITERATIONS {
-        let mut h = Matrix6::<f64>::zeros();
+        // The normal equations' upper triangle, row-major (the matrix is symmetric: each term
+        // `j_a j_b w` equals `j_b j_a w` to the bit, so the lower triangle is a copy).
+        let mut upper = [0.0f64; 21];
         let mut g = Vector6::<f64>::zeros();
         let mut used = 0usize;
         let mut add = |j: Vector6<f64>, r: f64, sigma: f64| {
             let rn = r / sigma;
             let w = huber(rn) / (sigma * sigma);
-            h += j * j.transpose() * w;
+            // `h += j * j.transpose() * w` term by term: `(j_a * j_b) * w`, in that order.
+            let mut k = 0;
+            for a in 0..6 {
+                for b in a..6 {
+                    upper[k] += (j[a] * j[b]) * w;
+                    k += 1;
+                }
+            }
             g += j * (r * w);
         };
         for x in &samples {
@@ -179,6 +188,15 @@ pub fn refine_dense(
         }
         if used < MIN_ASSOCIATED {
             return None;
+        }
+        let mut h = Matrix6::<f64>::zeros();
+        let mut k = 0;
+        for a in 0..6 {
+            for b in a..6 {
+                h[(a, b)] = upper[k];
+                h[(b, a)] = upper[k];
+                k += 1;
+            }
         }
         let damping = 1e-9 * h.trace().max(1e-12);
         for i in 0..6 {

@@ -72,37 +72,7 @@ impl Thumb {
         };
         let mut depth_mm = vec![0u16; (w * h) as usize];
         let mut gray = vec![0u8; (w * h) as usize];
-        let mut block = Vec::with_capacity((s * s) as usize);
-        let stride = rgb.width as usize;
-        for r in 0..h {
-            for c in 0..w {
-                block.clear();
-                let mut sum = 0.0f32;
-                let mut n = 0u32;
-                for y in r * s..((r + 1) * s).min(rgb.height) {
-                    let row = y as usize * stride;
-                    for x in c * s..((c + 1) * s).min(rgb.width) {
-                        let i = row + x as usize;
-                        // Pixel by pixel (no image-sized copy of the grey image).
-                        sum += pntr_core::image::luminance(&rgb.data[i * 3..i * 3 + 3]);
-                        n += 1;
-                        let d = depth.data.get(i).copied().unwrap_or(0.0);
-                        if d.is_finite() && d > 0.0 {
-                            // Positive finite floats order as their bit patterns do.
-                            block.push(d.to_bits());
-                        }
-                    }
-                }
-                let o = (r * w + c) as usize;
-                gray[o] = (sum / n.max(1) as f32).round().clamp(0.0, 255.0) as u8;
-                if block.len() * 2 >= n as usize && !block.is_empty() {
-                    let m = block.len() / 2;
-                    let (_, med, _) = block.select_nth_unstable(m);
-                    let med = f32::from_bits(*med);
-                    depth_mm[o] = (med * 1000.0).round().clamp(1.0, 65535.0) as u16;
-                }
-            }
-        }
+        reduce_blocks_best(rgb, depth, s, (w, h), &mut depth_mm, &mut gray);
         Self {
             width: w,
             height: h,
@@ -118,7 +88,7 @@ impl Thumb {
             return None;
         }
         let d = self.depth_mm[(row * self.width + col) as usize];
-        (d > 0).then(|| d as f64 / 1000.0)
+        (d > 0).then(|| metres_of_mm()[d as usize])
     }
 
     /// Bytes held.
@@ -130,6 +100,151 @@ impl Thumb {
     pub fn valid(&self) -> usize {
         self.depth_mm.iter().filter(|&&d| d > 0).count()
     }
+}
+
+/// [`Thumb::new`]'s reduction of `rgb` and `depth` by blocks of `s` x `s` pixels into the
+/// `size.0` x `size.1` thumbnail's `depth_mm` and `gray`.
+#[inline(always)]
+fn reduce_blocks(
+    rgb: &RgbImage,
+    depth: &DepthMap,
+    s: u32,
+    size: (u32, u32),
+    depth_mm: &mut [u16],
+    gray: &mut [u8],
+) {
+    let (w, h) = size;
+    let (wu, su, ss) = (w as usize, s as usize, (s * s) as usize);
+    // One row of blocks at a time, image row by image row: each block's grey sum takes its
+    // pixels in the same order as a block-by-block loop (rows, then columns), so the sums are
+    // the same to the bit, but the blocks of a row are independent chains of additions. The
+    // row's luminance and depth bits are made first, in loops without branches.
+    let mut sums = vec![0f32; wu];
+    let mut counts = vec![0u32; wu];
+    // Per block, its pixels' depth bit patterns, u32::MAX where invalid (above every valid one).
+    let mut bits = vec![u32::MAX; wu * ss];
+    let used = (wu * su).min(rgb.width as usize);
+    let mut lum = vec![0f32; used];
+    let mut row_bits = vec![u32::MAX; used];
+    let stride = rgb.width as usize;
+    for r in 0..h {
+        sums.fill(0.0);
+        counts.fill(0);
+        bits.fill(u32::MAX);
+        for (k, y) in (r * s..((r + 1) * s).min(rgb.height)).enumerate() {
+            let row = y as usize * stride;
+            let px = &rgb.data[row * 3..(row + used) * 3];
+            for (l, p) in lum.iter_mut().zip(px.chunks_exact(3)) {
+                *l = pntr_core::image::luminance(p);
+            }
+            for (x, b) in row_bits.iter_mut().enumerate() {
+                let d = depth.data.get(row + x).copied().unwrap_or(0.0);
+                // Positive finite floats order as their bit patterns do.
+                *b = if d.is_finite() && d > 0.0 {
+                    d.to_bits()
+                } else {
+                    u32::MAX
+                };
+            }
+            for c in 0..wu {
+                let x0 = c * su;
+                let x1 = (x0 + su).min(used);
+                for &l in &lum[x0.min(x1)..x1] {
+                    sums[c] += l;
+                }
+                counts[c] += (x1 - x0.min(x1)) as u32;
+                let o = c * ss + k * su;
+                bits[o..o + (x1 - x0.min(x1))].copy_from_slice(&row_bits[x0.min(x1)..x1]);
+            }
+        }
+        for c in 0..wu {
+            let o = r as usize * wu + c;
+            let n = counts[c];
+            gray[o] = (sums[c] / n.max(1) as f32).round().clamp(0.0, 255.0) as u8;
+            let block = &mut bits[c * ss..(c + 1) * ss];
+            let valid = block.iter().filter(|&&b| b != u32::MAX).count();
+            if valid * 2 >= n as usize && valid > 0 {
+                // The invalid pixels rank after every valid one, so the valid values' median
+                // (rank valid / 2) is the whole block's element of that rank.
+                let med = f32::from_bits(rank_bits(block, valid / 2));
+                depth_mm[o] = (med * 1000.0).round().clamp(1.0, 65535.0) as u16;
+            }
+        }
+    }
+}
+
+/// [`reduce_blocks`] compiled for AVX2 (the block medians' ranking in eight lanes), chosen at run
+/// time where the CPU has it. The same results: integer comparisons, and float arithmetic
+/// without fused multiply-adds (AVX2 does not enable them).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn reduce_blocks_avx2(
+    rgb: &RgbImage,
+    depth: &DepthMap,
+    s: u32,
+    size: (u32, u32),
+    depth_mm: &mut [u16],
+    gray: &mut [u8],
+) {
+    reduce_blocks(rgb, depth, s, size, depth_mm, gray)
+}
+
+/// [`reduce_blocks`], on AVX2 where this CPU has it.
+fn reduce_blocks_best(
+    rgb: &RgbImage,
+    depth: &DepthMap,
+    s: u32,
+    size: (u32, u32),
+    depth_mm: &mut [u16],
+    gray: &mut [u8],
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") {
+        #[allow(unsafe_code)]
+        // SAFETY: the CPU has AVX2 (checked on the line above), the only requirement of the
+        // target feature; the function itself is safe code.
+        unsafe {
+            reduce_blocks_avx2(rgb, depth, s, size, depth_mm, gray)
+        };
+        return;
+    }
+    reduce_blocks(rgb, depth, s, size, depth_mm, gray)
+}
+
+/// The element of rank `m` of `v` in ascending order, as `select_nth_unstable(m)` gives it. Blocks
+/// of 16 values (4 x 4 pixels, a thumbnail of HPointLoc's camera) are ranked without branches: a
+/// value is the one when at most `m` values are below it and more than `m` are at most it.
+#[inline(always)]
+fn rank_bits(v: &mut [u32], m: usize) -> u32 {
+    let Ok(block) = <&[u32; 16]>::try_from(&*v) else {
+        return *v.select_nth_unstable(m).1;
+    };
+    // Counts for all sixteen values at once (lane `i` counts for `block[i]`), one value of the
+    // block against all of them per step: vector additions, no horizontal sums.
+    let (mut below, mut at_most) = ([0u32; 16], [0u32; 16]);
+    for &y in block {
+        for i in 0..16 {
+            below[i] += (y < block[i]) as u32;
+            at_most[i] += (y <= block[i]) as u32;
+        }
+    }
+    let m = m as u32;
+    let mut out = block[0];
+    for i in 0..16 {
+        if below[i] <= m && m < at_most[i] {
+            out = block[i];
+        }
+    }
+    out
+}
+
+/// Metres of every thumbnail depth value: entry `d` is `d as f64 / 1000.0`, the same to the bit,
+/// made once per process (512 KiB). The dense checks look a depth up for every sample they move
+/// and every sample they land on; a table lookup costs a fraction of a division there (a profile
+/// of the checks had most of their time waiting on the two divisions of each sample).
+fn metres_of_mm() -> &'static [f64] {
+    static TABLE: std::sync::OnceLock<Vec<f64>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| (0..=u16::MAX).map(|d| d as f64 / 1000.0).collect())
 }
 
 /// Depth tolerance (metres) of the dense test at range `z_m`: 4 cm plus 3% of the range (thumbnail
@@ -259,7 +374,9 @@ struct DenseScratch {
     /// point's depth and its pixel coordinates in the other view plus one half.
     z: Vec<f64>,
     moved: MovedRow,
-    tiles: Vec<[f64; 6]>,
+    /// Per tile of [`LOCAL_TILE`] samples: the grey sums `[a, b, aa, bb, ab]` and the count, as
+    /// integers (exact, so the same as the f64 sums they replace, in any order).
+    tiles: Vec<[u32; 6]>,
 }
 
 /// One row of samples after [`move_row`]: per sampled column, the moved point's depth and its
@@ -392,17 +509,23 @@ fn dense_check_with(
     s.tiles.clear();
     s.tiles.resize(
         (tiles_across * from.height.div_ceil(LOCAL_TILE)) as usize,
-        [0.0; 6],
+        [0; 6],
     );
+    // The grey sums of agreeing samples as integers: grey values are whole numbers, so these sums
+    // are exact, and the f64 they become equals the f64 sums taken sample by sample (every partial
+    // sum is a whole number below 2^53). u64: 65,536 samples of 255 x 255 would overflow u32.
+    let mut gray = [0u64; 5];
     let fw = from.width as usize;
+    let metres = metres_of_mm();
     for r in (0..from.height).step_by(step) {
         let y = (r as f64 - kf.cy) / kf.fy;
         let row = &from.depth_mm[r as usize * fw..(r as usize + 1) * fw];
         for (i, z) in s.z.iter_mut().enumerate() {
-            let d = row[col_of(i) as usize];
-            *z = if d > 0 { d as f64 / 1000.0 } else { 0.0 };
+            // 0 (invalid) is 0 m, as before.
+            *z = metres[row[col_of(i) as usize] as usize];
         }
         move_row_best(&m, &s.xs, &s.z, y, &mut s.moved);
+        let tile_row = ((r / LOCAL_TILE) * tiles_across) as usize;
         for i in 0..n {
             let col = col_of(i);
             if row[col as usize] == 0 {
@@ -418,36 +541,59 @@ fn dense_check_with(
             if !(pu >= 0.0 && pv >= 0.0 && pu < tw && pv < th) {
                 continue;
             }
+            // Inside: `u < to.width` and `v < to.height` (the test above), as `depth_m` checks.
             let (u, v) = (pu as u32, pv as u32);
-            let Some(zt) = to.depth_m(u, v) else { continue };
+            let dt = to.depth_mm[(v * to.width + u) as usize];
+            if dt == 0 {
+                continue;
+            }
+            let zt = metres[dt as usize];
             c.inside += 1;
             let tol = depth_tolerance_m(qz);
-            if (zt - qz).abs() <= tol {
-                c.agree += 1;
-                let a = from.gray[r as usize * fw + col as usize] as f64;
-                let b = to.gray[(v * to.width + u) as usize] as f64;
-                c.gray[0] += a;
-                c.gray[1] += b;
-                c.gray[2] += a * a;
-                c.gray[3] += b * b;
-                c.gray[4] += a * b;
-                let t = &mut s.tiles[((r / LOCAL_TILE) * tiles_across + col / LOCAL_TILE) as usize];
-                t[0] += a;
-                t[1] += b;
-                t[2] += a * a;
-                t[3] += b * b;
-                t[4] += a * b;
-                t[5] += 1.0;
-            } else if zt > qz + tol {
-                c.violate += 1;
-            }
+            // Without branches from here: whether the depth agrees is a coin toss for a wrong
+            // pose, and a mispredicted branch cost more than the whole sample's arithmetic. The
+            // grey values of a sample that does not agree are multiplied by 0, so every sum is
+            // the one of the agreeing samples alone.
+            let agrees = (zt - qz).abs() <= tol;
+            let violates = !agrees && zt > qz + tol;
+            c.agree += agrees as usize;
+            c.violate += violates as usize;
+            let f = agrees as u32;
+            let a = from
+                .gray
+                .get(r as usize * fw + col as usize)
+                .copied()
+                .unwrap_or(0) as u32
+                * f;
+            let b = to
+                .gray
+                .get((v * to.width + u) as usize)
+                .copied()
+                .unwrap_or(0) as u32
+                * f;
+            let (aa, bb, ab) = (a * a, b * b, a * b);
+            gray[0] += a as u64;
+            gray[1] += b as u64;
+            gray[2] += aa as u64;
+            gray[3] += bb as u64;
+            gray[4] += ab as u64;
+            // A tile holds at most LOCAL_TILE² = 16 samples: its sums stay far below u32::MAX.
+            let t = &mut s.tiles[tile_row + (col / LOCAL_TILE) as usize];
+            t[0] += a;
+            t[1] += b;
+            t[2] += aa;
+            t[3] += bb;
+            t[4] += ab;
+            t[5] += f;
         }
     }
+    c.gray = gray.map(|v| v as f64);
     for t in &s.tiles {
-        let n = t[5];
+        let n = t[5] as f64;
         if n < LOCAL_MIN_SAMPLES {
             continue;
         }
+        let t = t.map(|v| v as f64);
         if let Some(r) = pearson(&[t[0], t[1], t[2], t[3], t[4]], n) {
             c.local[0] += n * r;
             c.local[1] += n;
@@ -758,6 +904,37 @@ mod tests {
             }
         }
         c
+    }
+
+    #[test]
+    fn block_ranks_are_the_selected_ranks() {
+        // Blocks of 16 (the ranking path) and of 9 and 25 (`select_nth_unstable`), every rank,
+        // with ties: bit patterns of depths on a coarse grid, and invalid pixels as u32::MAX.
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        for len in [9usize, 16, 25] {
+            for _ in 0..300 {
+                let v: Vec<u32> = (0..len)
+                    .map(|_| {
+                        x ^= x << 13;
+                        x ^= x >> 7;
+                        x ^= x << 17;
+                        match x % 9 {
+                            0 => u32::MAX,
+                            k => (0.5 + k as f32 * 0.25).to_bits(),
+                        }
+                    })
+                    .collect();
+                let mut sorted = v.clone();
+                sorted.sort_unstable();
+                for m in 0..len {
+                    assert_eq!(
+                        rank_bits(&mut v.clone(), m),
+                        sorted[m],
+                        "{len} {m}: {sorted:?}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
