@@ -372,6 +372,9 @@ pub mod screen {
         row: Vec<i8>,
         /// Pairs that pass the screen, with their f32 similarity.
         pairs: Vec<(u32, u32, f32)>,
+        /// The passing pairs of each row of the tile of rows at hand (columns ascending), moved
+        /// into `pairs` row by row when the tile is done, so `pairs` comes out in row order.
+        tile_rows: [Vec<(u32, u32, f32)>; ROWS],
         /// Per column: the best similarity among passing pairs and its row.
         col_best: Vec<(f32, u32)>,
     }
@@ -575,8 +578,12 @@ pub mod screen {
         // of `dim` bytes, `qb` groups of `blocks * COLS * 4` bytes and the per-column vectors of
         // `blocks * COLS` values (`blocks = m / COLS` rounded up), the lengths `quantize_sides` set.
         unsafe { screen_pairs(s, n, m, dim, floor) };
-        // Tiles of rows emit block by block: back to row order, columns ascending.
-        s.pairs.sort_unstable_by_key(|p| (p.0, p.1));
+        debug_assert!(
+            s.pairs
+                .windows(2)
+                .all(|w| (w[0].0, w[0].1) < (w[1].0, w[1].1)),
+            "row order, columns ascending"
+        );
         // The passing pairs in f32, then the full product's rule among them.
         // SAFETY: as above; `similarities` indexes `a` and `b` by the pairs' rows and columns,
         // which are below `n` and `m`.
@@ -640,25 +647,33 @@ pub mod screen {
             while blk < blocks {
                 let count = BLOCKS.min(blocks - blk);
                 if rows == ROWS && count == BLOCKS {
-                    tile::<ROWS, BLOCKS>(s, i, blk, m, dim, floor);
+                    tile::<ROWS, BLOCKS>(s, i, 0, blk, m, dim, floor);
                 } else {
                     for r in 0..rows {
                         for k in 0..count {
-                            tile::<1, 1>(s, i + r, blk + k, m, dim, floor);
+                            tile::<1, 1>(s, i + r, r, blk + k, m, dim, floor);
                         }
                     }
                 }
                 blk += count;
             }
+            // The tile's rows in order; within a row, blocks and lanes came out ascending.
+            for r in 0..rows {
+                let (pairs, row) = (&mut s.pairs, &mut s.tile_rows[r]);
+                pairs.append(row);
+            }
             i += rows;
         }
     }
 
-    /// [`screen_pairs`] for rows `i0..i0 + R` and column blocks `b0..b0 + C`.
+    /// [`screen_pairs`] for rows `i0..i0 + R` (rows `r0..r0 + R` of the tile of rows at hand)
+    /// and column blocks `b0..b0 + C`.
+    #[allow(clippy::too_many_arguments)]
     #[target_feature(enable = "avx512f,avx512bw,avx512vnni")]
     unsafe fn tile<const R: usize, const C: usize>(
         s: &mut Buffers,
         i0: usize,
+        r0: usize,
         b0: usize,
         m: usize,
         dim: usize,
@@ -718,7 +733,7 @@ pub mod screen {
                 while mask != 0 {
                     let l = mask.trailing_zeros() as usize;
                     mask &= mask - 1;
-                    s.pairs.push((i as u32, (c + l) as u32, 0.0));
+                    s.tile_rows[r0 + r].push((i as u32, (c + l) as u32, 0.0));
                 }
             }
         }
