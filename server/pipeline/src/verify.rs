@@ -506,11 +506,18 @@ fn dense_check_with(
         b.resize(n, 0.0);
     }
     let tiles_across = from.width.div_ceil(LOCAL_TILE);
+    // A tile holds at most ceil(LOCAL_TILE / step)² samples: from every other row and column on,
+    // 4 or fewer, below LOCAL_MIN_SAMPLES, so no tile could count and the local correlation is 0
+    // whatever the samples say. The tiles are kept only where one could count.
+    let per_tile = (LOCAL_TILE as usize).div_ceil(step).pow(2) as f64;
+    let with_tiles = per_tile >= LOCAL_MIN_SAMPLES;
     s.tiles.clear();
-    s.tiles.resize(
-        (tiles_across * from.height.div_ceil(LOCAL_TILE)) as usize,
-        [0; 6],
-    );
+    if with_tiles {
+        s.tiles.resize(
+            (tiles_across * from.height.div_ceil(LOCAL_TILE)) as usize,
+            [0; 6],
+        );
+    }
     // The grey sums of agreeing samples as integers: grey values are whole numbers, so these sums
     // are exact, and the f64 they become equals the f64 sums taken sample by sample (every partial
     // sum is a whole number below 2^53). u64: 65,536 samples of 255 x 255 would overflow u32.
@@ -577,14 +584,16 @@ fn dense_check_with(
             gray[2] += aa as u64;
             gray[3] += bb as u64;
             gray[4] += ab as u64;
-            // A tile holds at most LOCAL_TILE² = 16 samples: its sums stay far below u32::MAX.
-            let t = &mut s.tiles[tile_row + (col / LOCAL_TILE) as usize];
-            t[0] += a;
-            t[1] += b;
-            t[2] += aa;
-            t[3] += bb;
-            t[4] += ab;
-            t[5] += f;
+            if with_tiles {
+                // At most LOCAL_TILE² = 16 samples a tile: sums far below u32::MAX.
+                let t = &mut s.tiles[tile_row + (col / LOCAL_TILE) as usize];
+                t[0] += a;
+                t[1] += b;
+                t[2] += aa;
+                t[3] += bb;
+                t[4] += ab;
+                t[5] += f;
+            }
         }
     }
     c.gray = gray.map(|v| v as f64);
@@ -965,7 +974,7 @@ mod tests {
                 ),
             );
             for (from, to) in [(&a, &b), (&b, &a)] {
-                for step in [1, 3] {
+                for step in [1, 2, 3] {
                     let row_form = dense_check_every(from, to, &pose, step);
                     assert_eq!(
                         row_form,
