@@ -14,10 +14,23 @@ pub fn weighted_rotation(
     let mut h = Matrix3::zeros();
     let mut total = 0.0;
     for ((ai, bi), &wi) in a.iter().zip(b).zip(w) {
-        if wi > 0.0 {
-            h += wi * bi * ai.transpose();
-            total += wi;
-        }
+        // Without a branch (GNC's weights switch between 0 and 1 unpredictably): a weight that
+        // is not positive adds zeros, `h + 0 == h` to the bit (`h` never holds -0), so the sums
+        // are those of the positive weights alone, whatever its measurement holds.
+        let keep = wi > 0.0;
+        let only = |v: f64| if keep { v } else { 0.0 };
+        let (x, y, z) = (wi * bi.x, wi * bi.y, wi * bi.z);
+        // `h += wi * bi * ai.transpose()`, entry by entry: (wi * b_r) * a_c.
+        h[(0, 0)] += only(x * ai.x);
+        h[(0, 1)] += only(x * ai.y);
+        h[(0, 2)] += only(x * ai.z);
+        h[(1, 0)] += only(y * ai.x);
+        h[(1, 1)] += only(y * ai.y);
+        h[(1, 2)] += only(y * ai.z);
+        h[(2, 0)] += only(z * ai.x);
+        h[(2, 1)] += only(z * ai.y);
+        h[(2, 2)] += only(z * ai.z);
+        total += only(wi);
     }
     if total <= 0.0 {
         return None;
