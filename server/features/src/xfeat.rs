@@ -107,36 +107,6 @@ fn cubic2(x: f32, a: f32) -> f32 {
     ((a * x - 5.0 * a) * x + 8.0 * a) * x - 4.0 * a
 }
 
-/// The largest value in the 5 x 5 window around each pixel of the `width` x `height` map
-/// `values` (row-major), clipped to the map (a max-pool with -inf padding), by a row pass and a
-/// column pass of five each. NaN is never the maximum (`f32::max` ignores it), as a strict
-/// comparison with it never holds.
-fn max_5x5(values: &[f32], width: usize, height: usize) -> Vec<f32> {
-    let max5 = |a: f32, b: f32, c: f32, d: f32, e: f32| a.max(b).max(c).max(d).max(e);
-    let mut rows = vec![f32::NEG_INFINITY; values.len()];
-    for (src, dst) in values.chunks_exact(width).zip(rows.chunks_exact_mut(width)) {
-        for x in 0..width {
-            if x >= 2 && x + 2 < width {
-                dst[x] = max5(src[x - 2], src[x - 1], src[x], src[x + 1], src[x + 2]);
-            } else {
-                dst[x] = src[x.saturating_sub(2)..(x + 3).min(width)]
-                    .iter()
-                    .fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-            }
-        }
-    }
-    let mut out = vec![f32::NEG_INFINITY; values.len()];
-    for y in 0..height {
-        let dst = &mut out[y * width..(y + 1) * width];
-        for yy in y.saturating_sub(2)..(y + 3).min(height) {
-            for (o, &v) in dst.iter_mut().zip(&rows[yy * width..(yy + 1) * width]) {
-                *o = o.max(v);
-            }
-        }
-    }
-    out
-}
-
 fn cubic_weights(t: f32) -> [f32; 4] {
     const A: f32 = -0.75;
     [
@@ -297,18 +267,26 @@ impl XFeat {
     ) -> Features {
         let (hh, hw) = (heat.h, heat.w);
         let th = self.params.detection_threshold;
-        // Non-maximum suppression in a 5x5 window (max-pool with -inf padding), row-major order:
-        // a pixel over the threshold is kept when nothing in its window is greater.
-        let window = max_5x5(&heat.data[..hh * hw], hw, hh);
+        // Non-maximum suppression in a 5x5 window (max-pool with -inf padding), row-major order.
         let mut cand: Vec<(usize, usize)> = Vec::new();
         for y in 0..hh {
             for x in 0..hw {
-                let i = y * hw + x;
-                let v = heat.data[i];
-                if v <= th || window[i] > v {
+                let v = heat.data[y * hw + x];
+                if v <= th {
                     continue;
                 }
-                cand.push((x, y));
+                let mut is_max = true;
+                'w: for yy in y.saturating_sub(2)..(y + 3).min(hh) {
+                    for xx in x.saturating_sub(2)..(x + 3).min(hw) {
+                        if heat.data[yy * hw + xx] > v {
+                            is_max = false;
+                            break 'w;
+                        }
+                    }
+                }
+                if is_max {
+                    cand.push((x, y));
+                }
             }
         }
         let mut scored: Vec<(f32, usize, usize)> = cand
@@ -502,40 +480,6 @@ impl Extractor for XFeat {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn window_maxima_are_the_5x5_maxima_clipped_to_the_map() {
-        // Sizes below, at and above the window, values on a coarse grid (ties), a NaN among them.
-        let mut x = 0x9e37_79b9_7f4a_7c15u64;
-        for (w, h) in [(1usize, 1usize), (3, 2), (5, 5), (7, 9), (32, 17)] {
-            let mut values: Vec<f32> = (0..w * h)
-                .map(|_| {
-                    x ^= x << 13;
-                    x ^= x >> 7;
-                    x ^= x << 17;
-                    (x % 11) as f32 * 0.1
-                })
-                .collect();
-            if w * h > 4 {
-                values[w * h / 2] = f32::NAN;
-            }
-            let got = max_5x5(&values, w, h);
-            for y in 0..h {
-                for c in 0..w {
-                    let mut want = f32::NEG_INFINITY;
-                    for yy in y.saturating_sub(2)..(y + 3).min(h) {
-                        for xx in c.saturating_sub(2)..(c + 3).min(w) {
-                            let v = values[yy * w + xx];
-                            if v > want {
-                                want = v;
-                            }
-                        }
-                    }
-                    assert_eq!(got[y * w + c], want, "{w}x{h} at ({c}, {y})");
-                }
-            }
-        }
-    }
 
     #[test]
     fn the_heatmap_puts_each_logit_at_its_pixel_of_the_cell() {
