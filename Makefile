@@ -36,4 +36,5 @@ test: fmt lint unit
 bench: setup
 	$(CARGO) bench -p pntr-synth --bench render
 	$(CARGO) bench -p pntr-registration --bench registration
+	$(CARGO) bench -p pntr-pipeline --bench verify
 	$(CARGO) run --release -p pntr-retrieval --example retrieval_scaling
