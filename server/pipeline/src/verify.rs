@@ -70,16 +70,15 @@ impl Thumb {
             height: h,
             distortion: [0.0; 5],
         };
-        let mut depth_mm = vec![0u16; (w * h) as usize];
-        let mut gray = vec![0u8; (w * h) as usize];
-        reduce_blocks_best(rgb, depth, s, (w, h), &mut depth_mm, &mut gray);
-        Self {
+        let mut thumb = Self {
             width: w,
             height: h,
             intrinsics,
-            depth_mm,
-            gray,
-        }
+            depth_mm: vec![0u16; (w * h) as usize],
+            gray: vec![0u8; (w * h) as usize],
+        };
+        reduce_blocks_best(rgb, depth, s, &mut thumb);
+        thumb
     }
 
     /// Depth in metres at (col, row), `None` where invalid or outside.
@@ -102,18 +101,12 @@ impl Thumb {
     }
 }
 
-/// [`Thumb::new`]'s reduction of `rgb` and `depth` by blocks of `s` x `s` pixels into the
-/// `size.0` x `size.1` thumbnail's `depth_mm` and `gray`.
+/// [`Thumb::new`]'s reduction of `rgb` and `depth` by blocks of `s` x `s` pixels into `out`'s
+/// `depth_mm` and `gray` (`out.width` x `out.height`, zeroed).
 #[inline(always)]
-fn reduce_blocks(
-    rgb: &RgbImage,
-    depth: &DepthMap,
-    s: u32,
-    size: (u32, u32),
-    depth_mm: &mut [u16],
-    gray: &mut [u8],
-) {
-    let (w, h) = size;
+fn reduce_blocks(rgb: &RgbImage, depth: &DepthMap, s: u32, out: &mut Thumb) {
+    let (w, h) = (out.width, out.height);
+    let (depth_mm, gray) = (&mut out.depth_mm, &mut out.gray);
     let (wu, su, ss) = (w as usize, s as usize, (s * s) as usize);
     // One row of blocks at a time, image row by image row: each block's grey sum takes its
     // pixels in the same order as a block-by-block loop (rows, then columns), so the sums are
@@ -178,37 +171,23 @@ fn reduce_blocks(
 /// without fused multiply-adds (AVX2 does not enable them).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn reduce_blocks_avx2(
-    rgb: &RgbImage,
-    depth: &DepthMap,
-    s: u32,
-    size: (u32, u32),
-    depth_mm: &mut [u16],
-    gray: &mut [u8],
-) {
-    reduce_blocks(rgb, depth, s, size, depth_mm, gray)
+fn reduce_blocks_avx2(rgb: &RgbImage, depth: &DepthMap, s: u32, out: &mut Thumb) {
+    reduce_blocks(rgb, depth, s, out)
 }
 
 /// [`reduce_blocks`], on AVX2 where this CPU has it.
-fn reduce_blocks_best(
-    rgb: &RgbImage,
-    depth: &DepthMap,
-    s: u32,
-    size: (u32, u32),
-    depth_mm: &mut [u16],
-    gray: &mut [u8],
-) {
+fn reduce_blocks_best(rgb: &RgbImage, depth: &DepthMap, s: u32, out: &mut Thumb) {
     #[cfg(target_arch = "x86_64")]
     if std::is_x86_feature_detected!("avx2") {
         #[allow(unsafe_code)]
         // SAFETY: the CPU has AVX2 (checked on the line above), the only requirement of the
         // target feature; the function itself is safe code.
         unsafe {
-            reduce_blocks_avx2(rgb, depth, s, size, depth_mm, gray)
+            reduce_blocks_avx2(rgb, depth, s, out)
         };
         return;
     }
-    reduce_blocks(rgb, depth, s, size, depth_mm, gray)
+    reduce_blocks(rgb, depth, s, out)
 }
 
 /// The element of rank `m` of `v` in ascending order, as `select_nth_unstable(m)` gives it. Blocks
