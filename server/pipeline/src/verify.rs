@@ -113,18 +113,20 @@ fn reduce_blocks(rgb: &RgbImage, depth: &DepthMap, s: u32, out: &mut Thumb) {
     // the same to the bit, but the blocks of a row are independent chains of additions. The
     // row's luminance and depth bits are made first, in loops without branches.
     let mut sums = vec![0f32; wu];
-    let mut counts = vec![0u32; wu];
     // Per block, its pixels' depth bit patterns, u32::MAX where invalid (above every valid one).
     let mut bits = vec![u32::MAX; wu * ss];
     let used = (wu * su).min(rgb.width as usize);
     let mut lum = vec![0f32; used];
     let mut row_bits = vec![u32::MAX; used];
     let stride = rgb.width as usize;
+    // Block `c`'s columns of the image (all `s` of them unless the image is narrower than a block).
+    let columns = |c: usize| (c * su).min(used)..((c + 1) * su).min(used);
     for r in 0..h {
         sums.fill(0.0);
-        counts.fill(0);
         bits.fill(u32::MAX);
-        for (k, y) in (r * s..((r + 1) * s).min(rgb.height)).enumerate() {
+        let rows = r * s..((r + 1) * s).min(rgb.height);
+        let block_rows = rows.len();
+        for (k, y) in rows.enumerate() {
             let row = y as usize * stride;
             let px = &rgb.data[row * 3..(row + used) * 3];
             for (l, p) in lum.iter_mut().zip(px.chunks_exact(3)) {
@@ -139,20 +141,19 @@ fn reduce_blocks(rgb: &RgbImage, depth: &DepthMap, s: u32, out: &mut Thumb) {
                     u32::MAX
                 };
             }
-            for c in 0..wu {
-                let x0 = c * su;
-                let x1 = (x0 + su).min(used);
-                for &l in &lum[x0.min(x1)..x1] {
-                    sums[c] += l;
+            for (c, sum) in sums.iter_mut().enumerate() {
+                let x = columns(c);
+                for &l in &lum[x.clone()] {
+                    *sum += l;
                 }
-                counts[c] += (x1 - x0.min(x1)) as u32;
                 let o = c * ss + k * su;
-                bits[o..o + (x1 - x0.min(x1))].copy_from_slice(&row_bits[x0.min(x1)..x1]);
+                bits[o..o + x.len()].copy_from_slice(&row_bits[x]);
             }
         }
         for c in 0..wu {
             let o = r as usize * wu + c;
-            let n = counts[c];
+            // The block's pixels.
+            let n = (block_rows * columns(c).len()) as u32;
             gray[o] = (sums[c] / n.max(1) as f32).round().clamp(0.0, 255.0) as u8;
             let block = &mut bits[c * ss..(c + 1) * ss];
             let valid = block.iter().filter(|&&b| b != u32::MAX).count();
