@@ -7,6 +7,7 @@ CARGO ?= cargo
 export CMAKE_C_COMPILER_LAUNCHER ?= ccache
 export CMAKE_CXX_COMPILER_LAUNCHER ?= ccache
 export ORT_DYLIB_PATH ?= $(CURDIR)/.deps/onnxruntime/libonnxruntime.so.1.31.1
+export OPENVINO_DYLIB_PATH ?= $(CURDIR)/.deps/openvino/libopenvino_c.so.2641
 export PNTR_PYTHON ?= $(CURDIR)/.deps/venv/bin/python
 
 .PHONY: setup demo test fmt lint unit bench

@@ -471,22 +471,25 @@ check_cpu_image() {
   log "CPU image filesystem mounted at $m"
   # Files, and that the build stage did not leak into the runtime image.
   local missing=()
-  for f in /usr/local/bin/pntr-server /usr/local/bin/pntr "$(getenv ORT_DYLIB_PATH)" \
+  for f in /usr/local/bin/pntr-server /usr/local/bin/pntr "$(getenv ORT_DYLIB_PATH)" "$(getenv OPENVINO_DYLIB_PATH)" \
     "$(getenv PNTR_MODELS)"/{xfeat_backbone.onnx,xfeat_backbone_int8.onnx,lighterglue.onnx,aliked_n16.onnx,README.md}; do
     [ -f "$m$f" ] || missing+=("$f")
   done
   for f in /src /usr/local/cargo /usr/bin/gcc /usr/bin/cc; do [ ! -e "$m$f" ] || missing+=("$f (should not be there)"); done
   if [ ${#missing[@]} -eq 0 ]; then
-    pass "CPU image files: pntr-server, pntr, $(getenv ORT_DYLIB_PATH), models; no build stage, compiler or toolchain"
+    pass "CPU image files: pntr-server, pntr, $(getenv ORT_DYLIB_PATH), $(getenv OPENVINO_DYLIB_PATH), models; no build stage, compiler or toolchain"
   else
     fail "CPU image files: ${missing[*]}"
   fi
   # Shared libraries of the binaries and of ONNX Runtime (loaded at run time with dlopen) all resolve.
   local nf
-  nf=$(for f in /usr/local/bin/pntr-server /usr/local/bin/pntr "$(getenv ORT_DYLIB_PATH)"; do
+  local ov_dir ov_libs=()
+  ov_dir=$(dirname "$(getenv OPENVINO_DYLIB_PATH)")
+  for f in "$m$ov_dir"/lib*.so*; do [ -f "$f" ] && ov_libs+=("${f#"$m"}"); done
+  nf=$(for f in /usr/local/bin/pntr-server /usr/local/bin/pntr "$(getenv ORT_DYLIB_PATH)" "${ov_libs[@]}"; do
     chroot "$m" /usr/bin/ldd "$f" | grep 'not found' | sed "s#^#$f: #"
   done || true)
-  [ -z "$nf" ] && pass "CPU image: every shared library of pntr-server, pntr and ONNX Runtime resolves (ldd)" \
+  [ -z "$nf" ] && pass "CPU image: every shared library of pntr-server, pntr, ONNX Runtime and OpenVINO resolves (ldd)" \
     || fail "CPU image: unresolved libraries: $nf"
   # The image's user.
   local uid=$user

@@ -6,6 +6,8 @@
 #   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (system HDF5, kept for tools;
 #     the build links HDF5 2.2 statically, compiled from source by hdf5-metno)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
+#   - OpenVINO's CPU runtime from the openvino PyPI wheel (C library, CPU plugin, ONNX reader, TBB), into
+#     .deps/openvino/ (git-ignored): the engine of the `xfeat-bf16` extractor
 #   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py,
 #     grpcio + grpcio-tools at the versions the Python client (client/python) builds with (its test
 #     installs that package into a fresh venv of its own), and kubernetes-validate
@@ -18,6 +20,9 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 DEPS="$ROOT/.deps"
 ORT_VERSION="1.31.1"
+OPENVINO_VERSION="2026.4.1"
+# The C library's file suffix in that wheel (OpenVINO numbers its shared objects by year and release).
+OPENVINO_SO="2641"
 GRPC_VERSION="1.85.1"
 KV_VERSION="1.37.0"
 CMAKE_VERSION="4.4.4"
@@ -95,5 +100,28 @@ if [ ! -f "$ORT_LIB" ]; then
   ln -sf "libonnxruntime.so.$ORT_VERSION" "$ORT_DIR/libonnxruntime.so"
 else
   log "onnxruntime: $ORT_LIB present"
+fi
+# --- OpenVINO's CPU runtime from the PyPI wheel (the `xfeat-bf16` extractor) ---------------------
+# Only what running an ONNX model on the CPU needs: the C API, the core, the CPU plugin, the ONNX
+# frontend and TBB (the libraries find each other through their $ORIGIN run path).
+OV_DIR="$DEPS/openvino"
+OV_LIB="$OV_DIR/libopenvino_c.so.$OPENVINO_SO"
+if [ ! -f "$OV_LIB" ]; then
+  log "openvino: fetching the openvino==$OPENVINO_VERSION wheel"
+  tmp_ov="$(mktemp -d)"
+  "$PY" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
+    "openvino==$OPENVINO_VERSION" -d "$tmp_ov"
+  wheel="$(ls "$tmp_ov"/openvino-*.whl)"
+  rm -rf "$OV_DIR.partial"
+  mkdir -p "$OV_DIR.partial"
+  unzip -q -o -j "$wheel" \
+    "openvino/libs/libopenvino.so.$OPENVINO_SO" "openvino/libs/libopenvino_c.so.$OPENVINO_SO" \
+    "openvino/libs/libopenvino_intel_cpu_plugin.so" "openvino/libs/libopenvino_onnx_frontend.so.$OPENVINO_SO" \
+    "openvino/libs/libtbb.so.12" "openvino/libs/libtbbbind_2_5.so.3" "openvino/libs/libtbbmalloc.so.2" \
+    "openvino/libs/libhwloc.so.15" -d "$OV_DIR.partial"
+  rm -rf "$OV_DIR" "$tmp_ov"
+  mv "$OV_DIR.partial" "$OV_DIR"
+else
+  log "openvino: $OV_LIB present"
 fi
 log "done"

@@ -230,74 +230,92 @@ fn classical_preset_localizes_with_orb_bow_and_pnp() {
 }
 
 #[test]
-fn int8_preset_serves_a_map_built_with_the_float_backbone() {
-    // A map built with `xfeat-mnn` and queried with the int8 backbone (`xfeat-mnn-int8`): the
-    // descriptors are the same network's, so the pipeline accepts the map and localizes about as
-    // many queries, with no more wrong answers, as the float backbone on the same queries.
+fn int8_and_bf16_presets_serve_a_map_built_with_the_float_backbone() {
+    // A map built with `xfeat-mnn` and queried with the int8 backbone (`xfeat-mnn-int8`) or with
+    // the float one in bfloat16 on OpenVINO (`xfeat-mnn-bf16`): the descriptors are the same
+    // network's, so the pipeline accepts the map and localizes about as many queries, with no more
+    // wrong answers, as the float backbone on the same queries.
     let dir = tempfile::tempdir().unwrap();
     let index = dataset(dir.path());
     let float = Preset::named("xfeat-mnn").unwrap();
     let (map, float_stage) = build(&index, &float);
     let map = Arc::new(map);
-    let int8 = Preset::named("xfeat-mnn-int8").unwrap();
-    let int8_stage = int8.feature_config(pntr_tests::models()).build().unwrap();
-    // The int8 preset's own map: its images described by the float backbone (the same
-    // descriptors as the float map's), both models named in the header.
-    let (own, _) = build(&index, &int8);
-    assert!(own
-        .images
-        .iter()
-        .zip(&map.images)
-        .all(|(a, b)| a.descriptors == b.descriptors && a.keypoints == b.keypoints));
-    let roles: Vec<(&str, &str)> = own
-        .header
-        .models
-        .iter()
-        .map(|m| (m.role.as_str(), m.file.as_deref().unwrap_or("")))
-        .collect();
-    assert_eq!(
-        roles,
-        [
-            ("extractor", "xfeat_backbone.onnx"),
-            ("query_extractor", "xfeat_backbone_int8.onnx"),
-            ("matcher", "")
-        ]
-    );
-    // The ALIKED preset still refuses the XFeat map.
-    let accurate = Preset::named("accurate").unwrap();
-    let e = Pipeline::new(map.clone(), int8_stage.clone(), accurate)
-        .unwrap_err()
-        .to_string();
-    assert!(e.contains("built with"), "{e}");
-    let mut reports = Vec::new();
-    for (preset, stage) in [(float, float_stage), (int8, int8_stage)] {
+    let mut reports = vec![(
+        "xfeat-mnn",
+        evaluate(
+            &index,
+            &Pipeline::new(map.clone(), float_stage, float).unwrap(),
+            &map,
+        ),
+    )];
+    for (name, query_file, recall_drop) in [
+        ("xfeat-mnn-int8", "xfeat_backbone_int8.onnx", 0.05),
+        ("xfeat-mnn-bf16", "xfeat_backbone.onnx", 0.02),
+    ] {
+        let preset = Preset::named(name).unwrap();
+        let stage = preset.feature_config(pntr_tests::models()).build().unwrap();
+        // The preset's own map: its images described by the float backbone (the same descriptors
+        // as the float map's), both models named in the header.
+        let (own, _) = build(&index, &preset);
+        assert!(own
+            .images
+            .iter()
+            .zip(&map.images)
+            .all(|(a, b)| a.descriptors == b.descriptors && a.keypoints == b.keypoints));
+        let roles: Vec<(&str, &str, &str)> = own
+            .header
+            .models
+            .iter()
+            .map(|m| {
+                (
+                    m.role.as_str(),
+                    m.name.as_str(),
+                    m.file.as_deref().unwrap_or(""),
+                )
+            })
+            .collect();
+        assert_eq!(
+            roles,
+            [
+                ("extractor", "xfeat", "xfeat_backbone.onnx"),
+                ("query_extractor", preset.extractor.as_str(), query_file),
+                ("matcher", "mnn", "")
+            ]
+        );
+        // The ALIKED preset still refuses the XFeat map.
+        let accurate = Preset::named("accurate").unwrap();
+        let e = Pipeline::new(map.clone(), stage.clone(), accurate)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("built with"), "{e}");
         let pipeline = Pipeline::new(map.clone(), stage, preset).unwrap();
-        reports.push(evaluate(&index, &pipeline, &map));
+        let q = evaluate(&index, &pipeline, &map);
+        let f = &reports[0].1;
+        assert!(
+            q.recall["0.25m_2deg"] >= f.recall["0.25m_2deg"] - recall_drop,
+            "{name} {:?} against float {:?}",
+            q.recall,
+            f.recall
+        );
+        assert!(
+            q.localized_wrong <= f.localized_wrong + 1,
+            "{name}: {} wrong LOCALIZED answers against float {}",
+            q.localized_wrong,
+            f.localized_wrong
+        );
+        reports.push((name, q));
     }
-    let (f, q) = (&reports[0], &reports[1]);
     // Every LOCALIZED answer carries a covariance, and it describes the position errors to within a
     // factor of two at the median (consistent: 1.54; ten times too small a covariance gives about
     // 5 and more).
-    for r in &reports {
+    for (name, r) in &reports {
         let c = &r.covariance;
-        assert_eq!(c.answers, r.localized, "{c:?}");
+        assert_eq!(c.answers, r.localized, "{name}: {c:?}");
         assert!(
             (0.75..=3.0).contains(&c.median_mahalanobis) && c.within_99 >= 0.6,
-            "{c:?}"
+            "{name}: {c:?}"
         );
     }
-    assert!(
-        q.recall["0.25m_2deg"] >= f.recall["0.25m_2deg"] - 0.05,
-        "int8 {:?} against float {:?}",
-        q.recall,
-        f.recall
-    );
-    assert!(
-        q.localized_wrong <= f.localized_wrong + 1,
-        "int8 {} wrong LOCALIZED answers against float {}",
-        q.localized_wrong,
-        f.localized_wrong
-    );
 }
 
 #[test]

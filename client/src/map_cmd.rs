@@ -29,7 +29,7 @@ pub struct BuildArgs {
     #[arg(long)]
     pub out: PathBuf,
     /// Preset (fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
-    /// xfeat-mnn-int8).
+    /// xfeat-mnn-int8, xfeat-mnn-bf16).
     #[arg(long, default_value = DEFAULT_PRESET)]
     pub preset: String,
     /// Folder of the ONNX models.

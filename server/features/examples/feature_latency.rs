@@ -80,7 +80,11 @@ fn main() {
         None | Some("cpu") => Device::Cpu,
         Some(d) => Device::Cuda(d.trim_start_matches("cuda:").parse().unwrap_or(0)),
     };
-    let runtime = RuntimeOptions { threads, device };
+    let runtime = RuntimeOptions {
+        threads,
+        device,
+        ..RuntimeOptions::default()
+    };
     let xfeat = XFeat::load(
         &models.join("xfeat_backbone.onnx"),
         XFeatParams {

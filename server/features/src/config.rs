@@ -1,9 +1,10 @@
 //! Choosing stages by name: one exhaustive match from configuration to built components.
 //!
-//! Names the CLI and the server accept: extractors `xfeat`, `xfeat-int8`, `aliked`, `orb`, `onnx`;
-//! matchers `lighterglue`, `lightglue`, `mnn`, `onnx`. `xfeat-int8` is XFeat's backbone with int8
-//! weights and activations (static quantization, keypoint heads kept in float: `models/export.py`);
-//! its descriptors are XFeat's, so it pairs as `xfeat` does. Not every pair fits (LighterGlue was trained on XFeat's
+//! Names the CLI and the server accept: extractors `xfeat`, `xfeat-int8`, `xfeat-bf16`, `aliked`,
+//! `orb`, `onnx`; matchers `lighterglue`, `lightglue`, `mnn`, `onnx`. `xfeat-int8` is XFeat's
+//! backbone with int8 weights and activations (static quantization, keypoint heads kept in float:
+//! `models/export.py`); `xfeat-bf16` is the float backbone run by OpenVINO in bfloat16
+//! ([`crate::openvino`]); their descriptors are XFeat's, so they pair as `xfeat` does. Not every pair fits (LighterGlue was trained on XFeat's
 //! 64-d descriptors, LightGlue here on ALIKED's 128-d ones; ORB's binary descriptors need Hamming
 //! distance); an unfit pair is refused at start-up with the list of valid ones.
 
@@ -13,23 +14,27 @@ use std::sync::Arc;
 use crate::lighterglue::LighterGlue;
 use crate::mnn::{Mnn, MnnParams};
 use crate::onnx_extractor::OnnxExtractor;
+use crate::openvino::Precision;
 use crate::orb::Orb;
-use crate::runtime::RuntimeOptions;
+use crate::runtime::{Engine, RuntimeOptions};
 use crate::xfeat::{XFeat, XFeatParams, XFEAT_DIM};
 use crate::{Extractor, FeatureError, Matcher};
 
 /// Extractor names.
-pub const EXTRACTORS: [&str; 5] = ["xfeat", "xfeat-int8", "aliked", "orb", "onnx"];
+pub const EXTRACTORS: [&str; 6] = ["xfeat", "xfeat-int8", "xfeat-bf16", "aliked", "orb", "onnx"];
 /// Matcher names.
 pub const MATCHERS: [&str; 4] = ["lighterglue", "lightglue", "mnn", "onnx"];
 /// Extractor/matcher pairs that fit.
-pub const VALID_PAIRS: [(&str, &str); 12] = [
+pub const VALID_PAIRS: [(&str, &str); 15] = [
     ("xfeat", "lighterglue"),
     ("xfeat", "mnn"),
     ("xfeat", "onnx"),
     ("xfeat-int8", "lighterglue"),
     ("xfeat-int8", "mnn"),
     ("xfeat-int8", "onnx"),
+    ("xfeat-bf16", "lighterglue"),
+    ("xfeat-bf16", "mnn"),
+    ("xfeat-bf16", "onnx"),
     ("aliked", "lightglue"),
     ("aliked", "mnn"),
     ("aliked", "onnx"),
@@ -42,7 +47,7 @@ pub const VALID_PAIRS: [(&str, &str); 12] = [
 /// (`orb`, `mnn`, `onnx`, whose model, if any, is named by the caller).
 pub fn model_file(name: &str) -> Option<&'static str> {
     match name {
-        "xfeat" => Some("xfeat_backbone.onnx"),
+        "xfeat" | "xfeat-bf16" => Some("xfeat_backbone.onnx"),
         "xfeat-int8" => Some("xfeat_backbone_int8.onnx"),
         "lighterglue" => Some("lighterglue.onnx"),
         "aliked" => Some("aliked_n16.onnx"),
@@ -51,15 +56,15 @@ pub fn model_file(name: &str) -> Option<&'static str> {
     }
 }
 
-/// Whether descriptors from extractor `a` mean the same as those from `b`: the same name, or `xfeat`
-/// and `xfeat-int8` (one network; the int8 one is quantized from it and its descriptors agree with
-/// the float ones to a median cosine of 0.998, so a map built with either serves queries of both).
+/// Whether descriptors from extractor `a` mean the same as those from `b`: the same name, or two of
+/// `xfeat`, `xfeat-int8` and `xfeat-bf16` (one network; the int8 one is quantized from it and its
+/// descriptors agree with the float ones to a median cosine of 0.998, the bf16 one's to 0.9999, so a
+/// map built with one serves queries of the others).
 pub fn same_descriptors(a: &str, b: &str) -> bool {
     fn family(name: &str) -> &str {
-        if name == "xfeat-int8" {
-            "xfeat"
-        } else {
-            name
+        match name {
+            "xfeat-int8" | "xfeat-bf16" => "xfeat",
+            other => other,
         }
     }
     family(a) == family(b)
@@ -191,7 +196,7 @@ impl FeatureConfig {
     pub fn build(&self) -> Result<FeatureStage, FeatureError> {
         self.validate()?;
         let extractor: Arc<dyn Extractor> = match self.extractor.as_str() {
-            name @ ("xfeat" | "xfeat-int8") => {
+            name @ ("xfeat" | "xfeat-int8" | "xfeat-bf16") => {
                 let path = self
                     .models_dir
                     .join(model_file(name).expect("xfeat models are named"));
@@ -203,11 +208,15 @@ impl FeatureConfig {
                             .into(),
                     });
                 }
+                let mut runtime = self.runtime.clone();
+                if name == "xfeat-bf16" {
+                    runtime.engine = Engine::OpenVino(Precision::Bf16);
+                }
                 Arc::new(XFeat::load(
                     &path,
                     XFeatParams {
                         top_k: self.top_k,
-                        runtime: self.runtime.clone(),
+                        runtime,
                         ..XFeatParams::default()
                     },
                 )?)
@@ -282,7 +291,7 @@ mod tests {
         let e = c.validate().unwrap_err().to_string();
         assert!(
             e.contains("unknown extractor `sift`")
-                && e.contains("xfeat, xfeat-int8, aliked, orb, onnx"),
+                && e.contains("xfeat, xfeat-int8, xfeat-bf16, aliked, orb, onnx"),
             "{e}"
         );
         c.extractor = "onnx".into();

@@ -2,7 +2,8 @@
 //!
 //! Learned models run on ONNX Runtime through `ort` with the library loaded at run time
 //! ([`runtime`]), so the build never downloads anything and the same binary uses the CPU library from
-//! set-up or a GPU build of ONNX Runtime when one is installed. Models are plain graphs with documented
+//! set-up or a GPU build of ONNX Runtime when one is installed; OpenVINO, loaded the same way
+//! ([`openvino`]), runs XFeat's backbone in bfloat16 for the `xfeat-bf16` extractor. Models are plain graphs with documented
 //! contracts (`models/README.md`): XFeat's CNN exports as dense maps and its sparse step (NMS, top-k,
 //! descriptor sampling) runs here in Rust, which keeps the graph exportable at any image size; the
 //! LighterGlue graph returns the log assignment and the match filter runs here.
@@ -14,6 +15,7 @@ pub mod lighterglue;
 pub mod mnn;
 pub mod models_dir;
 pub mod onnx_extractor;
+pub mod openvino;
 pub mod orb;
 pub mod runtime;
 pub mod xfeat;
@@ -26,6 +28,9 @@ pub enum FeatureError {
     /// ONNX Runtime could not be loaded or initialised.
     #[error("ONNX Runtime: {0}")]
     Runtime(String),
+    /// OpenVINO (the `xfeat-bf16` extractor's engine) could not be loaded.
+    #[error("OpenVINO: {0}")]
+    OpenVino(String),
     /// A model file is missing or unreadable, or does not follow its contract.
     #[error("model {path}: {message}")]
     Model {

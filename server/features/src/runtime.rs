@@ -13,6 +13,7 @@ use std::sync::{Mutex, OnceLock};
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
 
+use crate::openvino::{OvModel, Precision};
 use crate::FeatureError;
 
 /// File name of the ONNX Runtime library set-up installs.
@@ -83,6 +84,16 @@ pub enum Device {
     Cuda(i32),
 }
 
+/// Which library runs the models.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Engine {
+    /// ONNX Runtime, on [`RuntimeOptions::device`].
+    #[default]
+    OnnxRuntime,
+    /// OpenVINO's CPU plugin at this precision ([`crate::openvino`]); `device` is not used.
+    OpenVino(Precision),
+}
+
 /// How models are run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RuntimeOptions {
@@ -90,6 +101,8 @@ pub struct RuntimeOptions {
     pub threads: usize,
     /// Execution provider.
     pub device: Device,
+    /// The inference library.
+    pub engine: Engine,
 }
 
 impl Default for RuntimeOptions {
@@ -97,6 +110,7 @@ impl Default for RuntimeOptions {
         Self {
             threads: 1,
             device: Device::Cpu,
+            engine: Engine::OnnxRuntime,
         }
     }
 }
@@ -130,10 +144,16 @@ fn register_device(_b: &mut ort::session::builder::SessionBuilder, device: Devic
 /// An output tensor: shape and row-major data.
 pub type Tensor = (Vec<usize>, Vec<f32>);
 
+/// The library a loaded model runs in.
+enum Loaded {
+    Ort(Mutex<Session>),
+    OpenVino(OvModel),
+}
+
 /// A loaded model whose input and output names were checked against its contract.
 pub struct OnnxModel {
     path: PathBuf,
-    session: Mutex<Session>,
+    loaded: Loaded,
     provider: &'static str,
 }
 
@@ -165,7 +185,6 @@ impl OnnxModel {
         opts: &RuntimeOptions,
         layouts: &[(&[&str], &[&str])],
     ) -> Result<(Self, usize), FeatureError> {
-        let (_, env) = init(None)?;
         let err = |message: String| FeatureError::Model {
             path: path.display().to_string(),
             message,
@@ -174,19 +193,44 @@ impl OnnxModel {
             return Err(err("file not found".into()));
         }
         let mut provider = "cpu";
-        let mut build = || -> Result<Session, String> {
-            let mut b = Session::builder(env)
-                .map_err(|e| e.to_string())?
-                .with_optimization_level(GraphOptimizationLevel::Level3)
-                .map_err(|e| e.to_string())?
-                .with_intra_threads(opts.threads.max(1))
-                .map_err(|e| e.to_string())?;
-            provider = register_device(&mut b, opts.device);
-            b.commit_from_file(path).map_err(|e| e.to_string())
+        let (loaded, have_in, have_out) = match opts.engine {
+            Engine::OnnxRuntime => {
+                let (_, env) = init(None)?;
+                let mut build = || -> Result<Session, String> {
+                    let mut b = Session::builder(env)
+                        .map_err(|e| e.to_string())?
+                        .with_optimization_level(GraphOptimizationLevel::Level3)
+                        .map_err(|e| e.to_string())?
+                        .with_intra_threads(opts.threads.max(1))
+                        .map_err(|e| e.to_string())?;
+                    provider = register_device(&mut b, opts.device);
+                    b.commit_from_file(path).map_err(|e| e.to_string())
+                };
+                let session = build().map_err(|e| err(format!("cannot load: {e}")))?;
+                let have_in: Vec<String> = session
+                    .inputs()
+                    .iter()
+                    .map(|o| o.name().to_string())
+                    .collect();
+                let have_out: Vec<String> = session
+                    .outputs()
+                    .iter()
+                    .map(|o| o.name().to_string())
+                    .collect();
+                (Loaded::Ort(Mutex::new(session)), have_in, have_out)
+            }
+            Engine::OpenVino(precision) => {
+                let m = OvModel::load(path, opts.threads, precision)?;
+                provider = match m.precision() {
+                    "bf16" => "openvino-bf16",
+                    _ => "openvino-f32",
+                };
+                let (i, o) = (m.inputs().to_vec(), m.outputs().to_vec());
+                (Loaded::OpenVino(m), i, o)
+            }
         };
-        let session = build().map_err(|e| err(format!("cannot load: {e}")))?;
-        let have_in: Vec<&str> = session.inputs().iter().map(|o| o.name()).collect();
-        let have_out: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
+        let have_in: Vec<&str> = have_in.iter().map(String::as_str).collect();
+        let have_out: Vec<&str> = have_out.iter().map(String::as_str).collect();
         // What the layout lacks, if anything.
         let lacks = |inputs: &[&str], outputs: &[&str]| -> Option<String> {
             for (kind, want, have) in [("input", inputs, &have_in), ("output", outputs, &have_out)]
@@ -228,14 +272,15 @@ impl OnnxModel {
         Ok((
             Self {
                 path: path.to_path_buf(),
-                session: Mutex::new(session),
+                loaded,
                 provider,
             },
             layout,
         ))
     }
 
-    /// The execution provider in use: "cpu" or "cuda".
+    /// The execution provider in use: "cpu" or "cuda" (ONNX Runtime), "openvino-bf16" or
+    /// "openvino-f32" (OpenVINO, the precision it infers in on this CPU).
     pub fn provider(&self) -> &'static str {
         self.provider
     }
@@ -252,6 +297,14 @@ impl OnnxModel {
         inputs: &[(&str, Vec<usize>, &[f32])],
         outputs: &[&str],
     ) -> Result<Vec<Tensor>, FeatureError> {
+        let session = match &self.loaded {
+            Loaded::Ort(session) => session,
+            Loaded::OpenVino(m) => {
+                return m
+                    .run(inputs, outputs)
+                    .map_err(|e| FeatureError::Inference(format!("{}: {e}", self.path.display())))
+            }
+        };
         let inf = |e: ort::Error| FeatureError::Inference(format!("{}: {e}", self.path.display()));
         let mut values = Vec::with_capacity(inputs.len());
         for (name, shape, data) in inputs {
@@ -261,8 +314,7 @@ impl OnnxModel {
                 ort::session::SessionInputValue::from(t),
             ));
         }
-        let mut session = self
-            .session
+        let mut session = session
             .lock()
             .map_err(|_| FeatureError::Inference("a previous inference panicked".into()))?;
         let out = session.run(values).map_err(inf)?;

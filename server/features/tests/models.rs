@@ -7,7 +7,9 @@ use nalgebra::Point3;
 use pntr_core::{convert_axes, CameraAxes, Intrinsics, RgbImage};
 use pntr_features::lighterglue::LighterGlue;
 use pntr_features::mnn::Mnn;
+use pntr_features::openvino::Precision;
 use pntr_features::orb::Orb;
+use pntr_features::runtime::{Engine, RuntimeOptions};
 use pntr_features::xfeat::{XFeat, XFeatParams};
 use pntr_features::{Extractor, FeatureError, Features, Matcher};
 
@@ -246,9 +248,10 @@ fn mnn_and_orb_matches_on_synthetic_renders() {
     );
 }
 
-#[test]
-fn int8_backbone_agrees_with_the_float_one() {
-    // Renders of a scene the quantization never saw (it was calibrated on seed 11).
+/// How far `other` (another run of XFeat's network) strays from the float model on renders of a
+/// scene neither calibration saw (int8 was calibrated on seed 11): (keypoints of `other` with one
+/// of the float model's within 1 px, keypoints of `other`, median descriptor cosine of those pairs).
+fn agreement(float: &XFeat, other: &XFeat) -> (usize, usize, f32) {
     let cfg = pntr_synth::SynthConfig {
         points_per_scene: 2,
         queries_per_point: 4,
@@ -258,11 +261,10 @@ fn int8_backbone_agrees_with_the_float_one() {
     let planned = pntr_synth::plan_scene(&cfg, 0);
     let renderer = pntr_synth::Renderer::new(&planned.scene);
     let k = Intrinsics::hpointloc();
-    let (float, int8) = (xfeat(), xfeat_from("xfeat_backbone_int8.onnx"));
     let (mut kept, mut total, mut cosines) = (0usize, 0usize, Vec::new());
     for (i, pose) in planned.points[0].queries.iter().enumerate() {
         let rgb = renderer.render(pose, &k, i as u64).rgb;
-        let (f, q) = (float.extract(&rgb).unwrap(), int8.extract(&rgb).unwrap());
+        let (f, q) = (float.extract(&rgb).unwrap(), other.extract(&rgb).unwrap());
         for (j, kq) in q.keypoints.iter().enumerate() {
             total += 1;
             let near = f
@@ -282,7 +284,13 @@ fn int8_backbone_agrees_with_the_float_one() {
         }
     }
     cosines.sort_by(f32::total_cmp);
-    let median = cosines[cosines.len() / 2];
+    (kept, total, cosines[cosines.len() / 2])
+}
+
+#[test]
+fn int8_backbone_agrees_with_the_float_one() {
+    let (float, int8) = (xfeat(), xfeat_from("xfeat_backbone_int8.onnx"));
+    let (kept, total, median) = agreement(&float, &int8);
     eprintln!(
         "int8 vs float: {kept} of {total} keypoints within 1 px, median descriptor cosine {median:.4}"
     );
@@ -320,6 +328,108 @@ fn int8_backbone_agrees_with_the_float_one() {
     assert!(
         e.contains("xfeat_backbone_int8.onnx") && e.contains("models/quantize.py"),
         "{e}"
+    );
+}
+
+fn xfeat_on(engine: Engine) -> XFeat {
+    XFeat::load(
+        &models().join("xfeat_backbone.onnx"),
+        XFeatParams {
+            runtime: RuntimeOptions {
+                engine,
+                ..RuntimeOptions::default()
+            },
+            ..XFeatParams::default()
+        },
+    )
+    .unwrap()
+}
+
+#[test]
+fn openvino_runs_the_float_backbone_as_onnx_runtime_does() {
+    // The engine itself, at f32: the same keypoints and descriptors up to summation order.
+    let (ort, ov) = (xfeat(), xfeat_on(Engine::OpenVino(Precision::F32)));
+    assert_eq!(ov.provider(), "openvino-f32");
+    let (kept, total, median) = agreement(&ort, &ov);
+    eprintln!("OpenVINO f32 vs ONNX Runtime: {kept} of {total} keypoints within 1 px, median cosine {median:.6}");
+    assert!(kept as f64 >= 0.995 * total as f64, "{kept} of {total}");
+    assert!(median >= 0.99999, "median cosine {median}");
+    // The graph's height and width are free: a 320 x 240 frame (the 256 x 256 render's top rows,
+    // widened by a mirror of its right edge) after 256 x 256 ones gets the same keypoints from both.
+    let cfg = pntr_synth::SynthConfig {
+        seed: 5,
+        ..Default::default()
+    };
+    let planned = pntr_synth::plan_scene(&cfg, 0);
+    let rgb = pntr_synth::Renderer::new(&planned.scene)
+        .render(&planned.points[0].db[0], &Intrinsics::hpointloc(), 0)
+        .rgb;
+    let (w, h) = (320usize, 240usize);
+    let mut data = Vec::with_capacity(w * h * 3);
+    for y in 0..h {
+        for x in 0..w {
+            let col = if x < 256 { x } else { 511 - x };
+            data.extend_from_slice(&rgb.pixel(col as u32, y as u32));
+        }
+    }
+    let wide = RgbImage::new(w as u32, h as u32, data).unwrap();
+    let (a, b) = (ort.extract(&wide).unwrap(), ov.extract(&wide).unwrap());
+    let near = b
+        .keypoints
+        .iter()
+        .filter(|p| {
+            a.keypoints
+                .iter()
+                .any(|q| (p[0] - q[0]).abs() <= 1.0 && (p[1] - q[1]).abs() <= 1.0)
+        })
+        .count();
+    assert!(
+        a.len() > 100 && b.len() == a.len() && near as f64 >= 0.99 * a.len() as f64,
+        "{near} of {} keypoints near ONNX Runtime's {}",
+        b.len(),
+        a.len()
+    );
+    assert!(
+        b.keypoints.iter().any(|p| p[0] > 256.0),
+        "no keypoint beyond column 256"
+    );
+}
+
+#[test]
+fn bf16_backbone_agrees_with_the_float_one() {
+    // Built by name, as presets build it; bf16 where the CPU has the instructions, else f32.
+    let stage = pntr_features::config::FeatureConfig {
+        extractor: "xfeat-bf16".into(),
+        matcher: "mnn".into(),
+        models_dir: models(),
+        ..Default::default()
+    }
+    .build()
+    .unwrap();
+    assert_eq!(stage.extractor.name(), "xfeat");
+    let (float, bf16) = (xfeat(), xfeat_on(Engine::OpenVino(Precision::Bf16)));
+    eprintln!("xfeat-bf16 runs on {}", bf16.provider());
+    assert!(
+        bf16.provider().starts_with("openvino-"),
+        "{}",
+        bf16.provider()
+    );
+    let (kept, total, median) = agreement(&float, &bf16);
+    eprintln!(
+        "bf16 vs float: {kept} of {total} keypoints within 1 px, median descriptor cosine {median:.5}"
+    );
+    // bf16 keeps 8 bits of mantissa: closer to the float model than int8 (0.8, 0.98 above).
+    assert!(kept as f64 >= 0.9 * total as f64, "{kept} of {total}");
+    assert!(median >= 0.999, "median cosine {median}");
+    let (_, total_f, good_f) = geometric_accuracy(&float, &Mnn::default());
+    let (_, total_b, good_b) = geometric_accuracy(&bf16, &Mnn::default());
+    let (share_f, share_b) = (
+        good_f as f64 / total_f as f64,
+        good_b as f64 / total_b as f64,
+    );
+    assert!(
+        share_b >= share_f - 0.01 && total_b as f64 >= 0.95 * total_f as f64,
+        "bf16 {good_b}/{total_b} against float {good_f}/{total_f}"
     );
 }
 

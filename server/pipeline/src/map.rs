@@ -90,7 +90,7 @@ impl MapImage {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ModelIdentity {
     /// Role: `extractor` (what described the map's images), `query_extractor` (what describes the
-    /// queries, when the preset uses another backbone for them: `xfeat-mnn-int8`), `matcher` or
+    /// queries, when the preset uses another backbone for them: `xfeat-mnn-int8`, `xfeat-mnn-bf16`), `matcher` or
     /// `global`.
     pub role: String,
     /// The configured name (xfeat, lighterglue, ...).
@@ -268,7 +268,7 @@ const TRAINING_DESCRIPTORS: usize = 200_000;
 
 /// Build a map of `scenes` with `preset`: extract features of every database image, learn the
 /// retrieval codebook or vocabulary on them, index their global descriptors. `stage` describes the
-/// images: build it from [`Preset::map_feature_config`] (the float backbone for `xfeat-mnn-int8`).
+/// images: build it from [`Preset::map_feature_config`] (the float backbone for `xfeat-mnn-int8` and `xfeat-mnn-bf16`).
 /// `progress(done, total)` is called after every image.
 pub fn build(
     map_id: &str,

@@ -279,7 +279,7 @@ impl std::fmt::Debug for Pipeline {
 
 impl Pipeline {
     /// Put a map and a feature stage together. The preset must use the extractor the map was built
-    /// with, or one with the same descriptors (`xfeat` and `xfeat-int8`:
+    /// with, or one with the same descriptors (`xfeat`, `xfeat-int8` and `xfeat-bf16`:
     /// [`pntr_features::config::same_descriptors`]); descriptors from another extractor mean nothing
     /// to the map.
     pub fn new(map: Arc<Map>, stage: FeatureStage, preset: Preset) -> Result<Self, PipelineError> {

@@ -1,7 +1,7 @@
 //! Named presets: one string picks every stage (hloc-style), so a map, a server and an evaluation
 //! agree on what ran. The preset is stored in the map header; the server and `pntr eval` refuse a
-//! preset whose extractor's descriptors differ from those the map was built with (`xfeat` and its
-//! int8 quantization `xfeat-int8` share theirs).
+//! preset whose extractor's descriptors differ from those the map was built with (`xfeat`, its int8
+//! quantization `xfeat-int8` and its bf16 run `xfeat-bf16` share theirs).
 
 use std::path::PathBuf;
 
@@ -79,7 +79,7 @@ fn default_depth_noise_sigmas() -> f64 {
 }
 
 /// Names of the built-in presets.
-pub const PRESETS: [&str; 8] = [
+pub const PRESETS: [&str; 9] = [
     "fast",
     "fast-norerank",
     "fast-icp",
@@ -88,6 +88,7 @@ pub const PRESETS: [&str; 8] = [
     "classical",
     "xfeat-mnn",
     "xfeat-mnn-int8",
+    "xfeat-mnn-bf16",
 ];
 
 /// The default preset: the best trade-off measured (BENCHMARKS.md, "Pipeline presets"): on the synthetic
@@ -155,6 +156,11 @@ impl Preset {
                 matcher: "mnn".into(),
                 ..base
             },
+            "xfeat-mnn-bf16" => Self {
+                extractor: "xfeat-bf16".into(),
+                matcher: "mnn".into(),
+                ..base
+            },
             other => {
                 return Err(PipelineError::Config(format!(
                     "unknown preset `{other}`; presets: {}",
@@ -165,13 +171,13 @@ impl Preset {
     }
 
     /// The preset whose confidence calibration scores this one's answers: its own name, except
-    /// `xfeat-mnn-int8`, which runs `xfeat-mnn`'s pipeline with the int8 backbone and is scored by
-    /// `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md, "int8 XFeat"). One way only: a
-    /// calibration fitted for `xfeat-mnn-int8` still warns when loaded for `xfeat-mnn`, since nothing
-    /// measured that direction.
+    /// `xfeat-mnn-int8` and `xfeat-mnn-bf16`, which run `xfeat-mnn`'s pipeline with the int8 or the
+    /// bf16 backbone and are scored by `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md,
+    /// "int8 XFeat", "bf16 XFeat on OpenVINO"). One way only: a calibration fitted for either still
+    /// warns when loaded for `xfeat-mnn`, since nothing measured that direction.
     pub fn calibration_preset(&self) -> &str {
         match self.name.as_str() {
-            "xfeat-mnn-int8" => "xfeat-mnn",
+            "xfeat-mnn-int8" | "xfeat-mnn-bf16" => "xfeat-mnn",
             name => name,
         }
     }
@@ -213,8 +219,9 @@ impl Preset {
     pub fn validate(&self) -> Result<(), PipelineError> {
         let bad = |m: String| Err(PipelineError::Config(format!("preset {}: {m}", self.name)));
         match (self.global.as_str(), self.extractor.as_str()) {
-            ("bow", "orb") | ("vlad", "xfeat" | "xfeat-int8" | "aliked" | "onnx") | ("onnx", _) => {
-            }
+            ("bow", "orb")
+            | ("vlad", "xfeat" | "xfeat-int8" | "xfeat-bf16" | "aliked" | "onnx")
+            | ("onnx", _) => {}
             ("bow", e) => return bad(format!("bow needs the orb extractor, not {e}")),
             ("vlad", e) => return bad(format!("vlad needs float descriptors; {e} has none")),
             (g, _) => return bad(format!("unknown global descriptor `{g}` (vlad, bow, onnx)")),
@@ -248,13 +255,14 @@ impl Preset {
         }
     }
 
-    /// The extractor that describes the map's images: the preset's own, except for `xfeat-int8`,
-    /// whose maps are described by the float `xfeat` (the same descriptor space; int8 on both sides
-    /// cost precision where int8 on the query side alone did not: BENCHMARKS.md, "int8 XFeat").
-    /// Map building is offline, so it keeps the float network's accuracy.
+    /// The extractor that describes the map's images: the preset's own, except for `xfeat-int8`
+    /// and `xfeat-bf16`, whose maps are described by the float `xfeat` (the same descriptor space;
+    /// int8 on both sides cost precision where int8 on the query side alone did not: BENCHMARKS.md,
+    /// "int8 XFeat"). Map building is offline, so it keeps the float network's accuracy, and one
+    /// map serves all three.
     pub fn map_extractor(&self) -> &str {
         match self.extractor.as_str() {
-            "xfeat-int8" => "xfeat",
+            "xfeat-int8" | "xfeat-bf16" => "xfeat",
             other => other,
         }
     }
@@ -315,6 +323,10 @@ mod tests {
         assert_eq!(int8.feature_config(PathBuf::new()).extractor, "xfeat-int8");
         assert_eq!(int8.map_feature_config(PathBuf::new()).extractor, "xfeat");
         assert_eq!(int8.calibration_preset(), "xfeat-mnn");
+        let bf16 = Preset::named("xfeat-mnn-bf16").unwrap();
+        assert_eq!(bf16.feature_config(PathBuf::new()).extractor, "xfeat-bf16");
+        assert_eq!(bf16.map_feature_config(PathBuf::new()).extractor, "xfeat");
+        assert_eq!(bf16.calibration_preset(), "xfeat-mnn");
         let fast = Preset::named("fast").unwrap();
         assert_eq!(fast.map_extractor(), "xfeat");
         assert_eq!(fast.calibration_preset(), "fast");

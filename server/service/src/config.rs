@@ -130,7 +130,8 @@ pub struct Args {
     pub min_confidence: Option<f64>,
     /// Serve every map with this preset instead of the one it was built with. Only a preset that
     /// describes images as the map does is accepted: an `xfeat-mnn` map can be served by
-    /// `xfeat-mnn-int8` (queries through the int8 backbone, no rebuild), and back; a preset of
+    /// `xfeat-mnn-int8` (queries through the int8 backbone, no rebuild) or `xfeat-mnn-bf16` (the
+    /// float backbone in bfloat16 on OpenVINO), and back; a preset of
     /// another extractor or global descriptor is refused at start. A preset with another matcher
     /// (`fast` on an `xfeat-mnn` map) also runs, with a warning that the confidence calibration was
     /// fitted for another preset [default: each map's own].

@@ -145,6 +145,7 @@ impl Engine {
         let runtime = RuntimeOptions {
             threads: s.ort_threads,
             device: s.device,
+            ..RuntimeOptions::default()
         };
         let mut maps: Vec<LoadedMap> = Vec::new();
         for path in &s.db {

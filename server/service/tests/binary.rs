@@ -192,55 +192,61 @@ impl Drop for KillOnDrop {
 #[test]
 fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
     let dir = tempfile::tempdir().unwrap();
-    // Built with `fast` (XFeat, LighterGlue); served with the int8 backbone and MNN, no rebuild.
+    // Built with `fast` (XFeat, LighterGlue); served with MNN and the int8 backbone, or the float
+    // one in bfloat16 on OpenVINO, no rebuild.
     let (db, _) = common::demo_map(dir.path());
-    let (child, addr, _) = spawn(&db, &["--workers", "1", "--preset", "xfeat-mnn-int8"]);
-    let _server = KillOnDrop(child);
-    runtime().block_on(async {
-        let url = format!("http://{addr}");
-        wait_serving(&url).await;
-        let mut c = LocalizerClient::connect(url).await.unwrap();
-        let info = c
-            .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
-            .await
-            .unwrap()
-            .into_inner();
-        assert_eq!(
-            (info.preset.as_str(), info.built_preset.as_str()),
-            ("xfeat-mnn-int8", "fast")
-        );
-        assert_eq!(
-            (info.extractor.as_str(), info.matcher.as_str()),
-            ("xfeat-int8", "mnn")
-        );
-        // Every query of the scene: the answers given are right, and most queries get one (this
-        // tiny two-Point map leaves one of its three queries without enough MNN matches).
-        let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
-        let (mut sent, mut right) = (0, 0);
-        for point in &index.scenes[0].points {
-            let p = point.open().unwrap();
-            for i in 0..p.count(pntr_dataset::Role::Query) {
-                let v = p.view(pntr_dataset::Role::Query, i).unwrap();
-                let r = c
-                    .localize(wire::raw_request(&v.rgb, &v.depth, None))
-                    .await
-                    .unwrap()
-                    .into_inner();
-                sent += 1;
-                if r.status == pntr_service::proto::Status::Localized as i32 {
-                    let pose = wire::pose(r.pose.as_ref()).unwrap();
-                    let e =
-                        (pose.translation.vector - v.world_from_camera.translation.vector).norm();
-                    assert!(e < 0.25, "{e} m off: {r:?}");
-                    right += 1;
+    for (preset, extractor) in [
+        ("xfeat-mnn-int8", "xfeat-int8"),
+        ("xfeat-mnn-bf16", "xfeat-bf16"),
+    ] {
+        let (child, addr, _) = spawn(&db, &["--workers", "1", "--preset", preset]);
+        let _server = KillOnDrop(child);
+        runtime().block_on(async {
+            let url = format!("http://{addr}");
+            wait_serving(&url).await;
+            let mut c = LocalizerClient::connect(url).await.unwrap();
+            let info = c
+                .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!(
+                (info.preset.as_str(), info.built_preset.as_str()),
+                (preset, "fast")
+            );
+            assert_eq!(
+                (info.extractor.as_str(), info.matcher.as_str()),
+                (extractor, "mnn")
+            );
+            // Every query of the scene: the answers given are right, and most queries get one (this
+            // tiny two-Point map leaves one of its three queries without enough MNN matches).
+            let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
+            let (mut sent, mut right) = (0, 0);
+            for point in &index.scenes[0].points {
+                let p = point.open().unwrap();
+                for i in 0..p.count(pntr_dataset::Role::Query) {
+                    let v = p.view(pntr_dataset::Role::Query, i).unwrap();
+                    let r = c
+                        .localize(wire::raw_request(&v.rgb, &v.depth, None))
+                        .await
+                        .unwrap()
+                        .into_inner();
+                    sent += 1;
+                    if r.status == pntr_service::proto::Status::Localized as i32 {
+                        let pose = wire::pose(r.pose.as_ref()).unwrap();
+                        let e = (pose.translation.vector - v.world_from_camera.translation.vector)
+                            .norm();
+                        assert!(e < 0.25, "{e} m off: {r:?}");
+                        right += 1;
+                    }
                 }
             }
-        }
-        assert!(
-            sent >= 3 && right * 3 >= sent * 2,
-            "{right} of {sent} localized"
-        );
-    });
+            assert!(
+                sent >= 3 && right * 3 >= sent * 2,
+                "{preset}: {right} of {sent} localized"
+            );
+        });
+    }
     // A preset of other descriptors (ORB, bag of words) cannot use this map: a setting error (exit
     // 2) before anything is bound, naming both presets and the ones that can.
     let out = Command::new(BIN)
