@@ -1,13 +1,16 @@
-//! Maximum clique of a consistency graph: exact branch and bound within a time budget, with a greedy
-//! lower bound and a k-core upper bound that settle most graphs without any search.
+//! Maximum clique of a consistency graph: exact branch and bound within a budget of search nodes
+//! (and a wall-clock safety net), with a greedy lower bound and a k-core upper bound that settle most
+//! graphs without any search.
 //!
 //! Why this shape: the consistency graph of correspondences is sparse when most matches are outliers
 //! (the exact search is fast there) and nearly complete when most are inliers (the exact search on a
 //! dense graph is exponential, the failure TEASER++ users report as > 30 s). The greedy clique grown in
 //! core-number order finds the whole inlier set of a dense graph at once, and when it reaches the
 //! k-core bound it is provably maximum, so no search runs. Otherwise a bitset branch and bound with
-//! greedy-colouring bounds (Tomita/San Segundo style) searches until the time budget, and the result
-//! says whether it is exact.
+//! greedy-colouring bounds (Tomita/San Segundo style) searches until its node budget, and the result
+//! says whether it is exact. The budget counts nodes, not time, so an answer does not depend on how
+//! busy the machine is; the time limit only stops a search the node budget did not foresee (a
+//! machine many times slower or overloaded).
 
 use std::time::{Duration, Instant};
 
@@ -201,6 +204,26 @@ impl Graph {
     }
 }
 
+/// How much work a clique search may do: it stops at whichever limit comes first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Budget {
+    /// Branch-and-bound nodes the exact search may visit: the limit that binds on any machine at
+    /// rest, so the answer is reproducible.
+    pub nodes: u64,
+    /// Wall-clock safety net for the whole call (greedy phase and search), checked every 256 nodes.
+    pub time: Duration,
+}
+
+impl Budget {
+    /// Only a time limit (no node limit), as before node budgets.
+    pub fn time(time: Duration) -> Self {
+        Self {
+            nodes: u64::MAX,
+            time,
+        }
+    }
+}
+
 struct Search<'g> {
     g: &'g Graph,
     /// The largest clique the search found, once larger than `floor`.
@@ -208,7 +231,7 @@ struct Search<'g> {
     /// Size of the clique known before the search (the greedy one).
     floor: usize,
     start: Instant,
-    budget: Duration,
+    budget: Budget,
     nodes: u64,
     aborted: bool,
     /// Per depth of the search: its candidate set and its colour order, reused from node to node
@@ -314,7 +337,9 @@ impl Search<'_> {
     /// Branch on the candidate set held in `levels[depth].0`.
     fn expand(&mut self, clique: &mut Vec<usize>, depth: usize) {
         self.nodes += 1;
-        if self.nodes % 256 == 0 && self.start.elapsed() > self.budget {
+        if self.nodes > self.budget.nodes
+            || (self.nodes % 256 == 0 && self.start.elapsed() > self.budget.time)
+        {
             self.aborted = true;
         }
         if self.aborted {
@@ -383,8 +408,9 @@ fn greedy_from(g: &Graph, seed: usize, by_core: &[usize]) -> Vec<usize> {
 }
 
 /// A maximum clique of `g`, exact unless the search would exceed `budget` (then the largest clique
-/// found so far, with `exact = false`).
-pub fn max_clique(g: &Graph, budget: Duration) -> CliqueResult {
+/// found so far, with `exact = false`). Within the node budget the answer is a function of `g`
+/// alone.
+pub fn max_clique(g: &Graph, budget: Budget) -> CliqueResult {
     let start = Instant::now();
     if g.is_empty() {
         return CliqueResult {
@@ -411,7 +437,9 @@ pub fn max_clique(g: &Graph, budget: Duration) -> CliqueResult {
     let mut by_core: Vec<usize> = (0..g.len()).collect();
     by_core.sort_unstable_by_key(|&v| (std::cmp::Reverse(core[v]), v));
     for &v in by_core.iter().take(64) {
-        if core[v] < best.len() || start.elapsed() > budget / 2 {
+        // At most 64 greedy cliques, each O(n + k * words): bounded work, so no node count; the
+        // clock only guards a machine far slower than the budget foresaw.
+        if core[v] < best.len() || start.elapsed() > budget.time / 2 {
             break;
         }
         let c = greedy_from(g, v, &by_core);
@@ -532,7 +560,7 @@ mod tests {
                 core.iter().filter(|&&c| c < 14).count() > 100,
                 "trial {trial}"
             );
-            let r = max_clique(&g, Duration::from_secs(10));
+            let r = max_clique(&g, Budget::time(Duration::from_secs(10)));
             assert!(
                 r.exact && r.vertices.len() >= 14,
                 "trial {trial}: {}",
@@ -542,6 +570,47 @@ mod tests {
                 assert!(r.vertices[a + 1..].iter().all(|&j| g.has_edge(i, j)));
             }
         }
+    }
+
+    #[test]
+    fn a_node_budget_gives_the_same_clique_whatever_the_clock() {
+        // A graph the exact search cannot settle in 50 nodes (dense random, G(120, 0.6)): cut by
+        // nodes, the answer is the same with a generous clock, a tight one that the node limit
+        // still meets first, and from a thread competing with three busy ones; with enough nodes
+        // it is exact, and no smaller.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let n = 120;
+        let mut g = Graph::new(n);
+        for i in 0..n {
+            for j in i + 1..n {
+                if rng.gen_bool(0.6) {
+                    g.add_edge(i, j);
+                }
+            }
+        }
+        let cut = |time| max_clique(&g, Budget { nodes: 50, time });
+        let first = cut(Duration::from_secs(3600));
+        assert!(!first.exact, "50 nodes settled it: pick a harder graph");
+        assert_eq!(cut(Duration::from_secs(1)), first);
+        let stop = std::sync::atomic::AtomicBool::new(false);
+        std::thread::scope(|scope| {
+            for _ in 0..3 {
+                scope.spawn(|| {
+                    let mut x = 0u64;
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        x = std::hint::black_box(
+                            x.wrapping_mul(6364136223846793005).wrapping_add(1),
+                        );
+                    }
+                });
+            }
+            for _ in 0..5 {
+                assert_eq!(cut(Duration::from_secs(3600)), first);
+            }
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        });
+        let full = max_clique(&g, Budget::time(Duration::from_secs(60)));
+        assert!(full.exact && full.vertices.len() >= first.vertices.len());
     }
 
     #[test]
@@ -558,7 +627,7 @@ mod tests {
                     }
                 }
             }
-            let r = max_clique(&g, Duration::from_secs(5));
+            let r = max_clique(&g, Budget::time(Duration::from_secs(5)));
             assert!(r.exact);
             assert_eq!(r.vertices.len(), brute_force(&g), "trial {trial}");
             for (a, &i) in r.vertices.iter().enumerate() {
@@ -586,7 +655,7 @@ mod tests {
             }
         }
         let t = Instant::now();
-        let r = max_clique(&g, Duration::from_millis(50));
+        let r = max_clique(&g, Budget::time(Duration::from_millis(50)));
         assert!(
             r.vertices.len() >= n - missing.len(),
             "{}",
@@ -679,7 +748,7 @@ mod tests {
         g.add_edge(2, 3);
         assert_eq!(g.core_numbers(), vec![2, 2, 2, 1]);
         assert_eq!(
-            max_clique(&g, Duration::from_secs(1)).vertices,
+            max_clique(&g, Budget::time(Duration::from_secs(1))).vertices,
             vec![0, 1, 2]
         );
     }

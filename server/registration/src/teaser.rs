@@ -20,9 +20,16 @@ use std::time::Duration;
 
 use nalgebra::{Rotation3, Vector3};
 
-use crate::clique::{max_clique, Graph};
+use crate::clique::{max_clique, Budget, Graph};
 use crate::kabsch::{principal_spreads, weighted_kabsch, weighted_rotation};
 use crate::Rigid;
+
+/// Default node budget of the clique search. Sized on the searches of `pntr eval` over two synthetic
+/// apartments with out-of-map queries and robot effects (14,230 searches, BENCHMARKS.md, "The clique
+/// search's budget in nodes"): the largest that finished within the former 10 ms budget visited
+/// 4,539 nodes, at 0.3-0.4 nodes a microsecond on one 2 vCPU EPYC core; 8,192 keeps each of them and
+/// bounds a search at about 25 ms there.
+pub const CLIQUE_NODES: u64 = 8192;
 
 /// Solver parameters.
 #[derive(Debug, Clone, PartialEq)]
@@ -39,7 +46,12 @@ pub struct TeaserParams {
     pub max_iterations: usize,
     /// GNC stops when the cost changes less than this (TEASER++: 1e-12).
     pub cost_threshold: f64,
-    /// Time the exact maximum clique search may take before the best clique found so far is used.
+    /// Branch-and-bound nodes the exact maximum clique search may visit before the best clique found
+    /// so far is used ([`crate::clique::Budget`]). A count, not a time, so a registration answers
+    /// the same on a machine at rest and under load.
+    pub clique_nodes: u64,
+    /// Wall-clock safety net of the clique search: a search stops here even within its node budget
+    /// (a machine many times slower than the node budget was sized on).
     pub clique_budget: Duration,
     /// Fewest inliers for a valid result. Default 10: among a few hundred random correspondences,
     /// chance alone produces consistent sets of 4 or 5.
@@ -54,7 +66,8 @@ impl Default for TeaserParams {
             gnc_factor: 1.4,
             max_iterations: 100,
             cost_threshold: 1e-12,
-            clique_budget: Duration::from_millis(10),
+            clique_nodes: CLIQUE_NODES,
+            clique_budget: Duration::from_millis(50),
             min_inliers: 10,
         }
     }
@@ -69,7 +82,8 @@ pub struct TeaserResult {
     pub inliers: Vec<usize>,
     /// Size of the maximum clique of the consistency graph.
     pub clique_size: usize,
-    /// Whether the clique is proven maximum (false when the time budget cut the search).
+    /// Whether the clique is proven maximum (false when the node budget, or the time limit, cut the
+    /// search).
     pub clique_exact: bool,
     /// Whether the estimate can be trusted.
     pub valid: bool,
@@ -367,7 +381,13 @@ fn solve_centred(
         consistency_graph_bounded(src, dst, &finite, &beta)
     };
     // 2. Maximum clique.
-    let clique = max_clique(&g, p.clique_budget);
+    let clique = max_clique(
+        &g,
+        Budget {
+            nodes: p.clique_nodes,
+            time: p.clique_budget,
+        },
+    );
     let (k, exact) = (clique.vertices.len(), clique.exact);
     if k < p.min_inliers.max(3) {
         return TeaserResult::invalid(
