@@ -11,6 +11,7 @@
 //! Output keeps pairs aligned: a [`Matches`] holds indices into both keypoint lists and a score.
 
 pub mod config;
+mod dylib;
 pub mod lighterglue;
 pub mod mnn;
 pub mod models_dir;

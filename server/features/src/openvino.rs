@@ -46,38 +46,14 @@ impl Precision {
 
 static INIT: OnceLock<Result<PathBuf, String>> = OnceLock::new();
 
-fn candidates() -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    if let Some(p) = std::env::var_os("OPENVINO_DYLIB_PATH") {
-        out.push(PathBuf::from(p));
-    }
-    let rel = Path::new(".deps/openvino").join(OPENVINO_LIBRARY);
-    if let Ok(exe) = std::env::current_exe() {
-        out.extend(exe.ancestors().skip(1).map(|d| d.join(&rel)));
-    }
-    if let Ok(cwd) = std::env::current_dir() {
-        out.extend(cwd.ancestors().map(|d| d.join(&rel)));
-    }
-    out
-}
-
 /// Load the OpenVINO C library once per process; returns its path. Later calls return the first
 /// call's outcome. Errors: the library is in none of the places above, or cannot be loaded (the
 /// message names the path).
 pub fn init() -> Result<&'static Path, FeatureError> {
     INIT.get_or_init(|| {
-        let tried = candidates();
-        let Some(found) = tried.iter().find(|p| p.is_file()) else {
-            return Err(format!(
-                "library not found (run scripts/setup.sh or set OPENVINO_DYLIB_PATH); looked at {}",
-                tried
-                    .iter()
-                    .take(4)
-                    .map(|p| p.display().to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ));
-        };
+        let tried =
+            crate::dylib::candidates(None, "OPENVINO_DYLIB_PATH", "openvino", OPENVINO_LIBRARY);
+        let found = crate::dylib::first_file(&tried, "OPENVINO_DYLIB_PATH")?;
         openvino_sys::library::load_from(found).map_err(|e| format!("{}: {e}", found.display()))?;
         tracing::info!(library = %found.display(), "OpenVINO loaded");
         Ok(found.clone())

@@ -21,46 +21,15 @@ pub const ORT_LIBRARY: &str = "libonnxruntime.so.1.31.1";
 
 static INIT: OnceLock<Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
 
-fn candidates(explicit: Option<&Path>) -> Vec<PathBuf> {
-    let mut out = Vec::new();
-    if let Some(p) = explicit {
-        out.push(p.to_path_buf());
-    }
-    if let Some(p) = std::env::var_os("ORT_DYLIB_PATH") {
-        out.push(PathBuf::from(p));
-    }
-    let rel = Path::new(".deps/onnxruntime").join(ORT_LIBRARY);
-    if let Ok(exe) = std::env::current_exe() {
-        for dir in exe.ancestors().skip(1) {
-            out.push(dir.join(&rel));
-        }
-    }
-    if let Ok(cwd) = std::env::current_dir() {
-        for dir in cwd.ancestors() {
-            out.push(dir.join(&rel));
-        }
-    }
-    out
-}
-
 /// Load ONNX Runtime once per process and return the library path and the environment. Later calls
 /// return the first call's outcome.
 pub fn init(
     explicit: Option<&Path>,
 ) -> Result<&'static (PathBuf, ort::environment::Environment), FeatureError> {
     INIT.get_or_init(|| {
-        let tried = candidates(explicit);
-        let Some(found) = tried.iter().find(|p| p.is_file()) else {
-            return Err(format!(
-                "library not found (run scripts/setup.sh or set ORT_DYLIB_PATH); looked at {}",
-                tried
-                    .iter()
-                    .take(4)
-                    .map(|p| p.display().to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ));
-        };
+        let tried =
+            crate::dylib::candidates(explicit, "ORT_DYLIB_PATH", "onnxruntime", ORT_LIBRARY);
+        let found = crate::dylib::first_file(&tried, "ORT_DYLIB_PATH")?;
         let env = ort::init_from(found)
             .map_err(|e| format!("{}: {e}", found.display()))?
             .with_name("pntr")
