@@ -109,6 +109,7 @@ OV_LIB="$OV_DIR/libopenvino_c.so.$OPENVINO_SO"
 if [ ! -f "$OV_LIB" ]; then
   log "openvino: fetching the openvino==$OPENVINO_VERSION wheel"
   tmp_ov="$(mktemp -d)"
+  trap 'rm -rf "${tmp:-}" "$tmp_ov"' EXIT
   "$PY" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
     "openvino==$OPENVINO_VERSION" -d "$tmp_ov"
   wheel="$(ls "$tmp_ov"/openvino-*.whl)"

@@ -169,6 +169,7 @@ impl OvModel {
             }
             "f32"
         };
+        tracing::info!(model = %path.display(), precision, threads, "OpenVINO compiled the model");
         Ok(Self {
             compiled: Mutex::new(compiled),
             inputs,

@@ -189,6 +189,13 @@ impl OnnxModel {
                 (Loaded::Ort(Mutex::new(session)), have_in, have_out)
             }
             Engine::OpenVino(precision) => {
+                if let Device::Cuda(id) = opts.device {
+                    tracing::warn!(
+                        model = %path.display(),
+                        device = id,
+                        "OpenVINO runs this model on the CPU; the CUDA device is for ONNX Runtime's models"
+                    );
+                }
                 let m = OvModel::load(path, opts.threads, precision)?;
                 provider = match m.precision() {
                     "bf16" => "openvino-bf16",
