@@ -46,7 +46,8 @@ pub struct CalibrateArgs {
     /// A map of --dataset from `pntr build-db`; without it the map is built first.
     #[arg(long)]
     pub db: Option<PathBuf>,
-    /// Preset (default: the map's own, or the default preset when building).
+    /// Preset: fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
+    /// xfeat-mnn-int8, xfeat-mnn-bf16 (default: the map's own, or `xfeat-mnn` when building).
     #[arg(long)]
     pub preset: Option<String>,
     /// In-map queries used, evenly spaced (0 = all).

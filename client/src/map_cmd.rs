@@ -72,7 +72,8 @@ pub struct EvalArgs {
     /// CA certificate (PEM) for a TLS --remote.
     #[arg(long)]
     pub tls_ca: Option<PathBuf>,
-    /// Preset (default: the map's own, or the default preset `xfeat-mnn` when building).
+    /// Preset: fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
+    /// xfeat-mnn-int8, xfeat-mnn-bf16 (default: the map's own, or `xfeat-mnn` when building).
     #[arg(long)]
     pub preset: Option<String>,
     /// Reproduce the published evaluation's folded, convention-mismatched angle (labelled in the output).

@@ -112,6 +112,20 @@ fn synth_then_info_report_the_same_dataset() {
 }
 
 #[test]
+fn help_lists_every_preset_where_a_preset_is_chosen() {
+    for cmd in ["build-db", "eval", "calibrate"] {
+        let out = pntr(&[cmd, "--help"]);
+        let help = String::from_utf8_lossy(&out.stdout);
+        for name in pntr_pipeline::preset::PRESETS {
+            assert!(
+                help.contains(name),
+                "`pntr {cmd} --help` lacks {name}: {help}"
+            );
+        }
+    }
+}
+
+#[test]
 fn bad_arguments_and_files_give_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().to_str().unwrap();
@@ -229,6 +243,44 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    // The bf16 preset's engine named wrongly: a clear error naming the variable and the file it
+    // should name, no panic (ONNX Runtime's library given for OpenVINO's, a path that is not there).
+    let ort_lib = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../.deps/onnxruntime/libonnxruntime.so.1.31.1"
+    );
+    for (value, says) in [
+        (ort_lib, "is not OpenVINO's C library"),
+        ("/no/such/libopenvino_c.so.2641", "which is not a file"),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_pntr"))
+            .env("OPENVINO_DYLIB_PATH", value)
+            .args([
+                "eval",
+                "--dataset",
+                root,
+                "--scene",
+                "synth000",
+                "--db",
+                map_s,
+            ])
+            .args([
+                "--models",
+                models,
+                "--preset",
+                "xfeat-mnn-bf16",
+                "--queries",
+                "2",
+            ])
+            .args(["--json", report.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = fails_cleanly(&out);
+        assert!(
+            err.contains(says) && err.contains("OPENVINO_DYLIB_PATH") && err.contains(value),
+            "{err}"
+        );
+    }
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
     let n = r["queries"].as_u64().unwrap();
     assert!(n >= 6, "{r}");

@@ -52,14 +52,41 @@ static INIT: OnceLock<Result<PathBuf, String>> = OnceLock::new();
 pub fn init() -> Result<&'static Path, FeatureError> {
     INIT.get_or_init(|| {
         let tried =
-            crate::dylib::candidates(None, "OPENVINO_DYLIB_PATH", "openvino", OPENVINO_LIBRARY);
+            crate::dylib::candidates(None, "OPENVINO_DYLIB_PATH", "openvino", OPENVINO_LIBRARY)?;
         let found = crate::dylib::first_file(&tried, "OPENVINO_DYLIB_PATH")?;
+        check_library(found)?;
         openvino_sys::library::load_from(found).map_err(|e| format!("{}: {e}", found.display()))?;
         tracing::info!(library = %found.display(), "OpenVINO loaded");
         Ok(found.clone())
     })
     .as_deref()
     .map_err(|e| FeatureError::OpenVino(e.clone()))
+}
+
+/// Whether `path` is OpenVINO's C library: openvino-sys panics on a library without its functions
+/// (ONNX Runtime's, say), so the one it checks first is looked up here. Errors: the file cannot be
+/// opened as a shared library, or lacks `ov_get_openvino_version`.
+#[allow(unsafe_code)]
+fn check_library(path: &Path) -> Result<(), String> {
+    // SAFETY: opening a shared library runs its initialisers; the file is the one the user or
+    // set-up named as OpenVINO's, which is then loaded for real anyway.
+    let lib = unsafe { libloading::Library::new(path) }.map_err(|e| {
+        format!(
+            "{}: cannot be opened as a shared library: {e}",
+            path.display()
+        )
+    })?;
+    // SAFETY: only the symbol's presence is checked; it is not called.
+    let found = unsafe { lib.get::<unsafe extern "C" fn()>(b"ov_get_openvino_version\0") }.is_ok();
+    if !found {
+        return Err(format!(
+            "{} is not OpenVINO's C library (it has no ov_get_openvino_version); \
+             OPENVINO_DYLIB_PATH should name {OPENVINO_LIBRARY} from the openvino {} wheel",
+            path.display(),
+            "2026.4.1"
+        ));
+    }
+    Ok(())
 }
 
 /// One compiled model and its inference request.

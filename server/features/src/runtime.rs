@@ -28,7 +28,7 @@ pub fn init(
 ) -> Result<&'static (PathBuf, ort::environment::Environment), FeatureError> {
     INIT.get_or_init(|| {
         let tried =
-            crate::dylib::candidates(explicit, "ORT_DYLIB_PATH", "onnxruntime", ORT_LIBRARY);
+            crate::dylib::candidates(explicit, "ORT_DYLIB_PATH", "onnxruntime", ORT_LIBRARY)?;
         let found = crate::dylib::first_file(&tried, "ORT_DYLIB_PATH")?;
         let env = ort::init_from(found)
             .map_err(|e| format!("{}: {e}", found.display()))?
