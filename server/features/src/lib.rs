@@ -97,6 +97,12 @@ pub trait Extractor: Send + Sync {
     fn extract(&self, image: &RgbImage) -> Result<Features, FeatureError>;
     /// The name used in configuration.
     fn name(&self) -> &'static str;
+    /// Where its network runs: `cpu` or `cuda` (ONNX Runtime), `openvino-bf16` or `openvino-f32`
+    /// (OpenVINO, the precision it infers in on this CPU), `native` for an extractor without a
+    /// network (ORB).
+    fn engine(&self) -> &'static str {
+        "native"
+    }
 }
 
 /// Something that matches two feature sets.

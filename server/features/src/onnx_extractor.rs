@@ -120,4 +120,8 @@ impl Extractor for OnnxExtractor {
     fn name(&self) -> &'static str {
         self.name
     }
+
+    fn engine(&self) -> &'static str {
+        self.model.provider()
+    }
 }

@@ -475,6 +475,10 @@ impl Extractor for XFeat {
     fn name(&self) -> &'static str {
         "xfeat"
     }
+
+    fn engine(&self) -> &'static str {
+        self.model.provider()
+    }
 }
 
 #[cfg(test)]

@@ -48,6 +48,8 @@ pub struct LoadedMap {
     pub points: usize,
     /// The preset it is served with: its header's, or `pntr-server --preset` (same descriptors).
     pub preset: Preset,
+    /// Where its preset's extractor network runs ([`pntr_features::Extractor::engine`]).
+    pub extractor_engine: &'static str,
 }
 
 /// A frame waiting for a worker.
@@ -189,6 +191,7 @@ impl Engine {
                 map: Arc::new(map),
                 points,
                 preset,
+                extractor_engine: "",
             });
         }
         let calibration = Arc::new(match &s.calibration {
@@ -243,6 +246,13 @@ impl Engine {
             }
             tracing::debug!(worker = w, "pipelines ready");
             per_worker.push(pipelines);
+        }
+        if let Some(first) = per_worker.first() {
+            for (m, p) in maps.iter_mut().zip(first) {
+                m.extractor_engine = p.stage.extractor.engine();
+                tracing::info!(map_id = %m.id, extractor = %m.preset.extractor,
+                    engine = m.extractor_engine, "extractor ready");
+            }
         }
         let (tx, rx) = sync_channel::<Job>(s.queue);
         let rx = Arc::new(Mutex::new(rx));

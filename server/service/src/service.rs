@@ -782,6 +782,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
             preset: lm.preset.name.clone(),
             built_preset: h.preset.name.clone(),
             extractor: lm.preset.extractor.clone(),
+            extractor_engine: lm.extractor_engine.to_string(),
             matcher: lm.preset.matcher.clone(),
             global_descriptor: h.preset.global.clone(),
             camera_axes: h.camera_axes.clone(),

@@ -218,6 +218,15 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
                 (info.extractor.as_str(), info.matcher.as_str()),
                 (extractor, "mnn")
             );
+            // int8 on ONNX Runtime's CPU provider; bf16 on OpenVINO (f32 where the CPU lacks bf16).
+            let engines: &[&str] = match preset {
+                "xfeat-mnn-int8" => &["cpu"],
+                _ => &["openvino-bf16", "openvino-f32"],
+            };
+            assert!(
+                engines.contains(&info.extractor_engine.as_str()),
+                "{info:?}"
+            );
             // Every query of the scene: the answers given are right, and most queries get one (this
             // tiny two-Point map leaves one of its three queries without enough MNN matches).
             let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
