@@ -225,7 +225,7 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         "{err}"
     );
     let report = dir.path().join("eval.json");
-    let out = pntr(&[
+    let eval = [
         "eval",
         "--dataset",
         root,
@@ -237,7 +237,8 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         models,
         "--json",
         report.to_str().unwrap(),
-    ]);
+    ];
+    let out = pntr(&eval);
     assert!(
         out.status.success(),
         "{}",
@@ -255,24 +256,8 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_pntr"))
             .env("OPENVINO_DYLIB_PATH", value)
-            .args([
-                "eval",
-                "--dataset",
-                root,
-                "--scene",
-                "synth000",
-                "--db",
-                map_s,
-            ])
-            .args([
-                "--models",
-                models,
-                "--preset",
-                "xfeat-mnn-bf16",
-                "--queries",
-                "2",
-            ])
-            .args(["--json", report.to_str().unwrap()])
+            .args(eval)
+            .args(["--preset", "xfeat-mnn-bf16", "--queries", "2"])
             .output()
             .unwrap();
         let err = fails_cleanly(&out);
