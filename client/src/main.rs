@@ -5,6 +5,7 @@
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
 mod bench_cmd;
+mod build_cmd;
 mod calibrate_cmd;
 mod localize_cmd;
 mod map_cmd;
@@ -61,6 +62,10 @@ enum Command {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
+        /// With `--db`: also list every map image (id, place, stamp, world_from_camera in the map's
+        /// frame and axes; `image_list` in JSON). Reads the whole map.
+        #[arg(long, requires = "db")]
+        images: bool,
     },
     /// The main job on the embedded default: the demo scene and its map (made once, cached), served by
     /// an in-process pntr-server and queried over gRPC; prints the recall table and stage timings.
@@ -98,8 +103,13 @@ fn main() {
         Command::Replay(args) => replay_cmd::run(&args),
         Command::Eval(args) => map_cmd::eval(&args),
         Command::Calibrate(args) => calibrate_cmd::run(&args),
-        Command::Info { dataset, db, json } => match (dataset, db) {
-            (_, Some(db)) => map_cmd::info(&db, json),
+        Command::Info {
+            dataset,
+            db,
+            json,
+            images,
+        } => match (dataset, db) {
+            (_, Some(db)) => map_cmd::info(&db, json, images),
             (Some(dataset), None) => synth_cmd::info(&dataset, json),
             (None, None) => unreachable!("clap requires --dataset or --db"),
         },

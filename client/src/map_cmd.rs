@@ -20,8 +20,65 @@ use pntr_retrieval::onnx_global::OnnxGlobal;
 #[derive(clap::Args, Debug)]
 pub struct BuildArgs {
     /// Dataset root (holding HPointLoc_dataset).
+    #[arg(
+        long,
+        required_unless_present = "sequence",
+        conflicts_with = "sequence"
+    )]
+    pub dataset: Option<PathBuf>,
+    /// A robot's recording to build the map from instead: a TUM RGB-D folder (rgb.txt, depth.txt,
+    /// groundtruth.txt, calibration.txt) or a ROS 2 bag (`.mcap`). Repeat it for several sessions
+    /// whose poses share one frame. Keyframes become the map's images; poses use the optical camera
+    /// axes (the TUM and ROS convention) and the map keeps them.
+    #[arg(long, value_name = "DIR|FILE.mcap")]
+    pub sequence: Vec<PathBuf>,
+    /// Poses of a `--sequence` from this TUM trajectory file (`timestamp tx ty tz qx qy qz qw`,
+    /// world_from_camera, optical axes: the output of your SLAM) instead of the recording's own,
+    /// interpolated at each frame's stamp. Give one per `--sequence`, in the same order.
+    #[arg(long, value_name = "FILE.txt")]
+    pub trajectory: Vec<PathBuf>,
+    /// The camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]`, replacing the recording's calibration.txt or
+    /// CameraInfo (a distorted camera's frames are undistorted as they are read).
+    #[arg(long, value_name = "FX,FY,CX,CY")]
+    pub intrinsics: Option<String>,
+    /// Depth units per metre, replacing what the recording's format says (TUM PNGs 5000, ROS 16UC1
+    /// 1000): e.g. 1000 for a folder of millimetre PNGs, 4000 for a sensor with 0.25 mm units.
+    #[arg(long, value_name = "UNITS_PER_M")]
+    pub depth_scale: Option<f64>,
+    /// ROS 2 bag topics of a `--sequence`.
+    #[command(flatten)]
+    pub topics: crate::replay_cmd::TopicArgs,
+    /// The map's id (what clients name in requests). Default: the scene name or `all` for a dataset,
+    /// the first recording's name for `--sequence`.
     #[arg(long)]
-    pub dataset: PathBuf,
+    pub map_id: Option<String>,
+    /// The world's up axis of a `--sequence` map, `y` or `z` (a ROS `map` frame is z-up). Default:
+    /// read from the camera poses (the opposite of the cameras' mean "down" axis).
+    #[arg(long, value_name = "y|z")]
+    pub up_axis: Option<String>,
+    /// Keyframes: a frame farther than this from every map image is kept, metres.
+    #[arg(long, default_value_t = 0.3, value_name = "METRES")]
+    pub keyframe_distance: f64,
+    /// Keyframes: a frame turned more than this from every near map image is kept, degrees.
+    #[arg(long, default_value_t = 15.0, value_name = "DEG")]
+    pub keyframe_angle: f64,
+    /// Keyframes: a frame of which no near map image sees this share is kept (0..1).
+    #[arg(long, default_value_t = 0.6, value_name = "SHARE")]
+    pub keyframe_overlap: f64,
+    /// After building from `--sequence`, localize this other recording against the new map (a
+    /// route the map was not built from) instead of the frames between keyframes.
+    #[arg(long, value_name = "DIR|FILE.mcap")]
+    pub check_sequence: Option<PathBuf>,
+    /// Frames the check localizes, evenly spaced (0 = all; none with `--no-check`).
+    #[arg(long, default_value_t = 300)]
+    pub check_frames: usize,
+    /// Skip the check after building from `--sequence`.
+    #[arg(long)]
+    pub no_check: bool,
+    /// Draw the map from above with each checked frame coloured by how it went (PNG and SVG) into
+    /// this folder.
+    #[arg(long, value_name = "DIR")]
+    pub plot: Option<PathBuf>,
     /// Only this scene (map id = the scene name); without it, every scene in one map (map id `all`).
     #[arg(long)]
     pub scene: Option<String>,
@@ -206,7 +263,7 @@ pub fn negative_scenes(path: Option<&Path>) -> Result<Vec<SceneEntry>> {
     }
 }
 
-fn bar(total: usize, what: &str) -> ProgressBar {
+pub(crate) fn bar(total: usize, what: &str) -> ProgressBar {
     let bar = ProgressBar::new(total as u64);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({per_sec}, eta {eta})")
@@ -290,7 +347,7 @@ pub(crate) fn feature_stage(
 }
 
 /// The feature stage that describes a preset's map images ([`Preset::map_extractor`]).
-fn map_feature_stage(
+pub(crate) fn map_feature_stage(
     preset: &Preset,
     models: &Path,
     threads: usize,
@@ -336,15 +393,25 @@ pub fn load_map(path: &Path, threads: usize) -> Result<Map> {
     })?)
 }
 
-/// `pntr build-db`.
-pub fn build_db(args: &BuildArgs) -> Result<()> {
-    let index = DatasetIndex::open(&args.dataset)?;
-    let (map_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+/// The preset `build-db` builds with (`--global-model` switching retrieval to it).
+pub(crate) fn build_preset(args: &BuildArgs) -> Result<Preset> {
     let mut preset = Preset::named(&args.preset)?;
     if let Some(m) = &args.global_model {
         preset.global = "onnx".into();
         preset.global_model = Some(m.clone());
     }
+    Ok(preset)
+}
+
+/// `pntr build-db`.
+pub fn build_db(args: &BuildArgs) -> Result<()> {
+    let Some(dataset) = &args.dataset else {
+        return crate::build_cmd::build_from_recordings(args);
+    };
+    let index = DatasetIndex::open(dataset)?;
+    let (scene_id, scenes) = select_scenes(&index, args.scene.as_deref())?;
+    let map_id = args.map_id.clone().unwrap_or(scene_id);
+    let preset = build_preset(args)?;
     let models = models_dir(args.models.as_deref())?;
     let map = build_map(&map_id, &scenes, &preset, &models, args.threads)?;
     let t = std::time::Instant::now();
@@ -539,6 +606,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             max_negatives: args.negative_queries,
             min_confidence: None,
             prior_radius_m: args.prior_radius,
+            map_images: Vec::new(),
         };
         let report = evaluate_remote(&mut remote, &scenes, &opts)?;
         print!("{}", eval::table(&report));
@@ -577,6 +645,19 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             anyhow::bail!("--min-confidence must be between 0 and 1, not {c}");
         }
     }
+    let axes = map.header.axes();
+    let map_images = map
+        .images
+        .iter()
+        .map(|im| {
+            let pose = pntr_core::convert_axes(
+                &im.world_from_camera,
+                axes,
+                pntr_core::CameraAxes::Habitat,
+            );
+            (im.id.clone(), pose)
+        })
+        .collect();
     let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?.with_calibration(
         calibration(args.calibration.as_deref())?,
         args.min_confidence,
@@ -589,6 +670,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         max_negatives: args.negative_queries,
         min_confidence: Some(pipeline.min_confidence()),
         prior_radius_m: args.prior_radius,
+        map_images,
     };
     let report = evaluate_in_process(&pipeline, &scenes, &opts, fx)?;
     print!("{}", eval::table(&report));
@@ -597,12 +679,44 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     extra_outputs(args, &report, &format!("preset {}", preset.name))
 }
 
-/// `pntr info --db FILE`: what a map file says about itself, from its header alone (fast on maps of
-/// any size). Errors name the file and what is wrong with it.
-pub fn info(path: &Path, as_json: bool) -> Result<()> {
+/// Every image of the map at `path`: id, place, stamp (seconds or null) and `world_from_camera`
+/// (translation, rotation w x y z with w >= 0) in the map's frame and camera axes.
+fn image_list(path: &Path) -> Result<Vec<serde_json::Value>> {
+    let map = load_map(path, 1).with_context(|| format!("loading {}", path.display()))?;
+    Ok(map
+        .images
+        .iter()
+        .map(|im| {
+            let t = im.world_from_camera.translation.vector;
+            let q = im.world_from_camera.rotation.quaternion();
+            let s = if q.w < 0.0 { -1.0 } else { 1.0 };
+            serde_json::json!({
+                "id": im.id,
+                "place": im.point,
+                "stamp": im.stamp,
+                "translation": [t.x, t.y, t.z],
+                "rotation_wxyz": [s * q.w, s * q.i, s * q.j, s * q.k],
+            })
+        })
+        .collect())
+}
+
+/// `pntr info --db FILE [--images]`: what a map file says about itself, from its header alone (fast
+/// on maps of any size), and with `images` every image's id, place, stamp and pose. Errors name the
+/// file and what is wrong with it.
+pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
     let header = mapfile::read_header(path)?;
+    let list = if images {
+        Some(image_list(path)?)
+    } else {
+        None
+    };
     if as_json {
-        println!("{}", serde_json::to_string_pretty(&header)?);
+        let mut v = serde_json::to_value(&header)?;
+        if let (Some(o), Some(list)) = (v.as_object_mut(), list) {
+            o.insert("image_list".into(), list.into());
+        }
+        println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
     let p = &header.preset;
@@ -639,9 +753,20 @@ pub fn info(path: &Path, as_json: bool) -> Result<()> {
         k.fx, k.fy, k.cx, k.cy, header.camera_axes
     );
     println!(
-        "scenes ({}): {}",
+        "scenes ({}): {}; world up axis {}",
         header.scenes.len(),
-        header.scenes.join(", ")
+        header.scenes.join(", "),
+        header.up_axis
     );
+    for im in list.iter().flatten() {
+        println!(
+            "{} place {} stamp {} t {} q(wxyz) {}",
+            im["id"].as_str().unwrap_or(""),
+            im["place"],
+            im["stamp"],
+            im["translation"],
+            im["rotation_wxyz"]
+        );
+    }
     Ok(())
 }

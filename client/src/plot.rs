@@ -8,6 +8,8 @@
 //!   rate, as the threshold on the calibrated confidence varies; the threshold in use is marked.
 //! - `map_<scene>`: the scene seen from above: database camera positions and each query at its true
 //!   position, coloured by how its answer turned out.
+//! - `map_check` (`pntr build-db --sequence ... --plot DIR`): a map built from a recording from
+//!   above, with each checked frame coloured by how its answer turned out.
 //! - `bench_sweep`: frames per second and latency percentiles against the number of clients.
 //!
 //! Text is drawn with the DejaVu Sans font bundled by the `dejavu` crate, so the pictures look the same
@@ -438,20 +440,24 @@ fn sanitize(s: &str) -> String {
         .collect()
 }
 
-fn draw_trajectories<DB: DrawingBackend>(
-    root: &DrawingArea<DB, Shift>,
-    map: &[[f64; 3]],
-    truth: &[[f64; 3]],
-    estimate: &[[f64; 3]],
+/// A square chart of the ground plane `(a, b)` (indices of x, y, z) around `points`, equal scales, a
+/// margin, axes labelled in metres.
+fn top_down_chart<'a, DB: DrawingBackend>(
+    root: &'a DrawingArea<DB, Shift>,
+    points: &[[f64; 3]],
+    (a, b): (usize, usize),
     title: &str,
-) -> Result<()>
+) -> Result<
+    ChartContext<
+        'a,
+        DB,
+        Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+    >,
+>
 where
     DB::ErrorType: 'static,
 {
-    root.fill(&WHITE)?;
-    let all: Vec<[f64; 3]> = map.iter().chain(truth).chain(estimate).copied().collect();
-    let (a, b) = ground_axes(if map.len() >= 3 { map } else { &all });
-    let (mut x0, mut x1, mut y0, mut y1) = all.iter().fold(
+    let (mut x0, mut x1, mut y0, mut y1) = points.iter().fold(
         (
             f64::INFINITY,
             f64::NEG_INFINITY,
@@ -478,6 +484,117 @@ where
         .y_desc(format!("{} (m)", axis[b]))
         .label_style((FONT, 14))
         .draw()?;
+    Ok(chart)
+}
+
+/// The ground plane of a world whose up axis is `up` (`y` or `z`): the other two axes.
+pub fn ground_of(up: &str) -> (usize, usize) {
+    if up.eq_ignore_ascii_case("z") {
+        (0, 1)
+    } else {
+        (0, 2)
+    }
+}
+
+/// A class of checked frames: legend text, colour, and which errors (`None`: not localized) it holds.
+type CheckClass = (&'static str, RGBColor, fn(Option<f64>) -> bool);
+
+fn draw_check<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    map: &[[f64; 3]],
+    frames: &[([f64; 3], Option<f64>)],
+    ground: (usize, usize),
+    title: &str,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE)?;
+    let (a, b) = ground;
+    let all: Vec<[f64; 3]> = map
+        .iter()
+        .copied()
+        .chain(frames.iter().map(|f| f.0))
+        .collect();
+    let mut chart = top_down_chart(root, &all, ground, title)?;
+    chart
+        .draw_series(map.iter().map(|p| {
+            Rectangle::new(
+                [(p[a] - 0.04, p[b] - 0.04), (p[a] + 0.04, p[b] + 0.04)],
+                BLACK.mix(0.4).filled(),
+            )
+        }))?
+        .label("map images")
+        .legend(|(x, y)| Rectangle::new([(x, y - 4), (x + 8, y + 4)], BLACK.mix(0.4).filled()));
+    let classes: [CheckClass; 4] = [
+        ("within 0.25 m", RGBColor(0, 150, 60), |e| {
+            e.is_some_and(|e| e <= 0.25)
+        }),
+        ("0.25-1 m off", RGBColor(230, 140, 0), |e| {
+            e.is_some_and(|e| e > 0.25 && e <= 1.0)
+        }),
+        ("more than 1 m off", RED, |e| e.is_some_and(|e| e > 1.0)),
+        (
+            "not localized (drive here again)",
+            RGBColor(120, 0, 160),
+            |e| e.is_none(),
+        ),
+    ];
+    for (label, colour, pick) in classes {
+        let n = frames.iter().filter(|f| pick(f.1)).count();
+        chart
+            .draw_series(
+                frames
+                    .iter()
+                    .filter(|f| pick(f.1))
+                    .map(move |f| Circle::new((f.0[a], f.0[b]), 3, colour.filled())),
+            )?
+            .label(format!("{label}: {n}"))
+            .legend(move |(x, y)| Circle::new((x + 4, y), 4, colour.filled()));
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::LowerRight)
+        .label_font((FONT, 13))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()?;
+    Ok(())
+}
+
+/// Write `map_check.png` / `.svg` into `dir`: the map's camera positions from above (ground plane
+/// `ground`, indices of x, y, z) and each checked frame at its recorded position, coloured by how far
+/// its answer was off (`None`: not localized), so a team sees where to drive again.
+pub fn check_plot(
+    map: &[[f64; 3]],
+    frames: &[([f64; 3], Option<f64>)],
+    ground: (usize, usize),
+    dir: &Path,
+    title: &str,
+) -> Result<Vec<PathBuf>> {
+    save_both(
+        dir,
+        "map_check",
+        MAP_SIZE,
+        |r| draw_check(r, map, frames, ground, title),
+        |r| draw_check(r, map, frames, ground, title),
+    )
+}
+
+fn draw_trajectories<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    map: &[[f64; 3]],
+    truth: &[[f64; 3]],
+    estimate: &[[f64; 3]],
+    title: &str,
+) -> Result<()>
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE)?;
+    let all: Vec<[f64; 3]> = map.iter().chain(truth).chain(estimate).copied().collect();
+    let (a, b) = ground_axes(if map.len() >= 3 { map } else { &all });
+    let mut chart = top_down_chart(root, &all, (a, b), title)?;
     if !map.is_empty() {
         chart
             .draw_series(map.iter().map(|p| {

@@ -115,6 +115,8 @@ pub struct Remote {
     rt: tokio::runtime::Runtime,
     client: LocalizerClient<Channel>,
     connect: ConnectArgs,
+    /// Camera axes of the map's answers (GetMapInfo), asked once.
+    axes: Option<pntr_core::CameraAxes>,
 }
 
 impl Remote {
@@ -128,6 +130,7 @@ impl Remote {
             rt,
             client: client(ch),
             connect: c.clone(),
+            axes: None,
         })
     }
 
@@ -151,7 +154,34 @@ impl Remote {
         let r = self
             .send(req)
             .map_err(|s| pntr_pipeline::PipelineError::Query(format!("server: {s}")))?;
-        Ok(answer_of(&r))
+        let axes = self.map_axes();
+        let mut a = answer_of(&r);
+        a.pose = a
+            .pose
+            .map(|p| pntr_core::convert_axes(&p, axes, pntr_core::CameraAxes::Habitat));
+        Ok(a)
+    }
+
+    /// Camera axes of the answers of the map this client asks (GetMapInfo's `camera_axes`; Habitat's
+    /// when the server does not say).
+    pub fn map_axes(&mut self) -> pntr_core::CameraAxes {
+        if let Some(a) = self.axes {
+            return a;
+        }
+        let mut client = self.client.clone();
+        let req = authorized(
+            &self.connect,
+            proto::GetMapInfoRequest {
+                map_id: self.connect.map_id.clone(),
+            },
+        );
+        let axes = req
+            .ok()
+            .and_then(|r| self.rt.block_on(client.get_map_info(r)).ok())
+            .and_then(|info| pntr_core::CameraAxes::parse(&info.get_ref().camera_axes))
+            .unwrap_or(pntr_core::CameraAxes::Habitat);
+        self.axes = Some(axes);
+        axes
     }
 }
 

@@ -14,8 +14,9 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
-use pntr_dataset::bag::{Bag, Topics};
-use pntr_dataset::tum::{ground_truth_line, TumSequence};
+use pntr_dataset::bag::Topics;
+use pntr_dataset::recording::{Recording, RecordingOptions};
+use pntr_dataset::tum::ground_truth_line;
 use pntr_pipeline::eval::trajectory_errors;
 use pntr_pipeline::prior::Region;
 use pntr_service::proto;
@@ -35,19 +36,13 @@ pub struct ReplayArgs {
     /// groundtruth.txt and calibration.txt), or a ROS 2 bag (`.mcap`).
     #[arg(long)]
     pub sequence: PathBuf,
-    /// ROS 2 bag: the colour topic (sensor_msgs/Image, rgb8/bgr8/rgba8/bgra8).
-    #[arg(long, default_value = "/camera/color/image_raw")]
-    pub rgb_topic: String,
-    /// ROS 2 bag: the depth topic, aligned to the colour camera (16UC1 millimetres or 32FC1 metres).
-    #[arg(long, default_value = "/camera/aligned_depth_to_color/image_raw")]
-    pub depth_topic: String,
-    /// ROS 2 bag: the colour camera's sensor_msgs/CameraInfo topic.
-    #[arg(long, default_value = "/camera/color/camera_info")]
-    pub info_topic: String,
-    /// ROS 2 bag: a geometry_msgs/PoseStamped topic with the ground truth (world_from_camera in the
-    /// map's frame and camera axes), for ATE and RPE.
-    #[arg(long)]
-    pub pose_topic: Option<String>,
+    /// ROS 2 bag topics.
+    #[command(flatten)]
+    pub topics: TopicArgs,
+    /// Depth units per metre, replacing what the recording's format says (TUM PNGs 5000, ROS 16UC1
+    /// 1000): e.g. 1000 for a folder of millimetre PNGs, 4000 for a sensor with 0.25 mm units.
+    #[arg(long, value_name = "UNITS_PER_M")]
+    pub depth_scale: Option<f64>,
     /// Frames per second to send at (default: the sequence's own timestamps).
     #[arg(long)]
     pub rate: Option<f64>,
@@ -87,66 +82,44 @@ pub struct ReplayArgs {
     pub frames_log: Option<PathBuf>,
 }
 
-/// A recorded drive: a TUM RGB-D folder or a ROS 2 bag.
-enum Recording {
-    Tum(TumSequence),
-    Bag(Bag),
+/// The topics of a ROS 2 bag (`pntr replay`, `pntr build-db --sequence`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct TopicArgs {
+    /// ROS 2 bag: the colour topic (sensor_msgs/Image, rgb8/bgr8/rgba8/bgra8).
+    #[arg(long, default_value = "/camera/color/image_raw")]
+    pub rgb_topic: String,
+    /// ROS 2 bag: the depth topic, aligned to the colour camera (16UC1 millimetres or 32FC1 metres).
+    #[arg(long, default_value = "/camera/aligned_depth_to_color/image_raw")]
+    pub depth_topic: String,
+    /// ROS 2 bag: the colour camera's sensor_msgs/CameraInfo topic.
+    #[arg(long, default_value = "/camera/color/camera_info")]
+    pub info_topic: String,
+    /// ROS 2 bag: a geometry_msgs/PoseStamped topic with the ground truth (world_from_camera of the
+    /// optical frame, in the map's frame), for ATE and RPE.
+    #[arg(long)]
+    pub pose_topic: Option<String>,
 }
 
-impl Recording {
-    fn open(args: &ReplayArgs) -> Result<Self> {
-        let is_bag = args.sequence.is_file()
-            && args
-                .sequence
-                .extension()
-                .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
-        Ok(if is_bag {
-            let topics = Topics {
-                rgb: args.rgb_topic.clone(),
-                depth: args.depth_topic.clone(),
-                info: args.info_topic.clone(),
-                pose: args.pose_topic.clone(),
-            };
-            Recording::Bag(Bag::open(&args.sequence, &topics)?)
-        } else {
-            Recording::Tum(TumSequence::open(&args.sequence)?)
-        })
-    }
-
-    fn len(&self) -> usize {
-        match self {
-            Recording::Tum(s) => s.frames.len(),
-            Recording::Bag(b) => b.len(),
+impl TopicArgs {
+    /// The reader's topics.
+    pub fn topics(&self) -> Topics {
+        Topics {
+            rgb: self.rgb_topic.clone(),
+            depth: self.depth_topic.clone(),
+            info: self.info_topic.clone(),
+            pose: self.pose_topic.clone(),
         }
     }
+}
 
-    fn intrinsics(&self) -> Option<pntr_core::Intrinsics> {
-        match self {
-            Recording::Tum(s) => s.intrinsics,
-            Recording::Bag(b) => b.intrinsics,
-        }
-    }
-
-    fn timestamp(&self, i: usize) -> f64 {
-        match self {
-            Recording::Tum(s) => s.frames[i].timestamp,
-            Recording::Bag(b) => b.timestamp(i),
-        }
-    }
-
-    fn ground_truth(&self, i: usize) -> Option<Isometry3<f64>> {
-        match self {
-            Recording::Tum(s) => s.frames[i].world_from_camera,
-            Recording::Bag(b) => b.ground_truth(i),
-        }
-    }
-
-    fn load(&self, i: usize) -> Result<(pntr_core::RgbImage, pntr_core::DepthMap)> {
-        Ok(match self {
-            Recording::Tum(s) => s.load(i)?,
-            Recording::Bag(b) => b.load(i)?,
-        })
-    }
+/// The recorded drive `--sequence` names, with the bag topics and depth unit the flags give.
+fn open_recording(args: &ReplayArgs) -> Result<Recording> {
+    let opts = RecordingOptions {
+        topics: args.topics.topics(),
+        trajectory: None,
+        depth_units_per_m: args.depth_scale,
+    };
+    Ok(Recording::open(&args.sequence, &opts)?)
 }
 
 /// One answered frame.
@@ -249,7 +222,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     }
     let effects = crate::map_cmd::effects(&args.effects)?;
     let seq =
-        Recording::open(args).with_context(|| format!("--sequence {}", args.sequence.display()))?;
+        open_recording(args).with_context(|| format!("--sequence {}", args.sequence.display()))?;
     let camera = match (&args.intrinsics, seq.intrinsics()) {
         (Some(s), _) => crate::localize_cmd::parse_intrinsics(std::slice::from_ref(s))?,
         (None, Some(k)) => wire::intrinsics_message(&k),
@@ -280,6 +253,17 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         pntr_service::tokio_stream::wrappers::ReceiverStream::new(rx),
     )?;
     request.set_timeout(Duration::from_secs(3600 * 24));
+    // Answers come in the map's camera axes; recordings (TUM, ROS) hold optical axes.
+    let map_axes = rt
+        .block_on(c.get_map_info(authorized(
+            &args.connect,
+            proto::GetMapInfoRequest {
+                map_id: args.connect.map_id.clone(),
+            },
+        )?))
+        .ok()
+        .and_then(|i| pntr_core::CameraAxes::parse(&i.get_ref().camera_axes))
+        .unwrap_or(pntr_core::CameraAxes::Habitat);
     let mut answers = rt
         .block_on(c.localize_stream(request))
         .context("opening LocalizeStream")?
@@ -309,6 +293,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         req.map_id = args.connect.map_id.clone();
         req.request_id = format!("{:.6}", timestamp);
         req.relocalize = args.no_prior;
+        // Only the prior's position is sent, which the camera axes do not change.
         if let (Some(r), Some(p)) = (args.prior_radius, last) {
             req.prior = Some(wire::prior_message(&Region::new(p.translation.vector, r)?));
         }
@@ -322,7 +307,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         let latency_ms = sent.elapsed().as_secs_f64() * 1e3;
         let estimate = (r.status == proto::Status::Localized as i32)
             .then(|| wire::pose(r.pose.as_ref()))
-            .flatten();
+            .flatten()
+            .map(|p| pntr_core::convert_axes(&p, map_axes, pntr_core::CameraAxes::OpenCv));
         if estimate.is_some() {
             localized += 1;
             last = estimate;
@@ -330,7 +316,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         out.push(Answered {
             timestamp,
             estimate,
-            truth: seq.ground_truth(i),
+            truth: seq.world_from_camera(i),
             mode: proto::Mode::try_from(r.mode)
                 .map(|m| m.as_str_name().to_string())
                 .unwrap_or_else(|_| "UNKNOWN".into()),
@@ -356,7 +342,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let wall = start.elapsed().as_secs_f64();
     bar.finish_and_clear();
 
-    let mut traj = String::from("# estimated trajectory (world_from_camera), LOCALIZED frames\n# timestamp tx ty tz qx qy qz qw\n");
+    let mut traj = String::from("# estimated trajectory (world_from_camera, optical camera axes), LOCALIZED frames\n# timestamp tx ty tz qx qy qz qw\n");
     for a in &out {
         if let Some(e) = &a.estimate {
             traj += &ground_truth_line(a.timestamp, e);

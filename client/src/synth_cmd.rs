@@ -64,9 +64,19 @@ pub struct SynthArgs {
     /// Also render, per scene, a robot driving for this many seconds (0.5 m/s, 10 Hz, through the
     /// query camera, from Point to Point through the doors) into `OUT/sequences/<scene>/` in the TUM
     /// RGB-D layout: rgb/, depth/ (16-bit PNG, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt
-    /// (world_from_camera in the map's frame and camera axes), calibration.txt.
+    /// (world_from_camera in the scene's y-up frame with the TUM convention's optical camera axes: x
+    /// right, y down, z forward), calibration.txt.
     #[arg(long, value_name = "SECONDS")]
     pub trajectory_seconds: Option<f64>,
+    /// Make the drive a mapping run, as an operator mapping a building drives: every Point visited
+    /// once, a full circle in place at each, stopping after the last (`--trajectory-seconds` is then
+    /// a cap).
+    #[arg(long, requires = "trajectory_seconds")]
+    pub mapping_run: bool,
+    /// Drive another route through the same scene: another first Point and order of Points, so
+    /// parts are driven the other way (with `--trajectory-seconds`).
+    #[arg(long, value_name = "K", requires = "trajectory_seconds")]
+    pub route_seed: Option<u64>,
     /// Render queries and drives as a robot's captures, database views clean: `none`, `robot`
     /// (everything), or a comma-separated list of `lighting` (each room's lamps at another level,
     /// ambient and light strengths and directions per query, drifting over 3 s in a drive), `exposure` (gain, gamma, white
@@ -164,6 +174,8 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
         queries_per_point: args.queries_per_point,
         seed: args.seed,
         trajectory_seconds: args.trajectory_seconds,
+        mapping_run: args.mapping_run,
+        route_seed: args.route_seed,
         realism: pntr_synth::effects::Realism::parse(&args.realism)
             .map_err(|e| anyhow::anyhow!("--realism: {e}"))?,
         tilt_sigma_deg: args.tilt_sigma_deg,

@@ -65,6 +65,16 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     assert_eq!(gt.len(), 50);
     assert!(gt.iter().all(|l| l.len() == 8));
     assert!((gt[1][0] - gt[0][0] - 0.1).abs() < 1e-6, "10 Hz");
+    // The TUM convention: optical camera axes, so the image's "down" (camera +y) is the scene's
+    // down (world -y, the scene being y-up) and the camera looks level (camera +z horizontal).
+    for g in &gt {
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            g[7], g[4], g[5], g[6],
+        ));
+        let down = q * nalgebra::Vector3::y();
+        let forward = q * nalgebra::Vector3::z();
+        assert!(down.y < -0.99 && forward.y.abs() < 0.1, "{g:?}");
+    }
     let speed = ((gt[49][1] - gt[48][1]).powi(2) + (gt[49][3] - gt[48][3]).powi(2)).sqrt() / 0.1;
     assert!(speed <= 0.5 + 1e-6, "{speed} m/s");
     let calib = &lines(&seq.join("calibration.txt"))[0];

@@ -11,6 +11,26 @@ pub enum CameraAxes {
     OpenCv,
 }
 
+impl CameraAxes {
+    /// The name maps and files use: `habitat` or `opencv`.
+    pub fn name(self) -> &'static str {
+        match self {
+            CameraAxes::Habitat => "habitat",
+            CameraAxes::OpenCv => "opencv",
+        }
+    }
+
+    /// The convention a name gives (`habitat`, or `opencv` / `optical`, case-insensitive); `None`
+    /// for anything else.
+    pub fn parse(name: &str) -> Option<Self> {
+        match name.to_ascii_lowercase().as_str() {
+            "habitat" => Some(CameraAxes::Habitat),
+            "opencv" | "optical" => Some(CameraAxes::OpenCv),
+            _ => None,
+        }
+    }
+}
+
 /// Errors when a pose read from outside is not a rigid transform.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum PoseError {

@@ -4,7 +4,8 @@
 //! Messages read: `sensor_msgs/msg/Image` (colour `rgb8`, `bgr8`, `rgba8`, `bgra8`; depth `16UC1` in
 //! millimetres or `32FC1` in metres, pixel-aligned with the colour, e.g. a RealSense's
 //! `aligned_depth_to_color`), `sensor_msgs/msg/CameraInfo` (K and plumb_bob D) and, for ground truth,
-//! `geometry_msgs/msg/PoseStamped`. Frames are paired by header stamp within
+//! `geometry_msgs/msg/PoseStamped` (world_from_camera of the optical frame, as ROS gives camera poses).
+//! Frames are paired by header stamp within
 //! [`crate::tum::MAX_PAIR_GAP_S`]. The whole file is read into memory (a bag of a few minutes of
 //! 640x480 frames is a few GB: split long recordings).
 
@@ -188,6 +189,9 @@ pub struct Bag {
     pub intrinsics: Option<Intrinsics>,
     /// Paired frames.
     frames: Vec<PairedFrame>,
+    /// Units per metre of integer (`16UC1`) depth: 1000 (REP 118's millimetres) unless the caller
+    /// knows the sensor uses others (4000 for 0.25 mm). `32FC1` depth is metres whatever this says.
+    pub depth_units_per_m: f64,
 }
 
 /// Stamp seconds, colour message (CDR), depth message (CDR), ground truth.
@@ -314,6 +318,7 @@ impl Bag {
             path: path.to_path_buf(),
             intrinsics,
             frames,
+            depth_units_per_m: 1000.0,
         })
     }
 
@@ -343,7 +348,7 @@ impl Bag {
         let c: Image = decode(&self.path, "colour", c)?;
         let d: Image = decode(&self.path, "depth", d)?;
         let rgb = rgb_of(&self.path, &c)?;
-        let depth = depth_of(&self.path, &d)?;
+        let depth = depth_of(&self.path, &d, self.depth_units_per_m)?;
         if (depth.width, depth.height) != (rgb.width, rgb.height) {
             return Err(bad(
                 &self.path,
@@ -439,7 +444,8 @@ fn rgb_of(path: &Path, m: &Image) -> Result<RgbImage, DatasetError> {
     })
 }
 
-fn depth_of(path: &Path, m: &Image) -> Result<DepthMap, DatasetError> {
+fn depth_of(path: &Path, m: &Image, units_per_m: f64) -> Result<DepthMap, DatasetError> {
+    let scale = (1.0 / units_per_m) as f32;
     let big = m.is_bigendian != 0;
     let data: Vec<f32> = match m.encoding.as_str() {
         "16UC1" | "mono16" => rows(path, m, 2)?
@@ -451,7 +457,7 @@ fn depth_of(path: &Path, m: &Image) -> Result<DepthMap, DatasetError> {
                 } else {
                     u16::from_le_bytes([b[0], b[1]])
                 };
-                v as f32 / 1000.0
+                v as f32 * scale
             })
             .collect(),
         "32FC1" => rows(path, m, 4)?

@@ -31,6 +31,7 @@ mod error;
 mod last_words;
 pub mod layout;
 mod reader;
+pub mod recording;
 pub mod tum;
 mod writer;
 

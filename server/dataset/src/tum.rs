@@ -4,14 +4,16 @@
 //! DIR/rgb/<timestamp>.png        colour, 8-bit RGB
 //! DIR/depth/<timestamp>.png      depth, 16-bit, `DEPTH_UNITS_PER_M` units per metre, 0 = no measurement
 //! DIR/rgb.txt, DIR/depth.txt     "timestamp filename" per line, `#` comments
-//! DIR/groundtruth.txt            "timestamp tx ty tz qx qy qz qw" (world_from_camera), optional
+//! DIR/groundtruth.txt            "timestamp tx ty tz qx qy qz qw" (world_from_camera, optical camera
+//!                                axes: x right, y down, z forward), optional
 //! DIR/calibration.txt            "fx fy cx cy [k1 k2 p1 p2 [k3]]", optional when the caller knows the camera
 //! ```
 //!
 //! Colour and depth frames are paired by nearest timestamp (at most [`MAX_PAIR_GAP_S`] apart, as the
-//! benchmark's `associate.py` does), ground truth likewise. The public TUM sequences use this layout
-//! (their camera axes are OpenCV's; sequences `pntr synth --trajectory-seconds` writes use the map's
-//! world frame and camera axes, the convention of the service's answers).
+//! benchmark's `associate.py` does), ground truth likewise. Poses follow the TUM convention: the camera's
+//! optical axes (OpenCV's: x right, y down, z forward), whatever the world frame; `pntr synth
+//! --trajectory-seconds` writes its drives that way too (in the scene's y-up world frame), and readers
+//! convert to a map's own axes where they differ ([`pntr_core::convert_axes`]).
 
 use std::path::{Path, PathBuf};
 
@@ -34,7 +36,7 @@ pub struct TumFrame {
     pub rgb: PathBuf,
     /// Depth image file.
     pub depth: PathBuf,
-    /// Ground-truth `world_from_camera`, when the sequence has it for this time.
+    /// Ground-truth `world_from_camera` (optical camera axes), when the sequence has it for this time.
     pub world_from_camera: Option<Isometry3<f64>>,
 }
 
@@ -47,6 +49,9 @@ pub struct TumSequence {
     pub intrinsics: Option<Intrinsics>,
     /// Frames with both colour and depth, in time order.
     pub frames: Vec<TumFrame>,
+    /// Depth PNG units per metre ([`DEPTH_UNITS_PER_M`] unless the caller knows better: 1000 for
+    /// millimetre PNGs, 4000 for a sensor with 0.25 mm units).
+    pub depth_units_per_m: f64,
 }
 
 fn layout(path: &Path, problem: impl Into<String>) -> DatasetError {
@@ -141,6 +146,81 @@ fn ground_truth(path: &Path) -> Result<Vec<(f64, Isometry3<f64>)>, DatasetError>
     Ok(out)
 }
 
+/// Longest gap between two poses of a trajectory that [`Trajectory::at`] interpolates across, seconds
+/// (a SLAM output at 5-30 Hz; a longer gap is a lost track, not a pose to invent).
+pub const MAX_INTERPOLATION_GAP_S: f64 = 0.5;
+
+/// A camera trajectory in the TUM format (`timestamp tx ty tz qx qy qz qw`, world_from_camera, optical
+/// axes): a SLAM system's output or a sequence's groundtruth.txt, looked up at any stamp.
+#[derive(Debug, Clone, Default)]
+pub struct Trajectory {
+    poses: Vec<(f64, Isometry3<f64>)>,
+}
+
+impl Trajectory {
+    /// Read a TUM trajectory file. Errors name the file and line (a malformed line, a quaternion that
+    /// is not unit length, no pose at all).
+    pub fn read(path: &Path) -> Result<Self, DatasetError> {
+        let poses = ground_truth(path)?;
+        if poses.is_empty() {
+            return Err(layout(
+                path,
+                "no pose (expected lines `timestamp tx ty tz qx qy qz qw`)",
+            ));
+        }
+        Ok(Self { poses })
+    }
+
+    /// A trajectory of `(stamp seconds, world_from_camera)` samples in any order.
+    pub fn from_poses(mut poses: Vec<(f64, Isometry3<f64>)>) -> Self {
+        poses.sort_by(|a, b| a.0.total_cmp(&b.0));
+        Self { poses }
+    }
+
+    /// Samples.
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    /// True without samples.
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
+    }
+
+    /// First and last stamp, seconds.
+    pub fn span(&self) -> Option<(f64, f64)> {
+        Some((self.poses.first()?.0, self.poses.last()?.0))
+    }
+
+    /// The pose at `t` seconds: interpolated between the samples around it (linear in translation,
+    /// slerp in rotation) when they are at most [`MAX_INTERPOLATION_GAP_S`] apart, else the nearest
+    /// sample within [`MAX_PAIR_GAP_S`]; `None` outside the trajectory or inside a longer gap.
+    pub fn at(&self, t: f64) -> Option<Isometry3<f64>> {
+        let p = &self.poses;
+        let i = p.partition_point(|e| e.0 < t);
+        if i < p.len() && (p[i].0 - t).abs() < 1e-9 {
+            return Some(p[i].1);
+        }
+        if i > 0 && i < p.len() && p[i].0 - p[i - 1].0 <= MAX_INTERPOLATION_GAP_S {
+            let (t0, a) = p[i - 1];
+            let (t1, b) = p[i];
+            let u = ((t - t0) / (t1 - t0).max(1e-12)).clamp(0.0, 1.0);
+            return Some(interpolate(&a, &b, u));
+        }
+        nearest(p, t).map(|j| p[j].1)
+    }
+}
+
+/// The pose a fraction `u` (0..1) of the way from `a` to `b`: linear translation, slerp rotation.
+pub fn interpolate(a: &Isometry3<f64>, b: &Isometry3<f64>, u: f64) -> Isometry3<f64> {
+    let t = a.translation.vector.lerp(&b.translation.vector, u);
+    let r = a
+        .rotation
+        .try_slerp(&b.rotation, u, 1e-12)
+        .unwrap_or(if u < 0.5 { a.rotation } else { b.rotation });
+    Isometry3::from_parts(Translation3::from(t), r)
+}
+
 /// Index of the entry of `sorted` (by time, seconds) nearest to `t`, if within [`MAX_PAIR_GAP_S`].
 pub(crate) fn nearest<T>(sorted: &[(f64, T)], t: f64) -> Option<usize> {
     let i = sorted.partition_point(|e| e.0 < t);
@@ -207,6 +287,7 @@ impl TumSequence {
             root: root.to_path_buf(),
             intrinsics,
             frames,
+            depth_units_per_m: DEPTH_UNITS_PER_M,
         })
     }
 
@@ -255,7 +336,7 @@ impl TumSequence {
     }
 
     /// Decode frame `i`: colour (8-bit RGB or RGBA PNG/JPEG) and depth (16-bit PNG in
-    /// [`DEPTH_UNITS_PER_M`], 0 = missing) in metres. Errors name the file.
+    /// [`TumSequence::depth_units_per_m`], 0 = missing) in metres. Errors name the file.
     pub fn load(&self, i: usize) -> Result<(RgbImage, DepthMap), DatasetError> {
         let f = &self.frames[i];
         let rgb = image::open(&f.rgb)
@@ -298,7 +379,7 @@ impl TumSequence {
                 data: depth
                     .into_raw()
                     .into_iter()
-                    .map(|v| (v as f64 / DEPTH_UNITS_PER_M) as f32)
+                    .map(|v| (v as f64 / self.depth_units_per_m) as f32)
                     .collect(),
             },
         ))
@@ -314,7 +395,7 @@ pub struct SequenceFrame {
     pub rgb: RgbImage,
     /// Depth in metres (0 = missing; stored rounded to 1/5000 m, at most 13.1 m).
     pub depth: DepthMap,
-    /// Ground-truth `world_from_camera`.
+    /// Ground-truth `world_from_camera`, optical camera axes (the TUM convention).
     pub world_from_camera: Isometry3<f64>,
 }
 

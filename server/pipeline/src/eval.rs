@@ -63,11 +63,14 @@ pub struct Answer {
 }
 
 impl Answer {
-    /// The answer of the in-process pipeline, with map indices turned into image ids.
+    /// The answer of the in-process pipeline, with map indices turned into image ids and poses
+    /// turned from the map's camera axes into the dataset's (Habitat).
     pub fn of(l: &crate::pipeline::Localization, map: &crate::map::Map) -> Self {
+        let axes = map.header.axes();
+        let to_dataset = |p: Isometry3<f64>| convert_axes(&p, axes, CameraAxes::Habitat);
         Self {
             status: Some(l.status),
-            pose: l.pose,
+            pose: l.pose.map(to_dataset),
             retrieved: l
                 .retrieved
                 .iter()
@@ -76,7 +79,7 @@ impl Answer {
             matched: l.image.map(|i| map.images[i].id.clone()),
             times: l.times,
             confidence: l.confidence,
-            estimate: l.estimate.or(l.pose),
+            estimate: l.estimate.or(l.pose).map(to_dataset),
             threshold: None,
             mode: Some(l.mode),
             covariance: l.pose.and(l.covariance.as_deref().copied()),
@@ -359,6 +362,11 @@ pub struct EvalOptions {
     /// from the true position in a direction that varies from query to query (a robot's odometry is
     /// off by about that much). Out-of-map queries get none (there is no true position to be near).
     pub prior_radius_m: Option<f64>,
+    /// The map images' own poses by id (`world_from_camera`, Habitat axes), for maps whose images
+    /// are not the dataset's database views (a map built from a recording of the same place): the
+    /// retrieval rows then use them (the Point rows cannot, as the map's places are not the
+    /// dataset's Points).
+    pub map_images: Vec<(String, Isometry3<f64>)>,
 }
 
 /// The prior [`run`] sends query number `n` at true position `truth_m`: a region of `radius_m` whose
@@ -403,6 +411,11 @@ pub fn run(
             }
             readers.push((p.clone(), r));
         }
+    }
+    for (id, pose) in &opts.map_images {
+        db_pose
+            .entry(id.clone())
+            .or_insert_with(|| (*pose, String::new(), u32::MAX));
     }
     let picked = evenly_spaced(all, opts.max_queries);
     let (mut errors, mut retrieval_errors) = (Vec::new(), Vec::new());

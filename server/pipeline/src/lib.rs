@@ -7,6 +7,9 @@
 //! - [`preset`]: named combinations of stages (`fast`, `accurate`, `classical`, ICP variants).
 //! - [`map`]: building a map from HPointLoc-layout data; [`mapfile`]: the versioned, checksummed,
 //!   atomically written file.
+//! - [`recording_map`]: a map from a robot's recordings (keyframes chosen by [`keyframes`]: new
+//!   views only, blurred, badly exposed and depthless frames left out, grouped into places), and the
+//!   check of the frames left out against it.
 //! - [`camera`]: any query camera brought to the map's pixel scale (resampling, undistortion), with
 //!   keypoints traced back to the query's own depth.
 //! - [`depth_noise`]: how noisy a frame's depth is (`k` of `sigma = k z^2`), measured on the frame,
@@ -32,12 +35,14 @@ pub mod calibration;
 pub mod camera;
 pub mod depth_noise;
 pub mod eval;
+pub mod keyframes;
 pub mod map;
 pub mod mapfile;
 pub mod odometry;
 pub mod pipeline;
 pub mod preset;
 pub mod prior;
+pub mod recording_map;
 pub mod refine;
 pub mod shortlist;
 pub mod verify;

@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use half::f16;
 use nalgebra::{Isometry3, Vector3};
-use pntr_core::{DepthMap, Intrinsics, LabelMap};
+use pntr_core::{DepthMap, Intrinsics, LabelMap, RgbImage};
 use pntr_dataset::{Role, SceneEntry};
 use pntr_features::config::FeatureStage;
 use pntr_features::Features;
@@ -32,8 +32,11 @@ pub struct MapImage {
     pub scene: u32,
     /// The Point (key position) it was taken at.
     pub point: u32,
-    /// Camera-to-world pose in the map's world frame, with the dataset's camera axes (Habitat).
+    /// Camera-to-world pose in the map's world frame, with the map's camera axes
+    /// ([`MapHeader::camera_axes`]: Habitat for HPointLoc data, OpenCV's optical axes for recordings).
     pub world_from_camera: Isometry3<f64>,
+    /// The recording's stamp of the frame, seconds (`None` for dataset views).
+    pub stamp: Option<f64>,
     /// Keypoints (x, y) in pixels, OpenCV convention.
     pub keypoints: Vec<[f32; 2]>,
     /// Detection scores.
@@ -112,14 +115,41 @@ pub struct MapHeader {
     pub models: Vec<ModelIdentity>,
     /// Camera of the first database image; each image records its own ([`MapImage::camera`]).
     pub intrinsics: Intrinsics,
-    /// Camera axes of stored poses (`habitat` for HPointLoc data).
+    /// Camera axes of stored poses and of every pose given out for this map: `habitat` (x right, y
+    /// up, looking along -z) for HPointLoc data and `pntr synth` datasets, `opencv` (the optical axes
+    /// of TUM and ROS: x right, y down, z forward) for maps built from recordings.
     pub camera_axes: String,
+    /// The world's up axis: `y` (HPointLoc, `pntr synth`) or `z` (REP 103 frames such as a ROS
+    /// `map`). Maps written before it was recorded are y-up.
+    #[serde(default = "default_up_axis")]
+    pub up_axis: String,
     /// Scenes in the map; each has its own world frame.
     pub scenes: Vec<String>,
     /// The pntr version that built it.
     pub built_by: String,
     /// Seconds the build took.
     pub build_seconds: f64,
+}
+
+fn default_up_axis() -> String {
+    "y".into()
+}
+
+impl MapHeader {
+    /// The camera axes of the map's poses ([`MapHeader::camera_axes`]); an unknown name is read as
+    /// Habitat's, what every map had before the field could say otherwise.
+    pub fn axes(&self) -> pntr_core::CameraAxes {
+        pntr_core::CameraAxes::parse(&self.camera_axes).unwrap_or(pntr_core::CameraAxes::Habitat)
+    }
+
+    /// The world's up direction as a unit vector (`+y` unless [`MapHeader::up_axis`] is `z`).
+    pub fn up(&self) -> Vector3<f64> {
+        if self.up_axis.eq_ignore_ascii_case("z") {
+            Vector3::z()
+        } else {
+            Vector3::y()
+        }
+    }
 }
 
 /// A loaded or freshly built map.
@@ -266,6 +296,167 @@ pub fn keypoint_points(
 /// Local descriptors sampled for codebook training: at most this many in all.
 const TRAINING_DESCRIPTORS: usize = 200_000;
 
+/// A map under construction: images are added one at a time (features extracted as they come, so
+/// the frames themselves are not kept), then [`MapBuilder::finish`] learns the retrieval stage on them.
+pub struct MapBuilder<'a> {
+    preset: &'a Preset,
+    stage: &'a FeatureStage,
+    global_model: Option<OnnxGlobal>,
+    images: Vec<MapImage>,
+    onnx_desc: Vec<Descriptor>,
+    header_camera: Option<Intrinsics>,
+    t0: Instant,
+}
+
+/// One image offered to [`MapBuilder::add`].
+pub struct NewImage<'v> {
+    /// Stable id.
+    pub id: String,
+    /// Index into the map's scenes.
+    pub scene: u32,
+    /// The Point (place) it belongs to.
+    pub point: u32,
+    /// `world_from_camera`, map frame, the map's camera axes.
+    pub world_from_camera: Isometry3<f64>,
+    /// The recording's stamp, seconds (`None` for dataset views).
+    pub stamp: Option<f64>,
+    /// Colour.
+    pub rgb: &'v RgbImage,
+    /// Depth, metres (0 or non-finite = missing), the size of `rgb`.
+    pub depth: &'v DepthMap,
+    /// Instance labels, when the data has them.
+    pub labels: Option<&'v LabelMap>,
+    /// The camera (undistorted: maps hold rectified images).
+    pub camera: Intrinsics,
+}
+
+impl<'a> MapBuilder<'a> {
+    /// A builder for `preset`, describing images with `stage` (built from
+    /// [`Preset::map_feature_config`]). Errors: an invalid preset, an ONNX global model that does not
+    /// load.
+    pub fn new(preset: &'a Preset, stage: &'a FeatureStage) -> Result<Self, PipelineError> {
+        preset.validate()?;
+        let global_model = match &preset.global_model {
+            Some(p) if preset.global == "onnx" => Some(
+                OnnxGlobal::load(p, &Default::default(), None, None)
+                    .map_err(|e| PipelineError::Config(e.to_string()))?,
+            ),
+            _ => None,
+        };
+        Ok(Self {
+            preset,
+            stage,
+            global_model,
+            images: Vec::new(),
+            onnx_desc: Vec::new(),
+            header_camera: None,
+            t0: Instant::now(),
+        })
+    }
+
+    /// Images added so far.
+    pub fn len(&self) -> usize {
+        self.images.len()
+    }
+
+    /// True before the first image.
+    pub fn is_empty(&self) -> bool {
+        self.images.is_empty()
+    }
+
+    /// Extract and keep one image's features, 3D points and thumbnail. Errors: a distorted camera
+    /// (undistort first), an extractor failure.
+    pub fn add(&mut self, v: NewImage<'_>) -> Result<(), PipelineError> {
+        let k = v.camera;
+        if k.is_distorted() {
+            return Err(PipelineError::Config(format!(
+                "{}: the database camera has lens distortion {:?}; maps are built from rectified images (undistort them first)",
+                v.id, k.distortion
+            )));
+        }
+        self.header_camera.get_or_insert(k);
+        let f = self.stage.extractor.extract(v.rgb)?;
+        if let Some(m) = &self.global_model {
+            self.onnx_desc.push(Descriptor::Dense(
+                m.describe(v.rgb)
+                    .map_err(|e| PipelineError::Config(e.to_string()))?,
+            ));
+        }
+        let (points, instances) = keypoint_points(&k, v.depth, v.labels, &f.keypoints);
+        self.images.push(MapImage {
+            id: v.id,
+            scene: v.scene,
+            point: v.point,
+            world_from_camera: v.world_from_camera,
+            stamp: v.stamp,
+            descriptors: f.descriptors.iter().map(|&x| f16::from_f32(x)).collect(),
+            dim: f.dim,
+            binary: f.binary,
+            keypoints: f.keypoints,
+            scores: f.scores,
+            points,
+            instances,
+            image_size: f.image_size,
+            camera: k,
+            thumb: Thumb::new(v.rgb, v.depth, &k),
+        });
+        Ok(())
+    }
+
+    /// Learn the retrieval codebook or vocabulary on the images and index them. `scenes` names the
+    /// world frames (each image's `scene` indexes it), `camera_axes` and `up_axis` go to the header
+    /// ([`MapHeader`]). Errors: no image, a retrieval stage that cannot be trained, a model file the
+    /// preset names that is missing.
+    pub fn finish(
+        self,
+        map_id: &str,
+        scenes: Vec<String>,
+        camera_axes: pntr_core::CameraAxes,
+        up_axis: &str,
+        models_dir: &std::path::Path,
+    ) -> Result<Map, PipelineError> {
+        if self.images.is_empty() {
+            return Err(PipelineError::Config("the map has no images".into()));
+        }
+        let preset = self.preset;
+        let describer = match self.global_model {
+            Some(m) => Describer::Onnx(m),
+            None => train_describer(&preset.method(), &self.images)?,
+        };
+        let descriptors = if let Describer::Onnx(_) = describer {
+            self.onnx_desc
+        } else {
+            self.images
+                .iter()
+                .map(|im| describer.describe_features(&im.features()))
+                .collect::<Result<Vec<_>, _>>()?
+        };
+        let retriever = Retriever::build(describer, descriptors, preset.index_kind()?)?;
+        Ok(Map {
+            header: MapHeader {
+                map_id: map_id.to_string(),
+                // The index `auto` chose, so the header says what was built (and older readers,
+                // which do not know `auto`, still load it).
+                preset: Preset {
+                    index: retriever
+                        .index_kind()
+                        .map_or_else(|| preset.index.clone(), |k| k.name()),
+                    ..preset.clone()
+                },
+                models: model_identities(preset, models_dir)?,
+                intrinsics: self.header_camera.unwrap_or_else(Intrinsics::hpointloc),
+                camera_axes: camera_axes.name().into(),
+                up_axis: up_axis.into(),
+                scenes,
+                built_by: format!("pntr {}", env!("CARGO_PKG_VERSION")),
+                build_seconds: self.t0.elapsed().as_secs_f64(),
+            },
+            images: self.images,
+            retriever,
+        })
+    }
+}
+
 /// Build a map of `scenes` with `preset`: extract features of every database image, learn the
 /// retrieval codebook or vocabulary on them, index their global descriptors. `stage` describes the
 /// images: build it from [`Preset::map_feature_config`] (the float backbone for `xfeat-mnn-int8` and `xfeat-mnn-bf16`).
@@ -278,16 +469,7 @@ pub fn build(
     models_dir: &std::path::Path,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<Map, PipelineError> {
-    preset.validate()?;
-    let t0 = Instant::now();
-    let mut header_camera: Option<Intrinsics> = None;
-    let global_model = match &preset.global_model {
-        Some(p) if preset.global == "onnx" => Some(
-            OnnxGlobal::load(p, &Default::default(), None, None)
-                .map_err(|e| PipelineError::Config(e.to_string()))?,
-        ),
-        _ => None,
-    };
+    let mut builder = MapBuilder::new(preset, stage)?;
     let mut total = 0;
     let mut readers = Vec::new();
     for s in scenes {
@@ -303,9 +485,6 @@ pub fn build(
         ));
     }
     let scene_names: Vec<String> = scenes.iter().map(|s| s.name.clone()).collect();
-    let mut images = Vec::with_capacity(total);
-    let mut onnx_desc = Vec::new();
-    let mut done = 0;
     for (entry, reader) in &readers {
         let scene = scene_names
             .iter()
@@ -313,78 +492,27 @@ pub fn build(
             .unwrap_or(0) as u32;
         for j in 0..reader.count(Role::Database) {
             let v = reader.view(Role::Database, j)?;
-            let k = v.intrinsics;
-            if k.is_distorted() {
-                return Err(PipelineError::Config(format!(
-                    "{}: the database camera has lens distortion {:?}; maps are built from rectified images (undistort them first)",
-                    entry.db_image_id(j),
-                    k.distortion
-                )));
-            }
-            header_camera.get_or_insert(k);
-            let f = stage.extractor.extract(&v.rgb)?;
-            if let Some(m) = &global_model {
-                onnx_desc.push(Descriptor::Dense(
-                    m.describe(&v.rgb)
-                        .map_err(|e| PipelineError::Config(e.to_string()))?,
-                ));
-            }
-            let (points, instances) =
-                keypoint_points(&k, &v.depth, v.semantic.as_ref(), &f.keypoints);
-            images.push(MapImage {
+            builder.add(NewImage {
                 id: entry.db_image_id(j),
                 scene,
                 point: entry.index,
                 world_from_camera: v.world_from_camera,
-                descriptors: f.descriptors.iter().map(|&x| f16::from_f32(x)).collect(),
-                dim: f.dim,
-                binary: f.binary,
-                keypoints: f.keypoints,
-                scores: f.scores,
-                points,
-                instances,
-                image_size: f.image_size,
-                camera: k,
-                thumb: Thumb::new(&v.rgb, &v.depth, &k),
-            });
-            done += 1;
-            progress(done, total);
+                stamp: None,
+                rgb: &v.rgb,
+                depth: &v.depth,
+                labels: v.semantic.as_ref(),
+                camera: v.intrinsics,
+            })?;
+            progress(builder.len(), total);
         }
     }
-    let describer = match global_model {
-        Some(m) => Describer::Onnx(m),
-        None => train_describer(&preset.method(), &images)?,
-    };
-    let descriptors = if let Describer::Onnx(_) = describer {
-        onnx_desc
-    } else {
-        images
-            .iter()
-            .map(|im| describer.describe_features(&im.features()))
-            .collect::<Result<Vec<_>, _>>()?
-    };
-    let retriever = Retriever::build(describer, descriptors, preset.index_kind()?)?;
-    Ok(Map {
-        header: MapHeader {
-            map_id: map_id.to_string(),
-            // The index `auto` chose, so the header says what was built (and older readers,
-            // which do not know `auto`, still load it).
-            preset: Preset {
-                index: retriever
-                    .index_kind()
-                    .map_or_else(|| preset.index.clone(), |k| k.name()),
-                ..preset.clone()
-            },
-            models: model_identities(preset, models_dir)?,
-            intrinsics: header_camera.unwrap_or_else(Intrinsics::hpointloc),
-            camera_axes: "habitat".into(),
-            scenes: scene_names,
-            built_by: format!("pntr {}", env!("CARGO_PKG_VERSION")),
-            build_seconds: t0.elapsed().as_secs_f64(),
-        },
-        images,
-        retriever,
-    })
+    builder.finish(
+        map_id,
+        scene_names,
+        pntr_core::CameraAxes::Habitat,
+        &default_up_axis(),
+        models_dir,
+    )
 }
 
 /// Learn the describer on a sample of the map's descriptors (the best-scored keypoints of every image,

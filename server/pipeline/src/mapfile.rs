@@ -8,7 +8,8 @@
 //!   IMGS  u64 image count, then per image: u64 record length, record (pose, keypoints, descriptors,
 //!         3D points, instances, and since version 2 the verification thumbnail: u32 width, u32 height,
 //!         f64 fx fy cx cy, u16 depth in mm, u8 grey), and since version 3 the image's camera: f64 fx fy
-//!         cx cy, f64 k1 k2 p1 p2 k3, u32 width, u32 height (version 2 images take the header's camera)
+//!         cx cy, f64 k1 k2 p1 p2 k3, u32 width, u32 height (version 2 images take the header's camera),
+//!         and since version 4 the recording's stamp: f64 seconds, NaN for none
 //!   RETR  the retrieval stage (codebook or vocabulary, and the faiss index or BoW vectors)
 //!   END!  empty: a file without it was cut short
 //! ```
@@ -33,7 +34,7 @@ use crate::PipelineError;
 
 const MAGIC: &[u8; 8] = b"PNTRMAP\0";
 /// The map format version this build writes.
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 /// The oldest map format version this build reads (version 2 lacks per-image cameras).
 pub const OLDEST_READABLE_VERSION: u32 = 2;
 
@@ -123,6 +124,7 @@ fn encode_image(im: &MapImage, w: &mut Writer) {
     }
     w.u32(k.width);
     w.u32(k.height);
+    w.f64(im.stamp.unwrap_or(f64::NAN));
 }
 
 fn decode_image(
@@ -205,6 +207,11 @@ fn decode_image(
     } else {
         *header_camera
     };
+    let stamp = if version >= 4 {
+        Some(r.f64().map_err(e)?).filter(|s| s.is_finite())
+    } else {
+        None
+    };
     r.finish().map_err(e)?;
     if keypoints.iter().flatten().any(|x: &f32| !x.is_finite()) {
         return Err(format!("{what} ({id}): a keypoint is not finite"));
@@ -214,6 +221,7 @@ fn decode_image(
         scene,
         point,
         world_from_camera,
+        stamp,
         keypoints,
         scores,
         descriptors,

@@ -10,7 +10,8 @@
 //! ([`crate::calibration`]); the most probable pose wins and is LOCALIZED only above the threshold ->
 //! `world_from_query = world_from_db * db_from_query`, with its covariance from the inlier residuals.
 //!
-//! Poses: the map stores `world_from_camera` with the dataset's camera axes (Habitat for HPointLoc);
+//! Poses: the map stores `world_from_camera` with its own camera axes (Habitat for HPointLoc, OpenCV's
+//! optical axes for maps built from recordings: [`crate::map::MapHeader::camera_axes`]);
 //! back-projection and registration work in OpenCV axes; the answer is converted back, so it is in the
 //! same frame and axes as the map's own poses.
 
@@ -264,6 +265,8 @@ pub struct Pipeline {
     pose_index: PoseIndex,
     /// The strongest keypoints of each map image, for the shortlist's vote.
     shortlist: Shortlist,
+    /// Camera axes of the map's poses and of the answers ([`crate::map::MapHeader::axes`]).
+    axes: CameraAxes,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -299,7 +302,9 @@ impl Pipeline {
                 .collect(),
         );
         let shortlist = Shortlist::new(&map.images, FINAL_KEYPOINTS);
+        let axes = map.header.axes();
         Ok(Self {
+            axes,
             map,
             stage,
             teaser: TeaserParams {
@@ -627,11 +632,7 @@ impl Pipeline {
         if let Some(why) = &hop.refused {
             return Ok(Err(why.clone()));
         }
-        let pose = convert_axes(
-            &hop.world_from_query,
-            CameraAxes::OpenCv,
-            CameraAxes::Habitat,
-        );
+        let pose = convert_axes(&hop.world_from_query, CameraAxes::OpenCv, self.axes);
         if let Some(why) = off_track(&pose, opts) {
             return Ok(Err(why));
         }
@@ -681,7 +682,7 @@ impl Pipeline {
             frame.features,
             frame.points,
             thumb.clone(),
-            convert_axes(&pose, CameraAxes::Habitat, CameraAxes::OpenCv),
+            convert_axes(&pose, self.axes, CameraAxes::OpenCv),
             loc.covariance.as_deref().copied(),
             loc.confidence,
             loc.image,
@@ -856,7 +857,7 @@ impl Pipeline {
             .zip(&rivals)
             .map(|(((c, e, w), &p), r)| Verified {
                 image: c.image,
-                pose: convert_axes(w, CameraAxes::OpenCv, CameraAxes::Habitat),
+                pose: convert_axes(w, CameraAxes::OpenCv, self.axes),
                 evidence: *e,
                 confidence: p,
                 rivals: r.iter().map(|&j| scored[j].0.image).collect(),
@@ -902,7 +903,7 @@ impl Pipeline {
         let world_from_query = self
             .world_from_query(&c)
             .expect("verified candidates are valid");
-        let estimate = convert_axes(&world_from_query, CameraAxes::OpenCv, CameraAxes::Habitat);
+        let estimate = convert_axes(&world_from_query, CameraAxes::OpenCv, self.axes);
         let covariance = covariance.map(Box::new);
         let localized = p >= self.min_confidence;
         Ok(Localization {
@@ -974,11 +975,7 @@ impl Pipeline {
     /// `world_from_query` of a registered candidate, OpenCV camera axes.
     fn world_from_query(&self, c: &Candidate) -> Option<Isometry3<f64>> {
         let db = &self.map.images[c.image];
-        let world_from_db = convert_axes(
-            &db.world_from_camera,
-            CameraAxes::Habitat,
-            CameraAxes::OpenCv,
-        );
+        let world_from_db = convert_axes(&db.world_from_camera, self.axes, CameraAxes::OpenCv);
         Some(world_from_db * c.db_from_query?)
     }
 
@@ -1011,11 +1008,8 @@ impl Pipeline {
             .iter()
             .map(|&i| {
                 let im = &self.map.images[i];
-                let world_from_view = convert_axes(
-                    &im.world_from_camera,
-                    CameraAxes::Habitat,
-                    CameraAxes::OpenCv,
-                );
+                let world_from_view =
+                    convert_axes(&im.world_from_camera, self.axes, CameraAxes::OpenCv);
                 (&im.thumb, world_from_view.inverse() * world_from_query)
             })
             .collect();
@@ -1046,11 +1040,7 @@ impl Pipeline {
     /// axis grows by (shift / 2)², so the copy found lies at two standard deviations.
     fn covariance(&self, c: &Candidate, thumb: &Thumb) -> Option<[f64; 36]> {
         let db = &self.map.images[c.image];
-        let world_from_db = convert_axes(
-            &db.world_from_camera,
-            CameraAxes::Habitat,
-            CameraAxes::OpenCv,
-        );
+        let world_from_db = convert_axes(&db.world_from_camera, self.axes, CameraAxes::OpenCv);
         let db_from_query = c.db_from_query?;
         let mut local = point_to_point_covariance(
             &c.inlier_src,

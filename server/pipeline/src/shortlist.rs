@@ -451,6 +451,7 @@ mod tests {
             scene: 0,
             point: 0,
             world_from_camera: nalgebra::Isometry3::identity(),
+            stamp: None,
             keypoints: f.keypoints.clone(),
             scores: f.scores.clone(),
             descriptors: f

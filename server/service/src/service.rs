@@ -786,6 +786,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
             matcher: lm.preset.matcher.clone(),
             global_descriptor: h.preset.global.clone(),
             camera_axes: h.camera_axes.clone(),
+            up_axis: h.up_axis.clone(),
             intrinsics: Some(crate::wire::intrinsics_message(&h.intrinsics)),
             image_width: h.intrinsics.width,
             image_height: h.intrinsics.height,

@@ -60,6 +60,11 @@ pub struct SynthConfig {
     /// Also render, per scene, a robot's drive of this many seconds ([`trajectory`]: 0.5 m/s,
     /// 10 Hz, through the query camera) into `sequences/<scene>/` in the TUM RGB-D layout.
     pub trajectory_seconds: Option<f64>,
+    /// The drive is a mapping run ([`trajectory::plan_mapping_run`]: every Point once, a full circle
+    /// at each, then stop); `trajectory_seconds` caps it.
+    pub mapping_run: bool,
+    /// Another route through the same scene ([`trajectory::plan_drive_on`]); `None`: the default.
+    pub route_seed: Option<u64>,
     /// A robot's captures instead of clean renders for queries and drives (`synth --realism`):
     /// other lighting and camera effects; database views stay clean.
     pub realism: Option<effects::Realism>,
@@ -79,6 +84,8 @@ impl Default for SynthConfig {
             db_camera: Intrinsics::hpointloc(),
             query_camera: Intrinsics::hpointloc(),
             trajectory_seconds: None,
+            mapping_run: false,
+            route_seed: None,
             realism: None,
         }
     }
@@ -403,13 +410,19 @@ fn render_drive(
     let mut rng = ChaCha8Rng::seed_from_u64(
         cfg.seed ^ 0x7472_616a ^ (si as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15),
     );
-    let drive = trajectory::plan_drive(
+    let plan = if cfg.mapping_run {
+        trajectory::plan_mapping_run
+    } else {
+        trajectory::plan_drive_on
+    };
+    let drive = plan(
         &ps.scene,
         &ps.points,
         seconds,
         trajectory::DEFAULT_RATE_HZ,
         trajectory::DEFAULT_SPEED_MPS,
         &mut rng,
+        cfg.route_seed,
     );
     let frames: Vec<pntr_dataset::tum::SequenceFrame> = drive
         .par_iter()
@@ -429,7 +442,12 @@ fn render_drive(
                 timestamp: p.t,
                 rgb: f.rgb,
                 depth: f.depth,
-                world_from_camera: p.world_from_camera,
+                // groundtruth.txt follows the TUM convention: optical camera axes.
+                world_from_camera: pntr_core::convert_axes(
+                    &p.world_from_camera,
+                    pntr_core::CameraAxes::Habitat,
+                    pntr_core::CameraAxes::OpenCv,
+                ),
             }
         })
         .collect();

@@ -13,7 +13,7 @@ use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
 use nalgebra::{Isometry3, Translation3};
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::protocol::{camera_rotation, PointPlan, CAMERA_HEIGHT_M};
@@ -198,6 +198,148 @@ impl Grid {
     }
 }
 
+/// Index in `unvisited` of the Point to drive to next from cell `here`: the nearest in a straight
+/// line, each distance weighed by a factor in 0.6..1.4 drawn from `jitter` when given.
+fn nearest_next(
+    grid: &Grid,
+    here: usize,
+    unvisited: &[usize],
+    jitter: Option<&mut ChaCha8Rng>,
+) -> usize {
+    let (hx, hz) = Grid::centre(here % grid.nx, here / grid.nx);
+    let weights: Vec<f64> = match jitter {
+        Some(r) => unvisited.iter().map(|_| r.gen_range(0.6..1.4)).collect(),
+        None => vec![1.0; unvisited.len()],
+    };
+    unvisited
+        .iter()
+        .enumerate()
+        .map(|(i, &k)| {
+            let (x, z) = Grid::centre(k % grid.nx, k / grid.nx);
+            (i, ((x - hx).powi(2) + (z - hz).powi(2)).sqrt() * weights[i])
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(0, |(i, _)| i)
+}
+
+/// The random source of route `seed`'s choices (independent of the scene's own draws).
+fn route_rng(seed: u64) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(seed ^ 0x0072_6f75_7465)
+}
+
+/// Turn rate of the camera in a mapping run's full circle at a Point, degrees per second.
+pub const MAPPING_TURN_DEG_PER_S: f64 = 45.0;
+
+/// The yaw `target` reached from `now` by at most `max_step` radians (the shorter way round).
+fn turn_toward(now: f64, target: f64, max_step: f64) -> f64 {
+    let d = (target - now + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+        - std::f64::consts::PI;
+    now + d.clamp(-max_step, max_step)
+}
+
+/// The camera at ground position (x, z) looking along `yaw`, with the slow pitch and roll sway of a
+/// wheeled robot at time `t` (phases from the seed).
+fn camera_pose(x: f64, z: f64, yaw: f64, t: f64, phase: [f64; 2]) -> Isometry3<f64> {
+    let pitch = 1f64.to_radians() * (0.7 * t + phase[0]).sin();
+    let roll = 0.7f64.to_radians() * (0.45 * t + phase[1]).sin();
+    Isometry3::from_parts(
+        Translation3::new(x, CAMERA_HEIGHT_M, z),
+        camera_rotation(yaw, pitch, roll),
+    )
+}
+
+/// The drive an operator makes to map a building: the robot visits every reachable Point once (in
+/// the order [`plan_drive_on`] picks for `route_seed`), turns a full circle in place at each
+/// ([`MAPPING_TURN_DEG_PER_S`]), drives between them at `speed_mps` looking ahead, and stops after
+/// the last Point's circle. `max_seconds` caps it. Sampled at `rate_hz`; deterministic for a given
+/// `rng` state and `route_seed`.
+pub fn plan_mapping_run(
+    scene: &Scene,
+    points: &[PointPlan],
+    max_seconds: f64,
+    rate_hz: f64,
+    speed_mps: f64,
+    rng: &mut ChaCha8Rng,
+    route_seed: Option<u64>,
+) -> Vec<TimedPose> {
+    let obstacles = scene.obstacles();
+    let grid = Grid::new(scene, &obstacles);
+    let max_frames = (max_seconds * rate_hz).round().max(1.0) as usize;
+    let mut keys: Vec<usize> = points
+        .iter()
+        .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
+        .collect();
+    keys.dedup();
+    let mut route_rng = route_seed.map(route_rng);
+    let phase: [f64; 2] = [rng.gen_range(0.0..6.3), rng.gen_range(0.0..6.3)];
+    let mut yaw: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
+    let Some(first) = (match route_rng.as_mut() {
+        Some(r) if !keys.is_empty() => Some(keys.swap_remove(r.gen_range(0..keys.len()))),
+        _ if !keys.is_empty() => Some(keys.remove(0)),
+        _ => None,
+    }) else {
+        return Vec::new();
+    };
+    let mut out: Vec<TimedPose> = Vec::new();
+    let push = |out: &mut Vec<TimedPose>, x: f64, z: f64, yaw: f64| {
+        let t = out.len() as f64 / rate_hz;
+        out.push(TimedPose {
+            t,
+            world_from_camera: camera_pose(x, z, yaw, t, phase),
+        });
+    };
+    let circle_step = MAPPING_TURN_DEG_PER_S.to_radians() / rate_hz;
+    let circle_frames = (std::f64::consts::TAU / circle_step).ceil() as usize;
+    let max_turn = MAX_TURN_DEG_PER_S.to_radians() / rate_hz;
+    let mut here = first;
+    let mut unvisited = keys;
+    loop {
+        // A full circle in place at this Point.
+        let (x, z) = Grid::centre(here % grid.nx, here / grid.nx);
+        for _ in 0..=circle_frames {
+            push(&mut out, x, z, yaw);
+            yaw += circle_step;
+        }
+        // The next reachable Point.
+        let mut next = None;
+        while !unvisited.is_empty() {
+            let i = nearest_next(&grid, here, &unvisited, route_rng.as_mut());
+            let k = unvisited.swap_remove(i);
+            if let Some(p) = grid.path(here, k).filter(|p| p.len() > 1) {
+                next = Some((k, grid.shorten(&p)));
+                break;
+            }
+        }
+        let Some((k, route)) = next else {
+            break;
+        };
+        let mut cum = vec![0.0];
+        for w in route.windows(2) {
+            cum.push(
+                cum.last().unwrap()
+                    + ((w[1].0 - w[0].0).powi(2) + (w[1].1 - w[0].1).powi(2)).sqrt(),
+            );
+        }
+        let total = *cum.last().unwrap_or(&0.0);
+        let steps = (total / speed_mps * rate_hz).ceil().max(1.0) as usize;
+        for j in 1..=steps {
+            let s = total * j as f64 / steps as f64;
+            let (x, z) = at(&route, &cum, s);
+            let (ax, az) = at(&route, &cum, s + LOOK_AHEAD_M);
+            if (ax - x).abs() + (az - z).abs() > 1e-6 {
+                yaw = turn_toward(yaw, (x - ax).atan2(z - az), max_turn);
+            }
+            push(&mut out, x, z, yaw);
+        }
+        here = k;
+        if out.len() >= max_frames {
+            break;
+        }
+    }
+    out.truncate(max_frames);
+    out
+}
+
 /// Point along the polyline `pts` (with cumulative lengths `cum`) at arc length `s` (clamped).
 fn at(pts: &[(f64, f64)], cum: &[f64], s: f64) -> (f64, f64) {
     let s = s.clamp(0.0, *cum.last().unwrap_or(&0.0));
@@ -224,14 +366,37 @@ pub fn plan_drive(
     speed_mps: f64,
     rng: &mut ChaCha8Rng,
 ) -> Vec<TimedPose> {
+    plan_drive_on(scene, points, seconds, rate_hz, speed_mps, rng, None)
+}
+
+/// [`plan_drive`] along the route `route_seed` picks: without one the robot starts at Point 0 and
+/// always drives to the nearest unvisited Point; with one it starts at a Point the seed draws and
+/// weighs each distance by a factor in 0.6..1.4 the seed draws, so the Points come in another order
+/// and parts of the scene are driven the other way.
+pub fn plan_drive_on(
+    scene: &Scene,
+    points: &[PointPlan],
+    seconds: f64,
+    rate_hz: f64,
+    speed_mps: f64,
+    rng: &mut ChaCha8Rng,
+    route_seed: Option<u64>,
+) -> Vec<TimedPose> {
     let obstacles = scene.obstacles();
     let grid = Grid::new(scene, &obstacles);
     let frames = (seconds * rate_hz).round().max(1.0) as usize;
     let length_needed = speed_mps * seconds + LOOK_AHEAD_M;
-    let keys: Vec<usize> = points
+    let mut keys: Vec<usize> = points
         .iter()
         .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
         .collect();
+    let mut route_rng = route_seed.map(route_rng);
+    if let Some(r) = route_rng.as_mut() {
+        if !keys.is_empty() {
+            let start = r.gen_range(0..keys.len());
+            keys.swap(0, start);
+        }
+    }
     // Route: nearest unvisited Point next (by straight-line distance), looping over all of them.
     let mut route: Vec<(f64, f64)> = Vec::new();
     if let Some(&start) = keys.first() {
@@ -247,16 +412,7 @@ pub fn plan_drive(
                     break;
                 }
             }
-            let (hx, hz) = Grid::centre(here % grid.nx, here / grid.nx);
-            let (i, _) = unvisited
-                .iter()
-                .enumerate()
-                .map(|(i, &k)| {
-                    let (x, z) = Grid::centre(k % grid.nx, k / grid.nx);
-                    (i, (x - hx).powi(2) + (z - hz).powi(2))
-                })
-                .min_by(|a, b| a.1.total_cmp(&b.1))
-                .expect("not empty");
+            let i = nearest_next(&grid, here, &unvisited, route_rng.as_mut());
             let next = unvisited.swap_remove(i);
             match grid.path(here, next) {
                 Some(p) if p.len() > 1 => {
@@ -393,6 +549,74 @@ mod tests {
             assert!(
                 rooms.len() >= 2,
                 "seed {seed}: only rooms {rooms:?} visited"
+            );
+        }
+    }
+
+    #[test]
+    fn a_mapping_run_turns_a_full_circle_at_every_point_and_routes_differ_by_seed() {
+        for seed in [4u64, 5] {
+            let cfg = crate::SynthConfig {
+                points_per_scene: 8,
+                queries_per_point: 0,
+                seed,
+                ..Default::default()
+            };
+            let planned = crate::plan_scene(&cfg, 0);
+            let run = |route: Option<u64>| {
+                let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                plan_mapping_run(
+                    &planned.scene,
+                    &planned.points,
+                    900.0,
+                    10.0,
+                    0.5,
+                    &mut rng,
+                    route,
+                )
+            };
+            let drive = run(None);
+            assert!(
+                drive.len() > 100 && drive.len() < 9000,
+                "{} frames",
+                drive.len()
+            );
+            // Stops: far fewer frames than the cap, and the circle's frames at each stop sweep
+            // every direction (a 45 deg/s turn: at least 80 frames standing still).
+            let mut still = 0usize;
+            let mut stops = 0usize;
+            for w in drive.windows(2) {
+                let moved = (w[1].world_from_camera.translation.vector
+                    - w[0].world_from_camera.translation.vector)
+                    .norm();
+                if moved < 1e-9 {
+                    still += 1;
+                } else {
+                    stops += (still >= 79) as usize;
+                    still = 0;
+                }
+                assert!(moved <= 0.05 + 1e-9, "seed {seed}: {moved} m in one frame");
+            }
+            stops += (still >= 79) as usize;
+            let reachable = planned.points.len();
+            assert!(
+                stops >= reachable.min(6) && stops <= reachable,
+                "seed {seed}: {stops} circles for {reachable} Points"
+            );
+            // Another route: another start, and the same scene.
+            let other = run(Some(3));
+            let start = |d: &[TimedPose]| d[0].world_from_camera.translation.vector;
+            let same_start = (start(&drive) - start(&other)).norm() < 1e-9;
+            let differs = same_start
+                && drive.iter().zip(&other).any(|(a, b)| {
+                    (a.world_from_camera.translation.vector
+                        - b.world_from_camera.translation.vector)
+                        .norm()
+                        > 0.5
+                });
+            assert!(
+                !same_start || differs,
+                "seed {seed}: route 3 is the default route"
             );
         }
     }

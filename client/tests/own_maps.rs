@@ -1,0 +1,248 @@
+//! Maps from a robot's own recordings, end to end through the `pntr` binary: `pntr synth
+//! --mapping-run` renders the drive an operator makes (a TUM folder, optical axes), `pntr build-db
+//! --sequence` maps it from its keyframes and checks the frames between them, `pntr info --images`
+//! lists the map's images with their stamps and poses, and `pntr eval` localizes the scene's
+//! HPointLoc queries (Habitat axes) against the recording's map (optical axes).
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+
+fn pntr(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .env_remove("PNTR_TOKEN")
+        .output()
+        .expect("pntr runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn err(out: &Output) -> String {
+    assert!(!out.status.success(), "expected a failure");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+/// groundtruth.txt rows: (stamp, translation, rotation).
+fn trajectory(path: &Path) -> Vec<(f64, Vector3<f64>, UnitQuaternion<f64>)> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+            (
+                v[0],
+                Vector3::new(v[1], v[2], v[3]),
+                UnitQuaternion::from_quaternion(Quaternion::new(v[7], v[4], v[5], v[6])),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("data");
+    let root_s = root.to_str().unwrap();
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+    ok(&pntr(&[
+        "synth",
+        "--out",
+        root_s,
+        "--points-per-scene",
+        "5",
+        "--queries-per-point",
+        "6",
+        "--seed",
+        "31",
+        "--trajectory-seconds",
+        "300",
+        "--mapping-run",
+    ]));
+    let seq = root.join("sequences/synth000");
+    let gt = trajectory(&seq.join("groundtruth.txt"));
+    // A mapping run stops after its last Point: well under the 300 s cap.
+    assert!(gt.len() > 200 && gt.len() < 3000, "{} frames", gt.len());
+
+    let map = dir.path().join("drive.pntrmap");
+    let plots = dir.path().join("plots");
+    let out = ok(&pntr(&[
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+        "--models",
+        models,
+        "--map-id",
+        "lab",
+        "--plot",
+        plots.to_str().unwrap(),
+        "--json",
+    ]));
+    let s: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let images = s["images"].as_u64().unwrap() as usize;
+    assert_eq!(s["frames"].as_u64().unwrap() as usize, gt.len(), "{s}");
+    assert!(
+        images >= 20 && images * 3 < gt.len(),
+        "{images} keyframes of {}: {s}",
+        gt.len()
+    );
+    assert!(s["skipped"]["covered"].as_u64().unwrap() > 0, "{s}");
+    assert_eq!(s["map_id"], "lab");
+    assert_eq!(s["camera_axes"], "opencv");
+    // The drive's world is y-up, read from the cameras' own "down" axes.
+    assert_eq!(s["up_axis"], "y");
+    assert_eq!(s["up_axis_inferred"], true);
+    for stage in ["read", "select", "describe", "index", "check", "write"] {
+        assert!(
+            s["stage_seconds"][stage].as_f64().unwrap() >= 0.0,
+            "{stage}: {s}"
+        );
+    }
+    let c = &s["check"];
+    assert!(c["frames"].as_u64().unwrap() >= 100, "{s}");
+    assert!(c["localized_share"].as_f64().unwrap() >= 0.9, "{s}");
+    assert!(c["ate_rmse_m"].as_f64().unwrap() <= 0.05, "{s}");
+    assert_eq!(c["frames_over_1m"], 0, "{s}");
+    assert!(plots.join("map_check.png").is_file());
+
+    // Every map image with its stamp and pose: the recording's own pose at that stamp.
+    let out = ok(&pntr(&[
+        "info",
+        "--db",
+        map.to_str().unwrap(),
+        "--images",
+        "--json",
+    ]));
+    let info: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(info["camera_axes"], "opencv");
+    let list = info["image_list"].as_array().unwrap();
+    assert_eq!(list.len(), images);
+    let mut places = std::collections::BTreeSet::new();
+    for im in list {
+        let stamp = im["stamp"].as_f64().expect("a stamp");
+        let (_, t, q) = gt
+            .iter()
+            .find(|g| (g.0 - stamp).abs() < 1e-6)
+            .expect("a recorded frame");
+        let tr: Vec<f64> = serde_json::from_value(im["translation"].clone()).unwrap();
+        let r: Vec<f64> = serde_json::from_value(im["rotation_wxyz"].clone()).unwrap();
+        assert!(
+            (Vector3::new(tr[0], tr[1], tr[2]) - t).norm() < 1e-5,
+            "{im}"
+        );
+        let rq = UnitQuaternion::from_quaternion(Quaternion::new(r[0], r[1], r[2], r[3]));
+        assert!(rq.angle_to(q) < 1e-5, "{im}");
+        assert!(r[0] >= 0.0);
+        places.insert(im["place"].as_u64().unwrap());
+    }
+    assert!(places.len() >= 5, "{places:?}");
+
+    // The scene's HPointLoc queries (Habitat axes) against the drive's map (optical axes).
+    let report = dir.path().join("eval.json");
+    ok(&pntr(&[
+        "eval",
+        "--dataset",
+        root_s,
+        "--db",
+        map.to_str().unwrap(),
+        "--models",
+        models,
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    let recall = r["recall"]["0.25m_2deg"].as_f64().unwrap();
+    assert!(recall >= 0.8, "recall {recall}: {r}");
+    // The retrieval row comes from the map images' own poses.
+    assert!(r["retrieval_only"]["5m"].as_f64().unwrap() >= 0.8, "{r}");
+
+    // A SLAM trajectory at a fifth of the camera's rate, interpolated at each frame's stamp.
+    let slam = dir.path().join("slam.txt");
+    let text: String = std::fs::read_to_string(seq.join("groundtruth.txt"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .step_by(5)
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&slam, text).unwrap();
+    let map2 = dir.path().join("slam.pntrmap");
+    let out = ok(&pntr(&[
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--trajectory",
+        slam.to_str().unwrap(),
+        "--out",
+        map2.to_str().unwrap(),
+        "--models",
+        models,
+        "--no-check",
+        "--json",
+    ]));
+    let s2: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert!(s2["check"].is_null());
+    let n2 = s2["images"].as_u64().unwrap() as usize;
+    assert!(
+        n2 * 10 >= images * 9 && n2 * 10 <= images * 11,
+        "{n2} vs {images}"
+    );
+
+    // Depth in the wrong unit is named, with the flag that fixes it; so is a missing trajectory
+    // and a mismatch of trajectories and sequences.
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--depth-scale",
+        "5",
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+        "--models",
+        models,
+    ]));
+    assert!(
+        e.contains("--depth-scale") && e.contains("finer units"),
+        "{e}"
+    );
+    std::fs::remove_file(seq.join("groundtruth.txt")).unwrap();
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+        "--models",
+        models,
+    ]));
+    assert!(
+        e.contains("no frame has a pose") && e.contains("--trajectory"),
+        "{e}"
+    );
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--trajectory",
+        slam.to_str().unwrap(),
+        "--trajectory",
+        slam.to_str().unwrap(),
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(e.contains("one per sequence"), "{e}");
+    assert!(!dir.path().join("x.pntrmap").exists());
+}

@@ -1,0 +1,380 @@
+//! Maps from a robot's own recordings: keyframes of one or more drives (TUM folders, ROS 2 bags) that
+//! share one world frame become the map's images, and the frames left out tell where the map works.
+//!
+//! Frames are read one at a time, in time order ([`pntr_dataset::recording::Recording`]); a frame is
+//! judged by [`crate::keyframes::Selector`] and only kept frames are described (features, 3D points,
+//! thumbnail), so memory grows with the map, not with the recording. A distorted camera's frames are
+//! undistorted as they are read ([`crate::camera::to_map_scale`] at the camera's own scale), so maps
+//! hold rectified images. The map keeps the recordings' conventions: optical camera axes, and the
+//! world's up axis as given or as the camera poses show it (the mean of the cameras' "down" axes).
+//!
+//! [`check`] localizes frames the map was not built from against it (the frames between keyframes,
+//! or another recording) and compares with the recording's poses.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use nalgebra::{Isometry3, Vector3};
+use pntr_core::{CameraAxes, DepthMap, Intrinsics, RgbImage};
+use pntr_dataset::recording::{depth_unit_hint, Recording};
+use pntr_features::config::FeatureStage;
+use serde::Serialize;
+
+use crate::keyframes::{KeyframeParams, Selector, Skip};
+use crate::map::{Map, MapBuilder, NewImage};
+use crate::pipeline::{Pipeline, Query};
+use crate::preset::Preset;
+use crate::prior::LocalizeOptions;
+use crate::PipelineError;
+
+/// One recording to build from, with the camera its frames are read with.
+pub struct Session<'a> {
+    /// The recording.
+    pub recording: &'a Recording,
+    /// Its camera (from the recording, or the user's `--intrinsics`).
+    pub camera: Intrinsics,
+}
+
+/// What [`build`] did.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct BuildReport {
+    /// Frames read, over every session.
+    pub frames: usize,
+    /// Frames left out, by reason ([`Skip::name`]).
+    pub skipped: BTreeMap<String, usize>,
+    /// Seconds per stage: `read` (decoding frames), `select` (quality and keyframe tests),
+    /// `describe` (features of kept frames), `index` (retrieval training and indexing).
+    pub stage_seconds: BTreeMap<String, f64>,
+    /// Places (the map's Points).
+    pub places: usize,
+    /// The world's up axis the map records, and whether it was inferred from the poses.
+    pub up_axis: String,
+    /// True when `up_axis` came from the camera poses rather than the caller.
+    pub up_axis_inferred: bool,
+    /// (session, frame) of every frame that had a pose and was readable but was not kept: what
+    /// [`check`] localizes by default.
+    #[serde(skip)]
+    pub left_out: Vec<(usize, usize)>,
+    /// Warnings for the user (unreadable frames, a world whose up axis is unusual).
+    pub warnings: Vec<String>,
+}
+
+/// The camera a distorted `camera`'s frames are undistorted to (same size and focal length), and
+/// the undistorted frame.
+fn rectified(
+    rgb: RgbImage,
+    depth: DepthMap,
+    camera: &Intrinsics,
+) -> (RgbImage, DepthMap, Intrinsics) {
+    if !camera.is_distorted() {
+        return (rgb, depth, *camera);
+    }
+    let q = Query {
+        rgb,
+        depth,
+        intrinsics: *camera,
+    };
+    let focal = (camera.fx * camera.fy).sqrt();
+    let pixels = camera.width as f64 * camera.height as f64;
+    let r = crate::camera::to_map_scale(&q, focal, pixels)
+        .query
+        .into_owned();
+    (r.rgb, r.depth, r.intrinsics)
+}
+
+/// The world's up axis the cameras show: the opposite of their mean "down" (optical +y) axis, as the
+/// nearest of `y` and `z`, with a warning when it points the other way or is not clear.
+fn infer_up(down_sum: &Vector3<f64>, n: usize) -> (String, Option<String>) {
+    if n == 0 || down_sum.norm() < 1e-9 {
+        return ("y".into(), None);
+    }
+    let up = -down_sum / n as f64;
+    let (axis, v) = if up.z.abs() > up.y.abs() {
+        ("z", up.z)
+    } else {
+        ("y", up.y)
+    };
+    let warning = if v < 0.0 {
+        Some(format!(
+            "the cameras' down axes point along +{axis} on average: the world is upside down for pntr's up = +{axis}; give --up-axis if that is wrong"
+        ))
+    } else if v.abs() < 0.7 * up.norm().max(1e-9) {
+        Some(format!(
+            "the cameras' mean up direction ({:.2}, {:.2}, {:.2}) is not close to an axis; up recorded as {axis} (give --up-axis)",
+            up.x, up.y, up.z
+        ))
+    } else {
+        None
+    };
+    (axis.to_string(), warning)
+}
+
+/// Build a map of `sessions` (one world frame) with `preset`, describing kept frames with `stage`
+/// ([`Preset::map_feature_config`]). `up_axis`: `y` or `z`, or `None` to infer it. Image ids are
+/// `<recording name>/place<P>/<stamp>`. `progress(frames done, frames in all)` after every frame.
+///
+/// Errors: no session frame has a pose (name the recording and what to give), a depth whose median
+/// is not an indoor range (the likely unit mistake, and `--depth-scale`), no frame kept, and what the
+/// map builder refuses.
+#[allow(clippy::too_many_arguments)]
+pub fn build(
+    map_id: &str,
+    sessions: &[Session<'_>],
+    params: KeyframeParams,
+    up_axis: Option<&str>,
+    preset: &Preset,
+    stage: &FeatureStage,
+    models_dir: &std::path::Path,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(Map, BuildReport), PipelineError> {
+    let total: usize = sessions.iter().map(|s| s.recording.len()).sum();
+    let mut builder = MapBuilder::new(preset, stage)?;
+    let mut selector = Selector::new(params);
+    let mut report = BuildReport::default();
+    let mut seconds = [0.0f64; 3];
+    let mut down_sum = Vector3::zeros();
+    let mut posed = 0usize;
+    let mut unreadable_logged = 0;
+    for (si, s) in sessions.iter().enumerate() {
+        selector.new_session();
+        let rec = s.recording;
+        let name = rec.name();
+        let mut unit_checked = false;
+        let mut session_posed = 0usize;
+        for i in 0..rec.len() {
+            report.frames += 1;
+            progress(report.frames, total);
+            let Some(pose) = rec.world_from_camera(i) else {
+                *report
+                    .skipped
+                    .entry(Skip::NoPose.name().into())
+                    .or_default() += 1;
+                continue;
+            };
+            session_posed += 1;
+            let t = Instant::now();
+            let frame = rec.load(i);
+            seconds[0] += t.elapsed().as_secs_f64();
+            let (rgb, depth) = match frame {
+                Ok(f) => f,
+                Err(e) => {
+                    *report
+                        .skipped
+                        .entry(Skip::Unreadable.name().into())
+                        .or_default() += 1;
+                    if unreadable_logged < 5 {
+                        tracing::warn!("{}: frame {i} skipped: {e}", rec.path.display());
+                        report
+                            .warnings
+                            .push(format!("{}: frame {i} skipped: {e}", rec.path.display()));
+                        unreadable_logged += 1;
+                    }
+                    continue;
+                }
+            };
+            if (rgb.width, rgb.height) != (s.camera.width, s.camera.height) {
+                return Err(PipelineError::Config(format!(
+                    "{}: frame {i} is {}x{} but the camera is {}x{}: the calibration describes another resolution (give --intrinsics for the recorded size)",
+                    rec.path.display(),
+                    rgb.width,
+                    rgb.height,
+                    s.camera.width,
+                    s.camera.height
+                )));
+            }
+            if !unit_checked && depth.valid_count() > 0 {
+                if let Some(hint) = depth_unit_hint(&depth, None) {
+                    return Err(PipelineError::Config(format!(
+                        "{}: frame {i}: {hint}",
+                        rec.path.display()
+                    )));
+                }
+                unit_checked = true;
+            }
+            down_sum += pose.rotation * Vector3::y();
+            posed += 1;
+            let t = Instant::now();
+            let (rgb, depth, camera) = rectified(rgb, depth, &s.camera);
+            let verdict = selector.judge(&rgb, &depth, &camera, &pose);
+            seconds[1] += t.elapsed().as_secs_f64();
+            match verdict {
+                Err(skip) => {
+                    *report.skipped.entry(skip.name().into()).or_default() += 1;
+                    report.left_out.push((si, i));
+                }
+                Ok(place) => {
+                    let t = Instant::now();
+                    let stamp = rec.timestamp(i);
+                    builder.add(NewImage {
+                        id: format!("{name}/place{place}/{stamp:.6}"),
+                        scene: 0,
+                        point: place,
+                        world_from_camera: pose,
+                        stamp: Some(stamp),
+                        rgb: &rgb,
+                        depth: &depth,
+                        labels: None,
+                        camera,
+                    })?;
+                    seconds[2] += t.elapsed().as_secs_f64();
+                }
+            }
+        }
+        if session_posed == 0 {
+            return Err(PipelineError::Config(format!(
+                "{}: no frame has a pose (give --trajectory FILE.txt with the SLAM's poses, or for a bag --pose-topic or the TF frames)",
+                rec.path.display()
+            )));
+        }
+    }
+    if builder.is_empty() {
+        return Err(PipelineError::Config(format!(
+            "no frame was kept as a map image ({} read; left out: {:?})",
+            report.frames, report.skipped
+        )));
+    }
+    let (up, warning) = match up_axis {
+        Some(a) => (a.to_string(), None),
+        None => infer_up(&down_sum, posed),
+    };
+    report.up_axis_inferred = up_axis.is_none();
+    report.warnings.extend(warning);
+    report.up_axis = up.clone();
+    report.places = selector.places();
+    let t = Instant::now();
+    let map = builder.finish(
+        map_id,
+        vec![map_id.to_string()],
+        CameraAxes::OpenCv,
+        &up,
+        models_dir,
+    )?;
+    let index_s = t.elapsed().as_secs_f64();
+    for (k, v) in [
+        ("read", seconds[0]),
+        ("select", seconds[1]),
+        ("describe", seconds[2]),
+        ("index", index_s),
+    ] {
+        report.stage_seconds.insert(k.into(), v);
+    }
+    Ok((map, report))
+}
+
+/// One frame localized by [`check`].
+#[derive(Debug, Clone, Serialize)]
+pub struct CheckedFrame {
+    /// The recording's position of the frame, map frame, metres.
+    pub position_m: [f64; 3],
+    /// Position error of the answer, metres, when LOCALIZED.
+    pub error_m: Option<f64>,
+}
+
+/// How frames the map was not built from localize against it.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct CheckReport {
+    /// Frames localized.
+    pub frames: usize,
+    /// Share of them LOCALIZED.
+    pub localized_share: f64,
+    /// RMSE of the LOCALIZED frames' positions against the recording's, metres (in the map's own
+    /// frame, no alignment; NaN when none).
+    pub ate_rmse_m: f64,
+    /// LOCALIZED frames more than 1 m off.
+    pub frames_over_1m: usize,
+    /// LOCALIZED frames more than 10 degrees off.
+    pub frames_over_10deg: usize,
+    /// What the frames were: `between keyframes` (the easy case) or `another recording`.
+    pub kind: String,
+    /// Seconds the check took.
+    pub seconds: f64,
+    /// Every frame, for pictures.
+    #[serde(skip)]
+    pub per_frame: Vec<CheckedFrame>,
+}
+
+/// Localize `frames` ((recording, frame) of `sessions`) against `pipeline`'s map, one at a time and
+/// globally (no prior, no tracking), and compare with the recordings' poses. Unreadable frames and
+/// frames without a pose are passed over. `progress(done, total)` after every frame.
+pub fn check(
+    pipeline: &Pipeline,
+    sessions: &[Session<'_>],
+    frames: &[(usize, usize)],
+    kind: &str,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<CheckReport, PipelineError> {
+    let t0 = Instant::now();
+    let mut out = CheckReport {
+        kind: kind.into(),
+        ..Default::default()
+    };
+    let (mut localized, mut sq) = (0usize, 0.0f64);
+    for (n, &(si, i)) in frames.iter().enumerate() {
+        progress(n + 1, frames.len());
+        let s = &sessions[si];
+        let Some(truth) = s.recording.world_from_camera(i) else {
+            continue;
+        };
+        let Ok((rgb, depth)) = s.recording.load(i) else {
+            continue;
+        };
+        let q = Query {
+            rgb,
+            depth,
+            intrinsics: s.camera,
+        };
+        let loc = pipeline.localize_with(&q, &LocalizeOptions::default())?;
+        out.frames += 1;
+        let error_m = loc.pose.map(|p: Isometry3<f64>| {
+            let d = (p.translation.vector - truth.translation.vector).norm();
+            localized += 1;
+            sq += d * d;
+            out.frames_over_1m += (d > 1.0) as usize;
+            out.frames_over_10deg +=
+                (p.rotation.angle_to(&truth.rotation).to_degrees() > 10.0) as usize;
+            d
+        });
+        out.per_frame.push(CheckedFrame {
+            position_m: truth.translation.vector.into(),
+            error_m,
+        });
+    }
+    out.localized_share = localized as f64 / out.frames.max(1) as f64;
+    out.ate_rmse_m = if localized > 0 {
+        (sq / localized as f64).sqrt()
+    } else {
+        f64::NAN
+    };
+    out.seconds = t0.elapsed().as_secs_f64();
+    Ok(out)
+}
+
+/// At most `max` of `frames`, evenly spaced (all when `max` is 0 or there are fewer).
+pub fn evenly(frames: &[(usize, usize)], max: usize) -> Vec<(usize, usize)> {
+    if max == 0 || frames.len() <= max {
+        return frames.to_vec();
+    }
+    (0..max).map(|k| frames[k * frames.len() / max]).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn up_is_read_from_the_cameras_down_axes() {
+        // Level optical cameras in a y-up world look down along -y; in a z-up world along -z.
+        assert_eq!(
+            infer_up(&Vector3::new(0.0, -10.0, 0.5), 10),
+            ("y".into(), None)
+        );
+        assert_eq!(infer_up(&Vector3::new(0.3, 0.0, -9.0), 10).0, "z");
+        let (axis, warning) = infer_up(&Vector3::new(0.0, 0.0, 9.0), 10);
+        assert_eq!(axis, "z");
+        assert!(warning.unwrap().contains("upside down"));
+        assert_eq!(
+            evenly(&[(0, 1), (0, 2), (0, 3), (0, 4)], 2),
+            vec![(0, 1), (0, 3)]
+        );
+    }
+}
