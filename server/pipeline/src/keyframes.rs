@@ -325,7 +325,8 @@ mod tests {
                     .is_ok()
             })
             .count();
-        assert!((20..=26).contains(&kept), "{kept} keyframes in a full turn");
+        // (The last steps come back to the first keyframe's view.)
+        assert!((18..=26).contains(&kept), "{kept} keyframes in a full turn");
         assert_eq!(s.places(), 1);
         // Driving 3 m straight in 5 cm steps: one about every 0.3 m; places every metre or so.
         let kept = (1..=60)
