@@ -12,6 +12,8 @@
 #     grpcio + grpcio-tools at the versions the Python client (client/python) builds with (its test
 #     installs that package into a fresh venv of its own), and kubernetes-validate
 #     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs,
+#     rosbags and pillow (scripts/tum_to_rosbag2.py writes the ROS 2 bags the bag tests read, with
+#     another tool than pntr's own writer),
 #     and cmake 4.4 from PyPI (the static HDF5 build needs cmake >= 3.26; .cargo/config.toml points at it)
 #   - Prometheus and promtool from Debian's `prometheus` package, unpacked into .deps/prometheus/ (for the
 #     test that evaluates the Grafana dashboard's queries in a real Prometheus)
@@ -26,7 +28,8 @@ OPENVINO_SO="2641"
 GRPC_VERSION="1.85.1"
 KV_VERSION="1.37.0"
 CMAKE_VERSION="4.4.4"
-PY_PACKAGES=(numpy h5py onnx "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION")
+ROSBAGS_VERSION="0.11.9"
+PY_PACKAGES=(numpy h5py onnx pillow "rosbags==$ROSBAGS_VERSION" "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION")
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -57,7 +60,7 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c "import numpy, h5py, onnx, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
+if ! "$PY" -c "import numpy, h5py, onnx, PIL, rosbags, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
   || ! "$DEPS/venv/bin/cmake" --version 2>/dev/null | grep -q "version $CMAKE_VERSION"; then
   log "python: installing ${PY_PACKAGES[*]}"
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"

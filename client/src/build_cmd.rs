@@ -20,8 +20,10 @@ fn camera_of(rec: &Recording, intrinsics: Option<&str>) -> Result<Intrinsics> {
     let Some(text) = intrinsics else {
         return rec.intrinsics().with_context(|| {
             format!(
-                "{}: no calibration.txt or camera info; give the camera with --intrinsics fx,fy,cx,cy",
-                rec.path.display()
+                "{}: {}; give the camera with --intrinsics fx,fy,cx,cy[,k1,k2,p1,p2,k3]",
+                rec.path.display(),
+                rec.camera_problem()
+                    .unwrap_or_else(|| "no calibration.txt or camera info".into())
             )
         });
     };

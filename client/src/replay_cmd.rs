@@ -33,7 +33,7 @@ pub struct ReplayArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
     /// The recorded drive: a folder in the TUM RGB-D layout (rgb.txt, depth.txt, optional
-    /// groundtruth.txt and calibration.txt), or a ROS 2 bag (`.mcap`).
+    /// groundtruth.txt and calibration.txt), or a ROS 2 bag (a folder with metadata.yaml, or `.mcap`).
     #[arg(long)]
     pub sequence: PathBuf,
     /// ROS 2 bag topics.
@@ -82,22 +82,34 @@ pub struct ReplayArgs {
     pub frames_log: Option<PathBuf>,
 }
 
+/// Largest gap between two frames' stamps that replay waits through, seconds (a camera runs at 1 Hz
+/// or faster; a longer gap is a clock jump).
+const MAX_FRAME_GAP_S: f64 = 2.0;
+
 /// The topics of a ROS 2 bag (`pntr replay`, `pntr build-db --sequence`).
 #[derive(clap::Args, Debug, Clone)]
 pub struct TopicArgs {
-    /// ROS 2 bag: the colour topic (sensor_msgs/Image, rgb8/bgr8/rgba8/bgra8).
+    /// ROS 2 bag: the colour topic (sensor_msgs/Image, rgb8/bgr8/rgba8/bgra8; when absent, its
+    /// `/compressed` sibling, sensor_msgs/CompressedImage JPEG or PNG).
     #[arg(long, default_value = "/camera/color/image_raw")]
     pub rgb_topic: String,
-    /// ROS 2 bag: the depth topic, aligned to the colour camera (16UC1 millimetres or 32FC1 metres).
+    /// ROS 2 bag: the depth topic, aligned to the colour camera (16UC1 millimetres or 32FC1 metres;
+    /// when absent, its `/compressedDepth` sibling).
     #[arg(long, default_value = "/camera/aligned_depth_to_color/image_raw")]
     pub depth_topic: String,
     /// ROS 2 bag: the colour camera's sensor_msgs/CameraInfo topic.
     #[arg(long, default_value = "/camera/color/camera_info")]
     pub info_topic: String,
-    /// ROS 2 bag: a geometry_msgs/PoseStamped topic with the ground truth (world_from_camera of the
-    /// optical frame, in the map's frame), for ATE and RPE.
+    /// ROS 2 bag: poses from this topic instead of TF: geometry_msgs/PoseStamped (world_from_camera
+    /// of the optical frame) or nav_msgs/Odometry (of the body; the camera's offset from TF).
     #[arg(long)]
     pub pose_topic: Option<String>,
+    /// ROS 2 bag: the world frame of TF poses.
+    #[arg(long, default_value = "map")]
+    pub map_frame: String,
+    /// ROS 2 bag: the camera's optical frame in TF (default: the colour images' frame_id).
+    #[arg(long)]
+    pub camera_frame: Option<String>,
 }
 
 impl TopicArgs {
@@ -108,6 +120,8 @@ impl TopicArgs {
             depth: self.depth_topic.clone(),
             info: self.info_topic.clone(),
             pose: self.pose_topic.clone(),
+            map_frame: self.map_frame.clone(),
+            camera_frame: self.camera_frame.clone(),
         }
     }
 }
@@ -227,10 +241,15 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         (Some(s), _) => crate::localize_cmd::parse_intrinsics(std::slice::from_ref(s))?,
         (None, Some(k)) => wire::intrinsics_message(&k),
         (None, None) => bail!(
-            "{}: no calibration.txt or camera info; pass the camera with --intrinsics fx,fy,cx,cy",
-            args.sequence.display()
+            "{}: {}; pass the camera with --intrinsics fx,fy,cx,cy[,k1,k2,p1,p2,k3]",
+            args.sequence.display(),
+            seq.camera_problem()
+                .unwrap_or_else(|| "no calibration.txt or camera info".into())
         ),
     };
+    for w in seq.warnings() {
+        eprintln!("warning: {w}");
+    }
     let n = if args.frames == 0 {
         seq.len()
     } else {
@@ -269,21 +288,47 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .context("opening LocalizeStream")?
         .into_inner();
     let t0 = seq.timestamp(0);
+    let (mut skew, mut jumps, mut unreadable) = (0.0f64, 0usize, 0usize);
     let start = Instant::now();
     let mut out: Vec<Answered> = Vec::with_capacity(n);
     let mut last: Option<Isometry3<f64>> = None;
     let mut localized = 0usize;
     for i in 0..n {
         let timestamp = seq.timestamp(i);
+        // A stamp jump (a clock correction, stamps in another unit) is not slept through: the
+        // timeline moves on from the frame after it.
+        if args.rate.is_none() && i > 0 {
+            let gap = timestamp - seq.timestamp(i - 1);
+            if gap > MAX_FRAME_GAP_S {
+                skew += gap;
+                jumps += 1;
+                if jumps == 1 {
+                    eprintln!(
+                        "warning: the stamps jump by {gap:.3} s between frames {} and {i}: sent without waiting (more jumps are counted in the report)",
+                        i - 1
+                    );
+                }
+            }
+        }
         let due = match args.rate {
             Some(r) => i as f64 / r,
-            None => timestamp - t0,
+            None => timestamp - t0 - skew,
         };
         let wait = due - start.elapsed().as_secs_f64();
         if wait > 0.0 {
             std::thread::sleep(Duration::from_secs_f64(wait));
         }
-        let (mut rgb, mut depth) = seq.load(i)?;
+        let (mut rgb, mut depth) = match seq.load(i) {
+            Ok(f) => f,
+            Err(e) => {
+                unreadable += 1;
+                if unreadable <= 5 {
+                    eprintln!("warning: frame {i} skipped: {e}");
+                }
+                bar.inc(1);
+                continue;
+            }
+        };
         if let Some(fx) = &effects {
             let look = fx.drifting_look(0, i);
             fx.apply_with(&mut rgb, &mut depth, &look, i as u64);
@@ -378,6 +423,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let frames = out.len().max(1) as f64;
     let report = json!({
         "frames": out.len(),
+        "frames_unreadable": unreadable,
+        "stamp_jumps": jumps,
         "localized_share": localized as f64 / frames,
         "tracking_share": tracked as f64 / frames,
         "ate_rmse_m": errors.ate_rmse_m,

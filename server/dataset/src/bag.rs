@@ -1,15 +1,25 @@
-//! ROS 2 bags in MCAP (rosbag2's default storage): colour, depth and camera info as a robot recorded
-//! them, read with the `mcap` crate and decoded from CDR with the `cdr` crate.
+//! ROS 2 bags as `ros2 bag record` writes them: a folder (`metadata.yaml` and one or more, possibly
+//! split, MCAP files) or one `.mcap` file, read with the `mcap` crate's streaming reader (zstd and lz4
+//! chunks; a file cut short is read up to its last intact record, with a warning) and decoded from CDR
+//! with the `cdr` crate, every vector bounded by the message's size.
 //!
-//! Messages read: `sensor_msgs/msg/Image` (colour `rgb8`, `bgr8`, `rgba8`, `bgra8`; depth `16UC1` in
-//! millimetres or `32FC1` in metres, pixel-aligned with the colour, e.g. a RealSense's
-//! `aligned_depth_to_color`), `sensor_msgs/msg/CameraInfo` (K and plumb_bob D) and, for ground truth,
-//! `geometry_msgs/msg/PoseStamped` (world_from_camera of the optical frame, as ROS gives camera poses).
-//! Frames are paired by header stamp within
-//! [`crate::tum::MAX_PAIR_GAP_S`]. The whole file is read into memory (a bag of a few minutes of
-//! 640x480 frames is a few GB: split long recordings).
+//! Messages read: colour as `sensor_msgs/msg/Image` (`rgb8`, `bgr8`, `rgba8`, `bgra8`) or
+//! `sensor_msgs/msg/CompressedImage` (JPEG or PNG, the `/compressed` sibling taken when the raw topic
+//! is absent); depth as `Image` (`16UC1` in millimetres or `32FC1` in metres, pixel-aligned with the
+//! colour, e.g. a RealSense's `aligned_depth_to_color`) or the `compressedDepth` form (a 12-byte header
+//! and a 16-bit PNG); `sensor_msgs/msg/CameraInfo` (K, and plumb_bob D; a model pntr cannot use or an
+//! all-zero K leaves the camera to `--intrinsics`, said so); poses from `geometry_msgs/msg/PoseStamped`
+//! (world_from_camera of the optical frame), `nav_msgs/msg/Odometry` (of the body, moved to the camera
+//! by TF) or TF itself (`/tf`, `/tf_static`, [`crate::tf`]), each looked up at the image's stamp.
+//! Frames are paired by header stamp within [`crate::tum::MAX_PAIR_GAP_S`] (receive times when a
+//! driver leaves every header stamp zero, said so). A topic holding another message type than
+//! expected is refused before anything is decoded.
+//!
+//! Memory: [`Bag::open`] streams the files once for the stamps, camera and poses (kept: a few numbers
+//! a message); [`Bag::load`] streams them again forward, keeping only messages later frames need, so
+//! a recording of any length is read in bounded memory.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
@@ -28,8 +38,13 @@ pub struct Topics {
     pub depth: String,
     /// The colour camera's calibration.
     pub info: String,
-    /// Ground-truth poses (`world_from_camera`), optional.
+    /// Poses: `geometry_msgs/PoseStamped` of the camera's optical frame or `nav_msgs/Odometry` of
+    /// the body; without it poses come from TF.
     pub pose: Option<String>,
+    /// TF: the world frame poses are given in (`map`).
+    pub map_frame: String,
+    /// TF: the camera's optical frame (default: the colour images' `header.frame_id`).
+    pub camera_frame: Option<String>,
 }
 
 impl Default for Topics {
@@ -39,6 +54,8 @@ impl Default for Topics {
             depth: "/camera/aligned_depth_to_color/image_raw".into(),
             info: "/camera/color/camera_info".into(),
             pose: None,
+            map_frame: "map".into(),
+            camera_frame: None,
         }
     }
 }
@@ -180,23 +197,6 @@ pub struct PoseStamped {
     pub pose: Pose,
 }
 
-/// A ROS 2 bag's drive: paired colour and depth messages, in time order.
-#[derive(Debug, Clone)]
-pub struct Bag {
-    /// The file.
-    pub path: PathBuf,
-    /// The camera (from the first CameraInfo; `None` when the bag has none).
-    pub intrinsics: Option<Intrinsics>,
-    /// Paired frames.
-    frames: Vec<PairedFrame>,
-    /// Units per metre of integer (`16UC1`) depth: 1000 (REP 118's millimetres) unless the caller
-    /// knows the sensor uses others (4000 for 0.25 mm). `32FC1` depth is metres whatever this says.
-    pub depth_units_per_m: f64,
-}
-
-/// Stamp seconds, colour message (CDR), depth message (CDR), ground truth.
-type PairedFrame = (f64, Vec<u8>, Vec<u8>, Option<Isometry3<f64>>);
-
 fn bad(path: &Path, problem: impl Into<String>) -> DatasetError {
     DatasetError::Layout {
         path: path.to_path_buf(),
@@ -204,121 +204,579 @@ fn bad(path: &Path, problem: impl Into<String>) -> DatasetError {
     }
 }
 
-fn decode<'a, T: Deserialize<'a>>(
+/// sensor_msgs/msg/CompressedImage.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CompressedImage {
+    /// Stamp and frame.
+    pub header: Header,
+    /// `rgb8; jpeg compressed bgr8`, `16UC1; compressedDepth png`, ...
+    pub format: String,
+    /// The encoded image (for compressedDepth, a 12-byte header first).
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+
+/// geometry_msgs/msg/Vector3.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct RosVector3 {
+    /// x.
+    pub x: f64,
+    /// y.
+    pub y: f64,
+    /// z.
+    pub z: f64,
+}
+
+/// geometry_msgs/msg/Transform.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct Transform {
+    /// Translation.
+    pub translation: RosVector3,
+    /// Rotation.
+    pub rotation: RosQuaternion,
+}
+
+/// geometry_msgs/msg/TransformStamped.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TransformStamped {
+    /// Stamp and parent frame.
+    pub header: Header,
+    /// Child frame.
+    pub child_frame_id: String,
+    /// parent_from_child.
+    pub transform: Transform,
+}
+
+/// tf2_msgs/msg/TFMessage.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TfMessage {
+    /// Transforms.
+    pub transforms: Vec<TransformStamped>,
+}
+
+/// The leading fields of nav_msgs/msg/Odometry (header, child frame, pose with covariance).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct OdometryPose {
+    /// Stamp and the pose's frame (odom, map).
+    pub header: Header,
+    /// The body frame the pose is of (base_link).
+    pub child_frame_id: String,
+    /// The pose.
+    pub pose: Pose,
+}
+
+fn isometry(t: [f64; 3], q: &RosQuaternion) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(t[0], t[1], t[2]),
+        UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z)),
+    )
+}
+
+/// The MCAP files of a bag: the file itself, or a rosbag2 folder's `metadata.yaml` files in order
+/// (split recordings), or a folder's `.mcap` files by name when it has no metadata. A `.db3` (the
+/// sqlite3 storage) is refused naming the conversion.
+pub fn bag_files(path: &Path) -> Result<Vec<PathBuf>, DatasetError> {
+    let sqlite = |p: &Path| {
+        bad(
+            p,
+            "a rosbag2 sqlite3 (.db3) bag: pntr reads MCAP storage; convert it with `ros2 bag convert` (storage_id: mcap)",
+        )
+    };
+    if path.is_file() {
+        if path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("db3"))
+        {
+            return Err(sqlite(path));
+        }
+        return Ok(vec![path.to_path_buf()]);
+    }
+    if !path.is_dir() {
+        return Err(DatasetError::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file or folder"),
+        });
+    }
+    let meta = path.join("metadata.yaml");
+    if meta.is_file() {
+        let text = std::fs::read_to_string(&meta).map_err(|source| DatasetError::Io {
+            path: meta.clone(),
+            source,
+        })?;
+        let v: serde_yaml::Value =
+            serde_yaml::from_str(&text).map_err(|e| bad(&meta, format!("not YAML: {e}")))?;
+        let info = &v["rosbag2_bagfile_information"];
+        let storage = info["storage_identifier"].as_str().unwrap_or("mcap");
+        if storage == "sqlite3" {
+            return Err(sqlite(&meta));
+        }
+        let files: Vec<PathBuf> = info["relative_file_paths"]
+            .as_sequence()
+            .map(|s| {
+                s.iter()
+                    .filter_map(|f| f.as_str())
+                    .map(|f| path.join(f))
+                    .collect()
+            })
+            .unwrap_or_default();
+        if files.is_empty() {
+            return Err(bad(
+                &meta,
+                "rosbag2_bagfile_information.relative_file_paths lists no file",
+            ));
+        }
+        for f in &files {
+            if !f.is_file() {
+                return Err(bad(
+                    f,
+                    "listed in metadata.yaml but missing (a split file lost?)",
+                ));
+            }
+        }
+        return Ok(files);
+    }
+    let mut files: Vec<PathBuf> = std::fs::read_dir(path)
+        .map_err(|source| DatasetError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            p.extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
+        })
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        return Err(bad(
+            path,
+            "a folder without metadata.yaml or .mcap files (expected a ROS 2 bag folder or a TUM RGB-D sequence)",
+        ));
+    }
+    Ok(files)
+}
+
+/// One message read from a bag.
+struct Message {
+    topic: std::sync::Arc<str>,
+    schema: std::sync::Arc<str>,
+    log_time_ns: u64,
+    data: Vec<u8>,
+}
+
+/// The largest record read, bytes (an uncompressed 4K depth frame is 17 MB).
+const RECORD_LIMIT: usize = 256 << 20;
+
+/// Messages of a bag's files in order, streamed through a small buffer (MCAP's linear reader: zstd and
+/// lz4 chunks; a file cut short ends at its last intact record, with a warning).
+struct MessageReader {
+    files: Vec<PathBuf>,
+    next_file: usize,
+    current: Option<(PathBuf, std::fs::File, mcap::sans_io::LinearReader)>,
+    schemas: HashMap<u16, std::sync::Arc<str>>,
+    channels: HashMap<u16, (std::sync::Arc<str>, std::sync::Arc<str>, bool)>,
+    warnings: Vec<String>,
+}
+
+impl MessageReader {
+    fn new(files: Vec<PathBuf>) -> Self {
+        Self {
+            files,
+            next_file: 0,
+            current: None,
+            schemas: HashMap::new(),
+            channels: HashMap::new(),
+            warnings: Vec::new(),
+        }
+    }
+
+    fn next(&mut self) -> Result<Option<Message>, DatasetError> {
+        use std::io::Read;
+        loop {
+            if self.current.is_none() {
+                let Some(f) = self.files.get(self.next_file) else {
+                    return Ok(None);
+                };
+                self.next_file += 1;
+                let file = std::fs::File::open(f).map_err(|source| DatasetError::Io {
+                    path: f.clone(),
+                    source,
+                })?;
+                let reader = mcap::sans_io::LinearReader::new_with_options(
+                    mcap::sans_io::LinearReaderOptions::default()
+                        .with_record_length_limit(RECORD_LIMIT),
+                );
+                self.schemas.clear();
+                self.channels.clear();
+                self.current = Some((f.clone(), file, reader));
+            }
+            let (path, file, reader) = self.current.as_mut().expect("set above");
+            let event = match reader.next_event() {
+                None => {
+                    self.current = None;
+                    continue;
+                }
+                Some(Err(mcap::McapError::UnexpectedEof)) => {
+                    self.warnings.push(format!(
+                        "{}: the file ends in the middle of a record (cut short, e.g. by a power loss): read up to its last intact record",
+                        path.display()
+                    ));
+                    self.current = None;
+                    continue;
+                }
+                Some(Err(e)) => {
+                    return Err(bad(path, format!("damaged MCAP file: {e}")));
+                }
+                Some(Ok(e)) => e,
+            };
+            match event {
+                mcap::sans_io::LinearReadEvent::ReadRequest(n) => {
+                    let buf = reader.insert(n.clamp(4096, 1 << 20));
+                    let got = file.read(buf).map_err(|source| DatasetError::Io {
+                        path: path.clone(),
+                        source,
+                    })?;
+                    reader.notify_read(got);
+                }
+                mcap::sans_io::LinearReadEvent::Record { data, opcode } => {
+                    let record = mcap::parse_record(opcode, data)
+                        .map_err(|e| bad(path, format!("damaged MCAP record: {e}")))?;
+                    match record {
+                        mcap::records::Record::Schema { header, .. } => {
+                            self.schemas.insert(header.id, header.name.as_str().into());
+                        }
+                        mcap::records::Record::Channel(c) => {
+                            let schema = self
+                                .schemas
+                                .get(&c.schema_id)
+                                .cloned()
+                                .unwrap_or_else(|| "".into());
+                            self.channels.insert(
+                                c.id,
+                                (c.topic.as_str().into(), schema, c.message_encoding == "cdr"),
+                            );
+                        }
+                        mcap::records::Record::Message { header, data } => {
+                            let Some((topic, schema, cdr)) = self.channels.get(&header.channel_id)
+                            else {
+                                continue;
+                            };
+                            if !cdr {
+                                continue;
+                            }
+                            return Ok(Some(Message {
+                                topic: topic.clone(),
+                                schema: schema.clone(),
+                                log_time_ns: header.log_time,
+                                data: data.into_owned(),
+                            }));
+                        }
+                        _ => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Decode a CDR message whose vectors and strings cannot claim more than the message holds.
+fn decode_bounded<T: serde::de::DeserializeOwned>(
     path: &Path,
     topic: &str,
     bytes: &[u8],
 ) -> Result<T, DatasetError> {
-    cdr::deserialize::<T>(bytes).map_err(|e| {
-        bad(
-            path,
-            format!("topic {topic}: cannot decode the CDR message: {e}"),
-        )
-    })
+    let mut r = bytes;
+    cdr::deserialize_from::<_, T, _>(&mut r, cdr::size::Bounded(bytes.len() as u64 * 2 + 64))
+        .map_err(|e| {
+            bad(
+                path,
+                format!("topic {topic}: cannot decode the CDR message: {e}"),
+            )
+        })
+}
+
+const IMAGE: &str = "sensor_msgs/msg/Image";
+const COMPRESSED: &str = "sensor_msgs/msg/CompressedImage";
+
+/// Where a stream of colour or depth messages is: its topic's ordinal of each message, by stamp.
+#[derive(Debug, Clone, Default)]
+struct Stamps {
+    /// (stamp seconds, ordinal on the topic)
+    list: Vec<(f64, usize)>,
+}
+
+/// A ROS 2 bag's drive: paired colour and depth messages in time order, with their poses.
+pub struct Bag {
+    /// The file or folder.
+    pub path: PathBuf,
+    files: Vec<PathBuf>,
+    /// The camera (from the first CameraInfo; `None` when the bag has none or one pntr cannot use,
+    /// then [`Bag::camera_problem`] says why).
+    pub intrinsics: Option<Intrinsics>,
+    /// Why the bag's CameraInfo cannot be used (give `--intrinsics`).
+    pub camera_problem: Option<String>,
+    rgb_topic: String,
+    depth_topic: String,
+    /// (stamp, colour ordinal, depth ordinal, pose) per frame.
+    frames: Vec<(f64, usize, usize, Option<Isometry3<f64>>)>,
+    /// Why frames have no pose (the first failed look-up), when some have none.
+    pub pose_problem: Option<String>,
+    /// Warnings for the user (cut-short files, stamps replaced).
+    pub warnings: Vec<String>,
+    /// Units per metre of integer (`16UC1`) depth: 1000 (REP 118's millimetres) unless the caller
+    /// knows the sensor uses others (4000 for 0.25 mm). `32FC1` depth is metres whatever this says.
+    pub depth_units_per_m: f64,
+    cursor: std::sync::Mutex<Option<Cursor>>,
+    /// Per stream (colour, depth): CompressedImage rather than Image.
+    compressed: [bool; 2],
+    /// Per stream (colour, depth): the last frame that uses each message ordinal.
+    last_use: [HashMap<usize, usize>; 2],
+}
+
+impl std::fmt::Debug for Bag {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bag")
+            .field("path", &self.path)
+            .field("frames", &self.frames.len())
+            .finish()
+    }
+}
+
+/// A message's schema name and CDR bytes.
+type Raw = (std::sync::Arc<str>, Vec<u8>);
+
+/// The second pass: messages streamed forward, those a later frame needs kept.
+struct Cursor {
+    reader: MessageReader,
+    seen: [usize; 2],
+    kept: [HashMap<usize, Raw>; 2],
 }
 
 impl Bag {
-    /// Read a bag. Errors name the file and, for a missing topic, the topics the bag has.
+    /// Read a bag's index (stamps, camera, poses; not the images): a `.mcap` file or a rosbag2
+    /// folder. Colour comes from `topics.rgb` (or its `/compressed` sibling when it is absent), depth
+    /// from `topics.depth` (or `/compressedDepth`); poses from `topics.pose` (PoseStamped of the
+    /// camera, or Odometry of the body, moved to the camera by the static transforms) or, without
+    /// one, from TF (`topics.map_frame` to `topics.camera_frame`, default the colour images'
+    /// frame). Errors name the file, the topic and the message.
     pub fn open(path: &Path, topics: &Topics) -> Result<Self, DatasetError> {
-        let bytes = std::fs::read(path).map_err(|source| DatasetError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let mut rgb: Vec<(f64, Vec<u8>)> = Vec::new();
-        let mut depth: Vec<(f64, Vec<u8>)> = Vec::new();
+        let files = bag_files(path)?;
+        let mut reader = MessageReader::new(files.clone());
+        let (rgb_c, depth_c) = (
+            format!("{}/compressed", topics.rgb),
+            format!("{}/compressedDepth", topics.depth),
+        );
+        // [raw colour, compressed colour, raw depth, compressed depth]
+        let mut stamps: [Vec<(f64, f64)>; 4] = Default::default();
+        // The message type on each of the four topics, when its schema names one.
+        let mut kinds: [Option<String>; 4] = Default::default();
+        let mut camera_frame: Option<String> = None;
+        let mut info: Option<Result<CameraInfo, DatasetError>> = None;
         let mut poses: Vec<(f64, Isometry3<f64>)> = Vec::new();
-        let mut info: Option<CameraInfo> = None;
+        let mut odometry_child: Option<String> = None;
+        let mut tf = crate::tf::TfTree::default();
         let mut seen: BTreeMap<String, String> = BTreeMap::new();
-        let stream = mcap::MessageStream::new(&bytes)
-            .map_err(|e| bad(path, format!("not an MCAP file: {e}")))?;
-        for m in stream {
-            let m = m.map_err(|e| bad(path, format!("damaged MCAP file: {e}")))?;
-            let topic = &m.channel.topic;
-            let schema = m
-                .channel
-                .schema
-                .as_ref()
-                .map(|s| s.name.clone())
-                .unwrap_or_default();
-            seen.entry(topic.clone()).or_insert(schema);
-            if m.channel.message_encoding != "cdr" {
-                continue;
-            }
-            if topic == &topics.rgb || topic == &topics.depth {
-                let header: ImageStamp = decode(path, topic, &m.data)?;
-                let list = if topic == &topics.rgb {
-                    &mut rgb
-                } else {
-                    &mut depth
+        while let Some(m) = reader.next()? {
+            let topic: &str = &m.topic;
+            seen.entry(topic.to_string())
+                .or_insert_with(|| m.schema.to_string());
+            let slot = [&topics.rgb, &rgb_c, &topics.depth, &depth_c]
+                .iter()
+                .position(|t| t.as_str() == topic);
+            let log_s = m.log_time_ns as f64 * 1e-9;
+            if let Some(k) = slot {
+                if !m.schema.is_empty() && &*m.schema != IMAGE && &*m.schema != COMPRESSED {
+                    return Err(bad(
+                        path,
+                        format!(
+                            "topic {topic} holds {}, not {IMAGE} or {COMPRESSED}",
+                            m.schema
+                        ),
+                    ));
+                }
+                if !m.schema.is_empty() {
+                    kinds[k].get_or_insert_with(|| m.schema.to_string());
+                }
+                let h: ImageStamp = decode_bounded(path, topic, &m.data)?;
+                if k < 2 && camera_frame.is_none() && !h.header.frame_id.is_empty() {
+                    camera_frame = Some(h.header.frame_id.clone());
+                }
+                stamps[k].push((h.header.stamp.seconds(), log_s));
+            } else if topic == topics.info {
+                if info.is_none() {
+                    info = Some(decode_bounded(path, topic, &m.data));
+                }
+            } else if topic == "/tf" || topic == "/tf_static" {
+                let msg: TfMessage = decode_bounded(path, topic, &m.data)?;
+                for t in msg.transforms {
+                    let p = t.transform;
+                    tf.add(
+                        &t.header.frame_id,
+                        &t.child_frame_id,
+                        t.header.stamp.seconds(),
+                        isometry(
+                            [p.translation.x, p.translation.y, p.translation.z],
+                            &p.rotation,
+                        ),
+                        topic == "/tf_static",
+                    );
+                }
+            } else if Some(topic) == topics.pose.as_deref() {
+                let (stamp, pose) = match &*m.schema {
+                    "nav_msgs/msg/Odometry" => {
+                        let o: OdometryPose = decode_bounded(path, topic, &m.data)?;
+                        odometry_child.get_or_insert(o.child_frame_id.clone());
+                        let p = o.pose.position;
+                        (o.header.stamp.seconds(), isometry([p.x, p.y, p.z], &o.pose.orientation))
+                    }
+                    "geometry_msgs/msg/PoseStamped" | "" => {
+                        let o: PoseStamped = decode_bounded(path, topic, &m.data)?;
+                        let p = o.pose.position;
+                        (o.header.stamp.seconds(), isometry([p.x, p.y, p.z], &o.pose.orientation))
+                    }
+                    other => {
+                        return Err(bad(
+                            path,
+                            format!("topic {topic} holds {other}: poses are read from geometry_msgs/msg/PoseStamped or nav_msgs/msg/Odometry"),
+                        ))
+                    }
                 };
-                list.push((header.header.stamp.seconds(), m.data.into_owned()));
-            } else if topic == &topics.info && info.is_none() {
-                info = Some(decode(path, topic, &m.data)?);
-            } else if Some(topic) == topics.pose.as_ref() {
-                let p: PoseStamped = decode(path, topic, &m.data)?;
-                let o = p.pose.orientation;
-                poses.push((
-                    p.header.stamp.seconds(),
-                    Isometry3::from_parts(
-                        Translation3::new(p.pose.position.x, p.pose.position.y, p.pose.position.z),
-                        UnitQuaternion::from_quaternion(Quaternion::new(o.w, o.x, o.y, o.z)),
-                    ),
-                ));
+                poses.push((stamp, pose));
             }
         }
+        tf.seal();
         let listing = || {
             seen.iter()
                 .map(|(t, s)| format!("{t} ({s})"))
                 .collect::<Vec<_>>()
                 .join(", ")
         };
-        for (what, topic, n) in [
-            ("colour", &topics.rgb, rgb.len()),
-            ("depth", &topics.depth, depth.len()),
-        ] {
-            if n == 0 {
-                return Err(bad(
+        let pick = |raw: usize, what: &str, topic: &str, sibling: &str| {
+            if !stamps[raw].is_empty() {
+                Ok((raw, topic.to_string()))
+            } else if !stamps[raw + 1].is_empty() {
+                Ok((raw + 1, sibling.to_string()))
+            } else {
+                Err(bad(
                     path,
-                    format!("no {what} images on {topic}; the bag has: {}", listing()),
-                ));
-            }
-        }
-        if let Some(t) = &topics.pose {
-            if poses.is_empty() {
-                return Err(bad(
-                    path,
-                    format!("no poses on {t}; the bag has: {}", listing()),
-                ));
-            }
-        }
-        for list in [&mut rgb, &mut depth] {
-            list.sort_by(|a, b| a.0.total_cmp(&b.0));
-        }
-        poses.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let intrinsics = info.map(|i| camera(path, &i)).transpose()?;
-        let frames: Vec<_> = rgb
-            .into_iter()
-            .filter_map(|(t, c)| {
-                let d = nearest(&depth, t)?;
-                Some((
-                    t,
-                    c,
-                    depth[d].1.clone(),
-                    nearest(&poses, t).map(|g| poses[g].1),
+                    format!(
+                        "no {what} images on {topic} or {sibling}; the bag has: {}",
+                        listing()
+                    ),
                 ))
+            }
+        };
+        let (rgb_k, rgb_topic) = pick(0, "colour", &topics.rgb, &rgb_c)?;
+        let (depth_k, depth_topic) = pick(2, "depth", &topics.depth, &depth_c)?;
+        let mut warnings = std::mem::take(&mut reader.warnings);
+        let mut streams = [Stamps::default(), Stamps::default()];
+        // A driver that leaves header stamps zero: receive times for both streams (and for the
+        // pose look-ups), so the two are never mixed.
+        let all_zero = [rgb_k, depth_k]
+            .iter()
+            .any(|&k| stamps[k].iter().all(|(h, _)| *h == 0.0));
+        if all_zero {
+            warnings.push(format!(
+                "{rgb_topic} or {depth_topic}: every header stamp is zero; the bag's receive times are used to pair the frames and to look up their poses"
+            ));
+        }
+        for (s, k) in streams.iter_mut().zip([rgb_k, depth_k]) {
+            s.list = stamps[k]
+                .iter()
+                .enumerate()
+                .map(|(i, (h, l))| (if all_zero { *l } else { *h }, i))
+                .collect();
+            s.list.sort_by(|a, b| a.0.total_cmp(&b.0));
+        }
+        let compressed = [
+            kinds[rgb_k]
+                .as_deref()
+                .map_or(rgb_k % 2 == 1, |s| s == COMPRESSED),
+            kinds[depth_k]
+                .as_deref()
+                .map_or(depth_k % 2 == 1, |s| s == COMPRESSED),
+        ];
+        let (intrinsics, camera_problem) = match info {
+            None => (None, Some(format!("no CameraInfo on {}", topics.info))),
+            Some(Err(e)) => (None, Some(e.to_string())),
+            Some(Ok(i)) => match camera(path, &i) {
+                Ok(k) => (Some(k), None),
+                Err(e) => (None, Some(e.to_string())),
+            },
+        };
+        let camera_frame = topics
+            .camera_frame
+            .clone()
+            .or(camera_frame)
+            .unwrap_or_else(|| "camera_color_optical_frame".into());
+        let trajectory = (!poses.is_empty()).then(|| crate::tum::Trajectory::from_poses(poses));
+        if topics.pose.is_some() && trajectory.is_none() {
+            return Err(bad(
+                path,
+                format!(
+                    "no poses on {}; the bag has: {}",
+                    topics.pose.as_deref().unwrap_or(""),
+                    listing()
+                ),
+            ));
+        }
+        let mut pose_problem = None;
+        let mut pose_at = |t: f64| -> Option<Isometry3<f64>> {
+            let r = match (&trajectory, &odometry_child) {
+                (Some(traj), None) => traj.at(t).ok_or_else(|| {
+                    format!(
+                        "no pose on {} at {t:.6} s",
+                        topics.pose.as_deref().unwrap_or("")
+                    )
+                }),
+                (Some(traj), Some(child)) => traj
+                    .at(t)
+                    .ok_or_else(|| format!("no odometry at {t:.6} s"))
+                    .and_then(|p| Ok(p * tf.lookup(child, &camera_frame, t)?)),
+                (None, _) if tf.is_empty() => Err(format!(
+                    "no poses: the bag has no /tf and no --pose-topic was given; the bag has: {}",
+                    listing()
+                )),
+                (None, _) => tf.lookup(&topics.map_frame, &camera_frame, t),
+            };
+            r.map_err(|e| {
+                pose_problem.get_or_insert(e);
+            })
+            .ok()
+        };
+        let frames: Vec<_> = streams[0]
+            .list
+            .iter()
+            .filter_map(|&(t, c)| {
+                let d = nearest(&streams[1].list, t)?;
+                Some((t, c, streams[1].list[d].1, pose_at(t)))
             })
             .collect();
         if frames.is_empty() {
             return Err(bad(
                 path,
-                format!("no colour image has a depth image within {MAX_PAIR_GAP_S} s"),
+                format!("no colour image on {rgb_topic} has a depth image on {depth_topic} within {MAX_PAIR_GAP_S} s"),
             ));
+        }
+        let mut last_use: [HashMap<usize, usize>; 2] = Default::default();
+        for (f, (_, c, d, _)) in frames.iter().enumerate() {
+            last_use[0].insert(*c, f);
+            last_use[1].insert(*d, f);
         }
         Ok(Self {
             path: path.to_path_buf(),
+            files,
             intrinsics,
+            camera_problem,
+            rgb_topic,
+            depth_topic,
             frames,
+            pose_problem,
+            warnings,
             depth_units_per_m: 1000.0,
+            cursor: std::sync::Mutex::new(None),
+            last_use,
+            compressed,
         })
     }
 
@@ -337,29 +795,173 @@ impl Bag {
         self.frames[i].0
     }
 
-    /// Ground truth of frame `i`, when the bag has a pose topic.
+    /// `world_from_camera` of frame `i` (optical frame), from the pose topic or TF.
     pub fn ground_truth(&self, i: usize) -> Option<Isometry3<f64>> {
         self.frames[i].3
     }
 
-    /// Decode frame `i`: colour and depth in metres (0 = missing). Errors name the encoding.
+    /// The colour and depth messages of frame `i`, streaming forward from the last frame read (a
+    /// frame before it starts the stream again).
+    fn messages(&self, i: usize) -> Result<[Raw; 2], DatasetError> {
+        let (_, c, d, _) = self.frames[i];
+        let want = [c, d];
+        let mut guard = self.cursor.lock().unwrap_or_else(|p| p.into_inner());
+        let restart = guard.as_ref().is_none_or(|cur| {
+            (0..2).any(|k| want[k] < cur.seen[k] && !cur.kept[k].contains_key(&want[k]))
+        });
+        if restart {
+            *guard = Some(Cursor {
+                reader: MessageReader::new(self.files.clone()),
+                seen: [0, 0],
+                kept: Default::default(),
+            });
+        }
+        let cur = guard.as_mut().expect("set above");
+        while (0..2).any(|k| !cur.kept[k].contains_key(&want[k])) {
+            let Some(m) = cur.reader.next()? else {
+                return Err(bad(
+                    &self.path,
+                    format!("frame {i}: its messages were not found on a second read (the bag changed?)"),
+                ));
+            };
+            let k = if *m.topic == *self.rgb_topic {
+                0
+            } else if *m.topic == *self.depth_topic {
+                1
+            } else {
+                continue;
+            };
+            let ordinal = cur.seen[k];
+            cur.seen[k] += 1;
+            // Kept while this frame or a later one uses it.
+            if self.last_use[k].get(&ordinal).is_some_and(|&f| f >= i) {
+                cur.kept[k].insert(ordinal, (m.schema, m.data));
+            }
+        }
+        let out = [
+            cur.kept[0].get(&want[0]).cloned().expect("read above"),
+            cur.kept[1].get(&want[1]).cloned().expect("read above"),
+        ];
+        // Keep only what frames after this one use.
+        for k in 0..2 {
+            let last = &self.last_use[k];
+            cur.kept[k].retain(|o, _| last.get(o).is_some_and(|&f| f > i));
+        }
+        Ok(out)
+    }
+
+    /// Decode frame `i`: colour and depth in metres (0 = missing). Errors name the topic, the
+    /// encoding or format, and the frame.
     pub fn load(&self, i: usize) -> Result<(RgbImage, DepthMap), DatasetError> {
-        let (_, c, d, _) = &self.frames[i];
-        let c: Image = decode(&self.path, "colour", c)?;
-        let d: Image = decode(&self.path, "depth", d)?;
-        let rgb = rgb_of(&self.path, &c)?;
-        let depth = depth_of(&self.path, &d, self.depth_units_per_m)?;
+        let [(_, c), (_, d)] = self.messages(i)?;
+        let rgb = if self.compressed[0] {
+            let m: CompressedImage = decode_bounded(&self.path, &self.rgb_topic, &c)?;
+            compressed_rgb(&self.path, &self.rgb_topic, &m)?
+        } else {
+            let m: Image = decode_bounded(&self.path, &self.rgb_topic, &c)?;
+            rgb_of(&self.path, &m)?
+        };
+        let depth = if self.compressed[1] {
+            let m: CompressedImage = decode_bounded(&self.path, &self.depth_topic, &d)?;
+            compressed_depth(&self.path, &self.depth_topic, &m, self.depth_units_per_m)?
+        } else {
+            let m: Image = decode_bounded(&self.path, &self.depth_topic, &d)?;
+            depth_of(&self.path, &m, self.depth_units_per_m)?
+        };
         if (depth.width, depth.height) != (rgb.width, rgb.height) {
             return Err(bad(
                 &self.path,
                 format!(
-                    "depth is {}x{}, colour {}x{}: the depth topic must be aligned to the colour camera",
+                    "frame {i}: depth is {}x{}, colour {}x{}: the depth topic must be aligned to the colour camera",
                     depth.width, depth.height, rgb.width, rgb.height
                 ),
             ));
         }
         Ok((rgb, depth))
     }
+}
+
+/// A `CompressedImage` colour frame (JPEG or PNG, as image_transport's `compressed` plugin writes:
+/// a whole image file whose colours a decoder reads the right way round).
+fn compressed_rgb(path: &Path, topic: &str, m: &CompressedImage) -> Result<RgbImage, DatasetError> {
+    if m.data.is_empty() {
+        return Err(bad(
+            path,
+            format!("topic {topic}: an empty compressed image"),
+        ));
+    }
+    let img = image::load_from_memory(&m.data)
+        .map_err(|e| {
+            bad(
+                path,
+                format!("topic {topic}: cannot decode the {:?} image: {e}", m.format),
+            )
+        })?
+        .to_rgb8();
+    let (w, h) = img.dimensions();
+    Ok(RgbImage {
+        width: w,
+        height: h,
+        data: img.into_raw(),
+    })
+}
+
+/// A `compressedDepth` depth frame: a 12-byte header (format, two quantisation parameters used only
+/// for 32FC1) and a 16-bit PNG in the sensor's units (`units_per_m`, REP 118's millimetres by default).
+fn compressed_depth(
+    path: &Path,
+    topic: &str,
+    m: &CompressedImage,
+    units_per_m: f64,
+) -> Result<DepthMap, DatasetError> {
+    if m.format.contains("rvl") {
+        return Err(bad(
+            path,
+            format!(
+                "topic {topic}: compressedDepth in RVL ({:?}) is not read; record the png form",
+                m.format
+            ),
+        ));
+    }
+    if m.format.starts_with("32FC1") {
+        return Err(bad(
+            path,
+            format!("topic {topic}: compressedDepth of 32FC1 (quantised inverse depth) is not read; record 16UC1"),
+        ));
+    }
+    let png = if m.format.contains("compressedDepth")
+        && m.data.len() > 12
+        && !m.data.starts_with(b"\x89PNG")
+    {
+        &m.data[12..]
+    } else {
+        &m.data[..]
+    };
+    let img = image::load_from_memory_with_format(png, image::ImageFormat::Png).map_err(|e| {
+        bad(
+            path,
+            format!(
+                "topic {topic}: cannot decode the depth PNG ({:?}): {e}",
+                m.format
+            ),
+        )
+    })?;
+    let image::DynamicImage::ImageLuma16(d) = img else {
+        return Err(bad(
+            path,
+            format!(
+                "topic {topic}: the depth PNG is {:?}, not 16-bit single-channel",
+                img.color()
+            ),
+        ));
+    };
+    let (w, h) = d.dimensions();
+    let scale = (1.0 / units_per_m) as f32;
+    Ok(DepthMap {
+        width: w,
+        height: h,
+        data: d.into_raw().into_iter().map(|v| v as f32 * scale).collect(),
+    })
 }
 
 /// Only the header of an Image (what pairing needs), without copying the pixels.
@@ -369,6 +971,12 @@ struct ImageStamp {
 }
 
 fn camera(path: &Path, i: &CameraInfo) -> Result<Intrinsics, DatasetError> {
+    if i.k.iter().all(|v| *v == 0.0) {
+        return Err(bad(
+            path,
+            "camera info: K is all zero (an uncalibrated camera); give --intrinsics fx,fy,cx,cy",
+        ));
+    }
     let mut k = Intrinsics {
         fx: i.k[0],
         fy: i.k[4],
@@ -378,18 +986,22 @@ fn camera(path: &Path, i: &CameraInfo) -> Result<Intrinsics, DatasetError> {
         height: i.height,
         ..Intrinsics::hpointloc()
     };
-    match (i.distortion_model.as_str(), i.d.len()) {
-        (_, 0) => {}
-        ("plumb_bob", 5) => k.distortion.copy_from_slice(&i.d),
-        (m, n) => {
+    let d = &i.d;
+    match i.distortion_model.as_str() {
+        _ if d.iter().all(|v| *v == 0.0) => {}
+        "plumb_bob" | "rational_polynomial" | "" if d.len() >= 5 && d[5..].iter().all(|v| *v == 0.0) => {
+            k.distortion.copy_from_slice(&d[..5]);
+        }
+        "plumb_bob" if d.len() == 4 => k.distortion[..4].copy_from_slice(d),
+        m => {
             return Err(bad(
                 path,
-                format!("camera info: distortion model {m:?} with {n} coefficients; plumb_bob with 5 is supported"),
+                format!("camera info: distortion model {m:?} with {} coefficients {d:?} is not read (plumb_bob k1 k2 p1 p2 k3 is); give --intrinsics fx,fy,cx,cy[,k1,k2,p1,p2,k3] or record rectified images", d.len()),
             ))
         }
     }
     k.validate()
-        .map_err(|e| bad(path, format!("camera info: {e}")))?;
+        .map_err(|e| bad(path, format!("camera info: {e}; give --intrinsics")))?;
     Ok(k)
 }
 
@@ -712,6 +1324,11 @@ mod tests {
             let w = gt(0.1 * i as f64);
             assert!((g.translation.vector - w.translation.vector).norm() < 1e-9);
             assert!(g.rotation.angle_to(&w.rotation) < 1e-9);
+        }
+        // The same frame twice, and frames out of order: the stream starts again where needed.
+        for i in [1, 1, 0, 2, 2, 1] {
+            let (rgb, _) = bag.load(i).unwrap();
+            assert_eq!(rgb.data, rgbs[i].data, "frame {i}");
         }
         // A wrong topic names the topics the bag has.
         let e = Bag::open(

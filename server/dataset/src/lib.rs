@@ -32,6 +32,7 @@ mod last_words;
 pub mod layout;
 mod reader;
 pub mod recording;
+pub mod tf;
 pub mod tum;
 mod writer;
 

@@ -28,7 +28,7 @@ pub struct RecordingOptions {
 
 enum Source {
     Tum(TumSequence),
-    Bag(Bag),
+    Bag(Box<Bag>),
 }
 
 /// An opened recording: frames in time order, each with its stamp, pose (when known) and images.
@@ -48,12 +48,15 @@ impl std::fmt::Debug for Recording {
     }
 }
 
-/// True when `path` is a ROS 2 bag this build reads: an `.mcap` file.
+/// True when `path` is a ROS 2 bag: an `.mcap` or `.db3` file, or a rosbag2 folder (one with
+/// `metadata.yaml`).
 pub fn is_bag(path: &Path) -> bool {
-    path.is_file()
-        && path
+    if path.is_file() {
+        return path
             .extension()
-            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"))
+            .is_some_and(|x| x.eq_ignore_ascii_case("mcap") || x.eq_ignore_ascii_case("db3"));
+    }
+    path.is_dir() && path.join("metadata.yaml").is_file()
 }
 
 impl Recording {
@@ -73,7 +76,7 @@ impl Recording {
             if let Some(u) = opts.depth_units_per_m {
                 b.depth_units_per_m = u;
             }
-            Source::Bag(b)
+            Source::Bag(Box::new(b))
         } else {
             let mut s = TumSequence::open(path)?;
             if let Some(u) = opts.depth_units_per_m {
@@ -111,6 +114,31 @@ impl Recording {
         match &self.source {
             Source::Tum(s) => s.intrinsics,
             Source::Bag(b) => b.intrinsics,
+        }
+    }
+
+    /// Why the recording's own camera cannot be used, when it cannot (a bag's CameraInfo with an
+    /// unknown distortion model or an all-zero K): give the camera yourself.
+    pub fn camera_problem(&self) -> Option<String> {
+        match &self.source {
+            Source::Tum(_) => None,
+            Source::Bag(b) => b.camera_problem.clone(),
+        }
+    }
+
+    /// Why some frames have no pose (a bag's first failed TF or pose look-up), when some have none.
+    pub fn pose_problem(&self) -> Option<String> {
+        match &self.source {
+            Source::Tum(_) => None,
+            Source::Bag(b) => b.pose_problem.clone(),
+        }
+    }
+
+    /// What the reader had to work around (a bag cut short, header stamps all zero).
+    pub fn warnings(&self) -> Vec<String> {
+        match &self.source {
+            Source::Tum(_) => Vec::new(),
+            Source::Bag(b) => b.warnings.clone(),
         }
     }
 

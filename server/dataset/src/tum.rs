@@ -196,12 +196,17 @@ impl Trajectory {
     /// slerp in rotation) when they are at most [`MAX_INTERPOLATION_GAP_S`] apart, else the nearest
     /// sample within [`MAX_PAIR_GAP_S`]; `None` outside the trajectory or inside a longer gap.
     pub fn at(&self, t: f64) -> Option<Isometry3<f64>> {
+        self.at_within(t, MAX_INTERPOLATION_GAP_S)
+    }
+
+    /// [`Trajectory::at`] interpolating across gaps of at most `max_gap_s` seconds.
+    pub fn at_within(&self, t: f64, max_gap_s: f64) -> Option<Isometry3<f64>> {
         let p = &self.poses;
         let i = p.partition_point(|e| e.0 < t);
         if i < p.len() && (p[i].0 - t).abs() < 1e-9 {
             return Some(p[i].1);
         }
-        if i > 0 && i < p.len() && p[i].0 - p[i - 1].0 <= MAX_INTERPOLATION_GAP_S {
+        if i > 0 && i < p.len() && p[i].0 - p[i - 1].0 <= max_gap_s {
             let (t0, a) = p[i - 1];
             let (t1, b) = p[i];
             let u = ((t - t0) / (t1 - t0).max(1e-12)).clamp(0.0, 1.0);

@@ -23,6 +23,10 @@ use pntr_core::{DepthMap, Intrinsics, RgbImage};
 pub const PLACE_RADIUS_M: f64 = 1.0;
 /// Frames whose sharpness makes the running median a blurred frame is compared with.
 const SHARPNESS_HISTORY: usize = 15;
+/// Distance (m) and angle (rad) within which a frame is at a threshold rather than past it: the
+/// rounding of poses.
+const TIE_M: f64 = 1e-6;
+const TIE_RAD: f64 = 1e-6;
 /// Pixels sampled per axis for the overlap between two frames.
 const OVERLAP_GRID: (u32, u32) = (24, 18);
 
@@ -226,11 +230,13 @@ impl Selector {
         let at = world_from_camera.translation.vector;
         let mut samples: Option<Vec<Point3<f64>>> = None;
         for k in &self.kept {
-            if (k.world_from_camera.translation.vector - at).norm() > p.distance_m
+            // Ties (a drive of exact steps) count as near whatever the rounding of the poses'
+            // source (a TF chain, a text file), so the same drive gives the same keyframes.
+            if (k.world_from_camera.translation.vector - at).norm() > p.distance_m + TIE_M
                 || k.world_from_camera
                     .rotation
                     .angle_to(&world_from_camera.rotation)
-                    > p.angle_deg.to_radians()
+                    > p.angle_deg.to_radians() + TIE_RAD
             {
                 continue;
             }

@@ -138,6 +138,9 @@ pub fn build(
     for (si, s) in sessions.iter().enumerate() {
         selector.new_session();
         let rec = s.recording;
+        for w in rec.warnings() {
+            report.warnings.push(format!("{}: {w}", rec.path.display()));
+        }
         let name = rec.name();
         let mut unit_checked = false;
         let mut session_posed = 0usize;
@@ -221,8 +224,12 @@ pub fn build(
             }
         }
         if session_posed == 0 {
+            let why = rec
+                .pose_problem()
+                .map(|p| format!(": {p}"))
+                .unwrap_or_default();
             return Err(PipelineError::Config(format!(
-                "{}: no frame has a pose (give --trajectory FILE.txt with the SLAM's poses, or for a bag --pose-topic or the TF frames)",
+                "{}: no frame has a pose{why} (give --trajectory FILE.txt with the SLAM's poses, or for a bag --pose-topic, or --map-frame and --camera-frame for TF)",
                 rec.path.display()
             )));
         }

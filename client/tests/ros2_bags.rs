@@ -1,0 +1,317 @@
+//! Maps and drives from ROS 2 bags written by another tool than pntr: `scripts/tum_to_rosbag2.py`
+//! turns a `pntr synth --mapping-run` drive into rosbag2 folders with the Python `rosbags` package
+//! (split MCAP files, `CompressedImage` PNG or JPEG colour, `compressedDepth` millimetres, poses only in
+//! TF: `/tf_static` base_link -> camera_link -> optical frame and `/tf` map -> odom -> base_link, or a
+//! PoseStamped topic), and `pntr build-db --sequence BAG_DIR` and `pntr replay` read them.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use pntr_service::config::Settings;
+use pntr_service::tokio;
+
+fn pntr(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .env_remove("PNTR_TOKEN")
+        .output()
+        .expect("pntr runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn err(out: &Output) -> String {
+    assert!(!out.status.success(), "expected a failure");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+/// `$PNTR_PYTHON` or set-up's venv, which has `rosbags`.
+fn python() -> PathBuf {
+    let p = std::env::var_os("PNTR_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join(".deps/venv/bin/python"));
+    let ok = Command::new(&p)
+        .args(["-c", "import rosbags, numpy, PIL"])
+        .status()
+        .is_ok_and(|s| s.success());
+    assert!(
+        ok,
+        "{} cannot import rosbags: run `bash scripts/setup.sh` (or set PNTR_PYTHON)",
+        p.display()
+    );
+    p
+}
+
+fn to_bag(seq: &Path, out: &Path, extra: &[&str]) {
+    let o = Command::new(python())
+        .arg(root().join("scripts/tum_to_rosbag2.py"))
+        .arg(seq)
+        .arg(out)
+        .args(extra)
+        .output()
+        .unwrap();
+    ok(&o);
+}
+
+/// A map's images by stamp (ms): (translation, rotation w x y z).
+type Images = BTreeMap<i64, (Vec<f64>, Vec<f64>)>;
+
+/// Build a map (no check) and list its images: stamp -> (translation, rotation w x y z).
+fn build(seq: &Path, map: &Path, extra: &[&str]) -> (serde_json::Value, Images) {
+    let models = root().join("models");
+    let mut args = vec![
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+        "--models",
+        models.to_str().unwrap(),
+        "--no-check",
+        "--json",
+    ];
+    args.extend(extra);
+    let s: serde_json::Value = serde_json::from_str(&ok(&pntr(&args))).unwrap();
+    let info: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+        "info",
+        "--db",
+        map.to_str().unwrap(),
+        "--images",
+        "--json",
+    ])))
+    .unwrap();
+    let images = info["image_list"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|im| {
+            (
+                (im["stamp"].as_f64().unwrap() * 1e3).round() as i64,
+                (
+                    serde_json::from_value(im["translation"].clone()).unwrap(),
+                    serde_json::from_value(im["rotation_wxyz"].clone()).unwrap(),
+                ),
+            )
+        })
+        .collect();
+    (s, images)
+}
+
+fn recall(dataset: &Path, map: &Path) -> f64 {
+    let report = map.with_extension("eval.json");
+    ok(&pntr(&[
+        "eval",
+        "--dataset",
+        dataset.to_str().unwrap(),
+        "--db",
+        map.to_str().unwrap(),
+        "--models",
+        root().join("models").to_str().unwrap(),
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    r["recall"]["0.25m_2deg"].as_f64().unwrap()
+}
+
+#[test]
+fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    ok(&pntr(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--points-per-scene",
+        "5",
+        "--queries-per-point",
+        "6",
+        "--seed",
+        "31",
+        "--trajectory-seconds",
+        "300",
+        "--mapping-run",
+    ]));
+    let seq = data.join("sequences/synth000");
+    let (tum, tum_images) = build(&seq, &dir.path().join("tum.pntrmap"), &[]);
+
+    // PNG colour, compressedDepth, poses only in TF (interpolation not needed), split files.
+    let png = dir.path().join("bag_png");
+    to_bag(
+        &seq,
+        &png,
+        &["--colour", "png", "--max-messages-per-file", "700"],
+    );
+    let files = std::fs::read_dir(&png)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "mcap")
+        })
+        .count();
+    assert!(files >= 3, "{files} mcap files");
+    let (bag, bag_images) = build(&png, &dir.path().join("png.pntrmap"), &[]);
+    assert_eq!(bag["frames"], tum["frames"], "{bag}");
+    assert_eq!(bag["camera_axes"], "opencv");
+    let same = tum_images
+        .iter()
+        .filter(|(stamp, (t, q))| {
+            bag_images.get(stamp).is_some_and(|(bt, bq)| {
+                let dt = ((t[0] - bt[0]).powi(2) + (t[1] - bt[1]).powi(2) + (t[2] - bt[2]).powi(2))
+                    .sqrt();
+                let dot: f64 = q.iter().zip(bq).map(|(a, b)| a * b).sum();
+                let deg = (2.0 * dot.abs().min(1.0).acos()).to_degrees();
+                dt < 1e-3 && deg < 0.01
+            })
+        })
+        .count();
+    assert!(
+        same * 100 >= 98 * tum_images.len(),
+        "{same} of {} TUM keyframes in the bag's map ({} images)",
+        tum_images.len(),
+        bag_images.len()
+    );
+
+    // JPEG colour and odometry stamped between the images (TF interpolated): recall close to the
+    // TUM map's on the scene's HPointLoc queries.
+    let jpeg = dir.path().join("bag_jpeg");
+    to_bag(&seq, &jpeg, &["--colour", "jpeg", "--tf-offset", "0.025"]);
+    let jpeg_map = dir.path().join("jpeg.pntrmap");
+    let (j, _) = build(&jpeg, &jpeg_map, &[]);
+    assert!(j["images"].as_u64().unwrap() > 20, "{j}");
+    let (r_tum, r_jpeg) = (
+        recall(&data, &dir.path().join("tum.pntrmap")),
+        recall(&data, &jpeg_map),
+    );
+    assert!(
+        r_tum >= 0.8 && (r_tum - r_jpeg).abs() <= 0.02 + 1e-9,
+        "TUM {r_tum}, JPEG bag {r_jpeg}"
+    );
+
+    // Poses from a PoseStamped topic instead of TF.
+    let posed = dir.path().join("bag_pose");
+    to_bag(&seq, &posed, &["--no-tf", "--pose-topic", "/ground_truth"]);
+    let (p, _) = build(
+        &posed,
+        &dir.path().join("pose.pntrmap"),
+        &["--pose-topic", "/ground_truth"],
+    );
+    assert_eq!(p["images"], tum["images"], "{p}");
+
+    // A camera frame TF does not hold: refused naming both frames and the stamp.
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        png.to_str().unwrap(),
+        "--camera-frame",
+        "camera_depth_optical_frame",
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(
+        e.contains("no transform from map to camera_depth_optical_frame at"),
+        "{e}"
+    );
+
+    // A bag cut short by a power loss: its intact part is read, with a warning.
+    let cut = dir.path().join("bag_cut");
+    std::fs::create_dir(&cut).unwrap();
+    let mut last = None;
+    for e in std::fs::read_dir(&png).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, cut.join(p.file_name().unwrap())).unwrap();
+        if p.extension().is_some_and(|x| x == "mcap") {
+            last = last.max(Some(p.file_name().unwrap().to_owned()));
+        }
+    }
+    let last = cut.join(last.unwrap());
+    let bytes = std::fs::read(&last).unwrap();
+    std::fs::write(&last, &bytes[..bytes.len() * 6 / 10]).unwrap();
+    let (c, _) = build(&cut, &dir.path().join("cut.pntrmap"), &[]);
+    let frames = c["frames"].as_u64().unwrap();
+    assert!(
+        frames > 0 && frames < tum["frames"].as_u64().unwrap(),
+        "{c}"
+    );
+    assert!(c["warnings"].to_string().contains("cut short"), "{c}");
+
+    // A sqlite3 bag is named as such, with the conversion.
+    let db3 = dir.path().join("bag_db3");
+    std::fs::create_dir(&db3).unwrap();
+    std::fs::write(
+        db3.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n  relative_file_paths: [bag_db3_0.db3]\n",
+    )
+    .unwrap();
+    std::fs::write(db3.join("bag_db3_0.db3"), b"SQLite format 3\0").unwrap();
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        db3.to_str().unwrap(),
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(
+        e.contains("sqlite3") && e.contains("ros2 bag convert"),
+        "{e}"
+    );
+
+    // The JPEG bag folder replayed through LocalizeStream against the TUM folder's map.
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let settings = Settings::local(vec![dir.path().join("tum.pntrmap")], root().join("models"));
+    let mut server = rt.block_on(async {
+        let s = pntr_service::start(settings).await.unwrap();
+        s.ready().await.unwrap();
+        s
+    });
+    let addr = server.addr.to_string();
+    let report = dir.path().join("replay.json");
+    ok(&pntr(&[
+        "replay",
+        "--addr",
+        &addr,
+        "--sequence",
+        jpeg.to_str().unwrap(),
+        "--rate",
+        "50",
+        "--frames",
+        "150",
+        "--trajectory",
+        dir.path().join("est.txt").to_str().unwrap(),
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    server.shutdown();
+    rt.block_on(server.wait()).unwrap();
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    // (A frame recorded before the first map -> odom transform has no pose to compare with.)
+    assert!(
+        r["frames_with_ground_truth"].as_u64().unwrap() >= 145,
+        "{r}"
+    );
+    assert!(r["localized_share"].as_f64().unwrap() >= 0.9, "{r}");
+    assert!(r["ate_rmse_m"].as_f64().unwrap() <= 0.05, "{r}");
+}
