@@ -22,6 +22,9 @@ Topics (log time of every message == its header stamp, messages written in time 
       stamp + --tf-offset, extended so every image stamp is bracketed).  The chain
       map->odom->base_link->camera_link->camera_color_optical_frame equals the groundtruth
       world_from_camera (interpolated: lerp translation, slerp rotation) at every sample stamp.
+  --odometry-topic T: nav_msgs/msg/Odometry of base_link in map at 20 Hz (stamps offset by
+      --tf-offset) with /tf_static only: the camera's pose is the odometry's composed with the static
+      base_link -> optical transforms.
   --no-tf --pose-topic T: no TF at all; geometry_msgs/msg/PoseStamped (frame_id 'map',
       world_from_camera of the optical frame) on T at each image stamp.
 All colour/depth/camera_info messages of one frame carry the rgb stamp and frame_id
@@ -160,6 +163,14 @@ def make_msg(kind, t, data, colour, calib):
             k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]), r=np.eye(3).ravel(),
             p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]), binning_x=0, binning_y=0,
             roi=M['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    if kind == 'odom':
+        zero3 = xyz('Vector3', (0.0, 0.0, 0.0))
+        return M['nav_msgs/msg/Odometry'](
+            header=header(t, 'map'), child_frame_id='base_link',
+            pose=M['geometry_msgs/msg/PoseWithCovariance'](pose=M['geometry_msgs/msg/Pose'](
+                position=xyz('Point', data[0]), orientation=xyz('Quaternion', data[1])), covariance=np.zeros(36)),
+            twist=M['geometry_msgs/msg/TwistWithCovariance'](
+                twist=M['geometry_msgs/msg/Twist'](linear=zero3, angular=zero3), covariance=np.zeros(36)))
     if kind == 'pose':
         return M[POSE](header=header(t, 'map'), pose=M['geometry_msgs/msg/Pose'](
             position=xyz('Point', data[0]), orientation=xyz('Quaternion', data[1])))
@@ -171,9 +182,22 @@ def qos(durability=QosDurability.VOLATILE, depth=10):
                QosLiveliness.AUTOMATIC, inf, False)
 
 
-def build_events(frames, gt, tf_offset_ns, pose_topic):
-    """[(stamp_ns, priority, topic, kind, data)] sorted in time order."""
+def build_events(frames, gt, tf_offset_ns, pose_topic, odom_topic=None):
+    """[(stamp_ns, priority, topic, kind, data)] sorted in time order. With `odom_topic`: the body's
+    nav_msgs/Odometry in map (20 Hz) and /tf_static only."""
     ev = []
+    if odom_topic:
+        first, last = frames[0][0], frames[-1][0]
+        anchor = first + tf_offset_ns
+        for k in range((first - anchor) // ODOM_NS, -((anchor - last) // ODOM_NS) + 1):
+            ts = anchor + k * ODOM_NS
+            wc = interp(*gt, ts)
+            if wc is not None:  # map_from_base = world_from_cam * inv(base_from_optical)
+                ev.append((ts, 1, odom_topic, 'odom', compose(wc, inverse(BASE_OPTICAL))))
+        for t, rgb_path, depth_path in frames:
+            ev += [(t, 2, INFO, 'info', rgb_path), (t, 3, COLOR, 'colour', rgb_path), (t, 4, DEPTH, 'depth', depth_path)]
+        ev.append((min(e[0] for e in ev), 0, '/tf_static', 'tf_static', STATIC))
+        return sorted(ev, key=lambda e: e[:2])
     for t, rgb_path, depth_path in frames:
         ev += [(t, 2, INFO, 'info', rgb_path), (t, 3, COLOR, 'colour', rgb_path), (t, 4, DEPTH, 'depth', depth_path)]
         if pose_topic: ev.append((t, 1, pose_topic, 'pose', interp(*gt, t)))
@@ -220,12 +244,15 @@ def write_bag(events, out, topics, max_per_file, version, colour, calib):
         yaml.dump({'rosbag2_bagfile_information': info}, fh)
 
 
-def convert(tum_dir, out, colour='png', max_per_file=None, tf_offset='0', pose_topic=None, version=9):
+def convert(tum_dir, out, colour='png', max_per_file=None, tf_offset='0', pose_topic=None, version=9,
+            odom_topic=None):
     frames, gt, calib = load_tum(tum_dir)
     topics = {COLOR: (IMG, qos()), DEPTH: (IMG, qos()), INFO: ('sensor_msgs/msg/CameraInfo', qos())}
-    if pose_topic: topics[pose_topic] = (POSE, qos())
+    if odom_topic: topics.update({odom_topic: ('nav_msgs/msg/Odometry', qos()),
+                                  '/tf_static': (TFM, qos(QosDurability.TRANSIENT_LOCAL, 1))})
+    elif pose_topic: topics[pose_topic] = (POSE, qos())
     else: topics.update({'/tf': (TFM, qos(depth=100)), '/tf_static': (TFM, qos(QosDurability.TRANSIENT_LOCAL, 1))})
-    events = build_events(frames, gt, to_ns(tf_offset), pose_topic)
+    events = build_events(frames, gt, to_ns(tf_offset), pose_topic, odom_topic)
     write_bag(events, out, topics, max_per_file, version, colour, calib)
     return len(events)
 
@@ -333,6 +360,7 @@ def main(argv=None):
     ap.add_argument('--max-messages-per-file', type=int)
     ap.add_argument('--tf-offset', default='0', help='seconds between image stamps and odom->base_link samples')
     ap.add_argument('--no-tf', action='store_true'); ap.add_argument('--pose-topic')
+    ap.add_argument('--odometry-topic', help='poses as nav_msgs/Odometry of base_link in map (20 Hz) with /tf_static, no /tf')
     ap.add_argument('--bag-version', type=int, choices=[8, 9], default=9)
     ap.add_argument('--selftest', action='store_true')
     a = ap.parse_args(argv)
@@ -340,7 +368,7 @@ def main(argv=None):
     if not (a.tum_dir and a.out_bag_dir): ap.error('TUM_DIR and OUT_BAG_DIR are required')
     if a.pose_topic and not a.no_tf: ap.error('--pose-topic requires --no-tf')
     n = convert(a.tum_dir, a.out_bag_dir, a.colour, a.max_messages_per_file, a.tf_offset,
-                (a.pose_topic or '/ground_truth') if a.no_tf else None, a.bag_version)
+                (a.pose_topic or '/ground_truth') if a.no_tf else None, a.bag_version, a.odometry_topic)
     print(f'wrote {n} messages to {a.out_bag_dir}')
 
 

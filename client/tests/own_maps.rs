@@ -190,11 +190,19 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
         map2.to_str().unwrap(),
         "--models",
         models,
-        "--no-check",
+        "--check-sequence",
+        seq.to_str().unwrap(),
+        "--check-frames",
+        "30",
         "--json",
     ]));
     let s2: serde_json::Value = serde_json::from_str(&out).unwrap();
-    assert!(s2["check"].is_null());
+    assert_eq!(s2["check"]["kind"], "another recording", "{s2}");
+    assert_eq!(s2["check"]["frames"], 30, "{s2}");
+    assert!(
+        s2["check"]["localized_share"].as_f64().unwrap() >= 0.9,
+        "{s2}"
+    );
     let n2 = s2["images"].as_u64().unwrap() as usize;
     assert!(
         n2 * 10 >= images * 9 && n2 * 10 <= images * 11,

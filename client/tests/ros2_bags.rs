@@ -217,6 +217,26 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     );
     assert_eq!(p["images"], tum["images"], "{p}");
 
+    // Poses from the body's nav_msgs/Odometry (between the images), carried to the camera by the
+    // static transforms.
+    let odom = dir.path().join("bag_odom");
+    to_bag(
+        &seq,
+        &odom,
+        &["--odometry-topic", "/odom", "--tf-offset", "0.025"],
+    );
+    let (o, _) = build(
+        &odom,
+        &dir.path().join("odom.pntrmap"),
+        &["--pose-topic", "/odom"],
+    );
+    let (n_odom, n_tum) = (
+        o["images"].as_u64().unwrap(),
+        tum["images"].as_u64().unwrap(),
+    );
+    assert!(n_odom * 10 >= n_tum * 9 && n_odom * 10 <= n_tum * 11, "{o}");
+    assert!(o["skipped"]["no_pose"].as_u64().unwrap_or(0) <= 2, "{o}");
+
     // A camera frame TF does not hold: refused naming both frames and the stamp.
     let e = err(&pntr(&[
         "build-db",
