@@ -289,6 +289,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .into_inner();
     let t0 = seq.timestamp(0);
     let (mut skew, mut jumps, mut unreadable) = (0.0f64, 0usize, 0usize);
+    let mut checked = false;
     let start = Instant::now();
     let mut out: Vec<Answered> = Vec::with_capacity(n);
     let mut last: Option<Isometry3<f64>> = None;
@@ -329,6 +330,25 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 continue;
             }
         };
+        if !checked {
+            // The likely integration mistakes, named before a drive localizes nothing.
+            if let Some(k) = seq.intrinsics().filter(|_| args.intrinsics.is_none()) {
+                if (k.width, k.height) != (rgb.width, rgb.height) {
+                    bail!(
+                        "{}: the frames are {}x{} but the camera info describes {}x{}: give --intrinsics for the recorded size",
+                        args.sequence.display(),
+                        rgb.width,
+                        rgb.height,
+                        k.width,
+                        k.height
+                    );
+                }
+            }
+            if let Some(hint) = pntr_dataset::recording::depth_unit_hint(&depth, args.depth_scale) {
+                bail!("{}: frame {i}: {hint}", args.sequence.display());
+            }
+            checked = depth.valid_count() > 0;
+        }
         if let Some(fx) = &effects {
             let look = fx.drifting_look(0, i);
             fx.apply_with(&mut rgb, &mut depth, &look, i as u64);

@@ -324,6 +324,21 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         "--json",
         report.to_str().unwrap(),
     ]));
+    // Depth in another unit than the bag says: named before a drive localizes nothing.
+    let e = err(&pntr(&[
+        "replay",
+        "--addr",
+        &addr,
+        "--sequence",
+        jpeg.to_str().unwrap(),
+        "--depth-scale",
+        "50",
+        "--trajectory",
+        dir.path().join("x.txt").to_str().unwrap(),
+        "--json",
+        dir.path().join("x.json").to_str().unwrap(),
+    ]));
+    assert!(e.contains("--depth-scale") && e.contains("finer units"), "{e}");
     server.shutdown();
     rt.block_on(server.wait()).unwrap();
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
