@@ -191,6 +191,20 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         bag_images.len()
     );
 
+    // Two sessions in one frame (the folder and the bag of the same drive): the second adds frames,
+    // not keyframes, since the first already has every view.
+    let (both, _) = build(
+        &seq,
+        &dir.path().join("both.pntrmap"),
+        &["--sequence", png.to_str().unwrap()],
+    );
+    assert_eq!(
+        both["frames"].as_u64().unwrap(),
+        2 * tum["frames"].as_u64().unwrap(),
+        "{both}"
+    );
+    assert_eq!(both["images"], tum["images"], "{both}");
+
     // JPEG colour and odometry stamped between the images (TF interpolated): recall close to the
     // TUM map's on the scene's HPointLoc queries.
     let jpeg = dir.path().join("bag_jpeg");
@@ -338,7 +352,10 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         "--json",
         dir.path().join("x.json").to_str().unwrap(),
     ]));
-    assert!(e.contains("--depth-scale") && e.contains("finer units"), "{e}");
+    assert!(
+        e.contains("--depth-scale") && e.contains("finer units"),
+        "{e}"
+    );
     server.shutdown();
     rt.block_on(server.wait()).unwrap();
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
