@@ -118,7 +118,8 @@ pub fn recall(errors: &[Option<(f64, f64)>]) -> BTreeMap<String, f64> {
     out
 }
 
-/// Retrieval quality against the ground truth.
+/// Retrieval quality against the ground truth. Every value is NaN (null in JSON) when the map's images
+/// are none of the dataset's views (a map built from a recording): its places are not the Points.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct RetrievalRecall {
     /// A top-1 image of the query's own Point.
@@ -412,6 +413,13 @@ pub fn run(
             readers.push((p.clone(), r));
         }
     }
+    // A map whose images are none of the dataset's views (built from a recording): its places are
+    // not the dataset's Points, so the Point and view rows do not apply.
+    let foreign_map = !opts.map_images.is_empty()
+        && opts
+            .map_images
+            .iter()
+            .all(|(id, _)| !db_pose.contains_key(id));
     for (id, pose) in &opts.map_images {
         db_pose
             .entry(id.clone())
@@ -568,7 +576,7 @@ pub fn run(
         &mut rr.reranked_point_at_1,
         &mut rr.reranked_view_at_1,
     ] {
-        *x /= nq;
+        *x = if foreign_map { f64::NAN } else { *x / nq };
     }
     let stage_ms = [
         ("resampling", sums.resampling),
@@ -769,10 +777,14 @@ pub fn table(report: &EvalReport) -> String {
         s.push('\n');
     }
     let r = &report.retrieval;
-    s += &format!(
-        "retrieval: right Point @1 {:.3} @5 {:.3}; best-overlap view @1 {:.3} @5 {:.3}; after re-ranking: Point {:.3}, view {:.3}\n",
-        r.point_at_1, r.point_at_5, r.view_at_1, r.view_at_5, r.reranked_point_at_1, r.reranked_view_at_1
-    );
+    if r.point_at_1.is_nan() {
+        s += "retrieval: right Point and best-overlap view n/a (the map's images are not the dataset's views)\n";
+    } else {
+        s += &format!(
+            "retrieval: right Point @1 {:.3} @5 {:.3}; best-overlap view @1 {:.3} @5 {:.3}; after re-ranking: Point {:.3}, view {:.3}\n",
+            r.point_at_1, r.point_at_5, r.view_at_1, r.view_at_5, r.reranked_point_at_1, r.reranked_view_at_1
+        );
+    }
     s += &format!(
         "precision of LOCALIZED answers: (1m, 10deg) {:.4} (5m, 20deg) {:.4}; {} LOCALIZED more than 5 m / 20 deg off\n",
         report.precision["1m_10deg"], report.precision["5m_20deg"], report.localized_wrong
