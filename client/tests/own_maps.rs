@@ -255,3 +255,57 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
     assert!(e.contains("one per sequence"), "{e}");
     assert!(!dir.path().join("x.pntrmap").exists());
 }
+
+#[test]
+fn a_distorted_camera_is_undistorted_as_its_frames_are_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("data");
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+    ok(&pntr(&[
+        "synth",
+        "--out",
+        root.to_str().unwrap(),
+        "--points-per-scene",
+        "4",
+        "--queries-per-point",
+        "4",
+        "--seed",
+        "33",
+        "--trajectory-seconds",
+        "120",
+        "--mapping-run",
+        "--query-camera",
+        "320x240",
+        "--query-distortion=-0.2,0.05,0,0,0",
+    ]));
+    let seq = root.join("sequences/synth000");
+    let calib = std::fs::read_to_string(seq.join("calibration.txt")).unwrap();
+    assert_eq!(calib.split_whitespace().count(), 9, "{calib}");
+    let map = dir.path().join("lens.pntrmap");
+    let out = ok(&pntr(&[
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--out",
+        map.to_str().unwrap(),
+        "--models",
+        models,
+        "--json",
+    ]));
+    let s: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert!(
+        s["check"]["localized_share"].as_f64().unwrap() >= 0.9,
+        "{s}"
+    );
+    assert!(s["check"]["ate_rmse_m"].as_f64().unwrap() <= 0.05, "{s}");
+    // The map holds rectified images: its camera has no distortion.
+    let info: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+        "info",
+        "--db",
+        map.to_str().unwrap(),
+        "--json",
+    ])))
+    .unwrap();
+    let d: Vec<f64> = serde_json::from_value(info["intrinsics"]["distortion"].clone()).unwrap();
+    assert!(d.iter().all(|v| *v == 0.0), "{info}");
+}
