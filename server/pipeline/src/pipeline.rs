@@ -168,9 +168,9 @@ pub struct Localization {
     /// ([`crate::odometry`]; `mode` is then [`Mode::Tracking`]).
     pub odometry: bool,
     /// A map answer that verified but lay outside the tracking region or turn bound, so it was
-    /// refused: its pose (map frame, Habitat axes) and calibrated confidence. The frame is then
-    /// NOT_LOCALIZED, or answered by odometry. A stream weighs such answers against its track (the
-    /// service's challenge rule).
+    /// refused, or a re-anchoring map answer that disagreed with the stream's odometry: its pose (map
+    /// frame, the map's axes) and calibrated confidence. The frame is then NOT_LOCALIZED, or answered
+    /// by odometry. A stream weighs such answers against its track (the service's challenge rule).
     pub off_track: Option<(Isometry3<f64>, f64)>,
     /// The keyframe the stream's next frame tracks from, when asked for
     /// ([`LocalizeOptions::want_keyframe`]) and LOCALIZED.
@@ -645,8 +645,9 @@ impl Pipeline {
 
     /// A LOCALIZED map answer `loc` of a tracked stream whose keyframe was not tried yet (a
     /// re-anchoring frame): when the keyframe also registers and the two poses disagree (0.5 m, 10
-    /// deg), the camera cannot have jumped, so the map answer is a look-alike and odometry answers;
-    /// otherwise the map answer stands and the frame becomes the anchored keyframe.
+    /// deg), the camera cannot have jumped, so odometry answers and the map answer goes along as a
+    /// challenger (`off_track`: two confident ones that agree move the track); otherwise the map
+    /// answer stands and the frame becomes the anchored keyframe.
     fn settle(
         &self,
         loc: Localization,
@@ -659,7 +660,13 @@ impl Pipeline {
             if let Ok(hop) = self.odometry_answer(key, frame, opts, &mut times, t0)? {
                 let hop_pose = hop.pose.expect("odometry answers are LOCALIZED");
                 if !poses_agree(&hop_pose, &pose, 0.5, 10.0) {
-                    return Ok(hop);
+                    // The refused map answer still challenges the track: a chain that slipped
+                    // onto a wrong pose is moved when confident map answers keep agreeing with
+                    // each other against it (the service's challenge rule).
+                    return Ok(Localization {
+                        off_track: Some((pose, loc.confidence)),
+                        ..hop
+                    });
                 }
             }
             let loc = Localization { times, ..loc };
