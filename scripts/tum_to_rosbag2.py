@@ -354,15 +354,20 @@ def selftest():
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
-    ap.add_argument('tum_dir', nargs='?'); ap.add_argument('out_bag_dir', nargs='?')
-    ap.add_argument('--colour', choices=['png', 'jpeg'], default='png')
-    ap.add_argument('--max-messages-per-file', type=int)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split('\n')[0],
+        epilog='Topics: /camera/color/image_raw/compressed, /camera/aligned_depth_to_color/image_raw/compressedDepth, '
+               '/camera/color/camera_info; TF: map -> odom -> base_link -> camera_link -> camera_color_optical_frame.')
+    ap.add_argument('tum_dir', nargs='?', help='the TUM RGB-D folder (rgb.txt, depth.txt, groundtruth.txt, calibration.txt)')
+    ap.add_argument('out_bag_dir', nargs='?', help='the rosbag2 folder to write (must not exist)')
+    ap.add_argument('--colour', choices=['png', 'jpeg'], default='png', help='CompressedImage format of the colour topic')
+    ap.add_argument('--max-messages-per-file', type=int, help='split the bag into .mcap files of at most this many messages')
     ap.add_argument('--tf-offset', default='0', help='seconds between image stamps and odom->base_link samples')
-    ap.add_argument('--no-tf', action='store_true'); ap.add_argument('--pose-topic')
+    ap.add_argument('--no-tf', action='store_true', help='no TF: poses as PoseStamped of the optical frame on --pose-topic')
+    ap.add_argument('--pose-topic', help='with --no-tf: the PoseStamped topic (default /ground_truth)')
     ap.add_argument('--odometry-topic', help='poses as nav_msgs/Odometry of base_link in map (20 Hz) with /tf_static, no /tf')
-    ap.add_argument('--bag-version', type=int, choices=[8, 9], default=9)
-    ap.add_argument('--selftest', action='store_true')
+    ap.add_argument('--bag-version', type=int, choices=[8, 9], default=9, help='rosbag2 metadata version')
+    ap.add_argument('--selftest', action='store_true', help='write small bags into a temporary folder and check them')
     a = ap.parse_args(argv)
     if a.selftest: return selftest()
     if not (a.tum_dir and a.out_bag_dir): ap.error('TUM_DIR and OUT_BAG_DIR are required')

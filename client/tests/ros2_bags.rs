@@ -266,6 +266,41 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         "{e}"
     );
 
+    // A body frame given as the camera frame: the map builds, with warnings saying what is wrong.
+    let (body, _) = build(
+        &png,
+        &dir.path().join("body.pntrmap"),
+        &["--camera-frame", "camera_link"],
+    );
+    let w = body["warnings"].to_string();
+    assert!(
+        w.contains("frame_id is camera_color_optical_frame") && w.contains("optical frame"),
+        "{body}"
+    );
+    // A missing trajectory file names the flag; a folder of .mcap files without metadata.yaml says
+    // what to give instead.
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        png.to_str().unwrap(),
+        "--trajectory",
+        dir.path().join("nope.txt").to_str().unwrap(),
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(e.contains("--trajectory"), "{e}");
+    let loose = dir.path().join("loose");
+    std::fs::create_dir(&loose).unwrap();
+    std::fs::copy(png.join("bag_png_0.mcap"), loose.join("bag_png_0.mcap")).unwrap();
+    let e = err(&pntr(&[
+        "build-db",
+        "--sequence",
+        loose.to_str().unwrap(),
+        "--out",
+        dir.path().join("x.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(e.contains("without metadata.yaml"), "{e}");
+
     // A bag cut short by a power loss: its intact part is read, with a warning.
     let cut = dir.path().join("bag_cut");
     std::fs::create_dir(&cut).unwrap();

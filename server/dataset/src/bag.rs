@@ -704,6 +704,13 @@ impl Bag {
                 Err(e) => (None, Some(e.to_string())),
             },
         };
+        if let (Some(given), Some(images)) = (&topics.camera_frame, &camera_frame) {
+            if given.trim_start_matches('/') != images.trim_start_matches('/') {
+                warnings.push(format!(
+                    "the colour images' frame_id is {images} but poses are looked up for --camera-frame {given}: the map's poses must be those of the images' optical frame"
+                ));
+            }
+        }
         let camera_frame = topics
             .camera_frame
             .clone()

@@ -37,6 +37,7 @@ pub struct Recording {
     pub path: PathBuf,
     source: Source,
     trajectory: Option<Trajectory>,
+    depth_units_per_m: Option<f64>,
 }
 
 impl std::fmt::Debug for Recording {
@@ -84,15 +85,21 @@ impl Recording {
             }
             Source::Tum(s)
         };
-        let trajectory = opts
-            .trajectory
-            .as_deref()
-            .map(Trajectory::read)
-            .transpose()?;
+        let trajectory = match opts.trajectory.as_deref() {
+            Some(t) if !t.is_file() => {
+                return Err(DatasetError::Layout {
+                    path: t.to_path_buf(),
+                    problem: "the --trajectory file does not exist".into(),
+                })
+            }
+            Some(t) => Some(Trajectory::read(t)?),
+            None => None,
+        };
         Ok(Self {
             path: path.to_path_buf(),
             source,
             trajectory,
+            depth_units_per_m: opts.depth_units_per_m,
         })
     }
 
@@ -115,6 +122,11 @@ impl Recording {
             Source::Tum(s) => s.intrinsics,
             Source::Bag(b) => b.intrinsics,
         }
+    }
+
+    /// The depth unit the caller gave (`--depth-scale`), if any.
+    pub fn depth_units_per_m(&self) -> Option<f64> {
+        self.depth_units_per_m
     }
 
     /// Why the recording's own camera cannot be used, when it cannot (a bag's CameraInfo with an
@@ -194,14 +206,16 @@ pub fn depth_unit_hint(depth: &DepthMap, units_per_m: Option<f64>) -> Option<Str
     let mid = v.len() / 2;
     let (_, m, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
     let m = *m as f64;
-    let said = units_per_m.map_or("the format's".to_string(), |u| format!("{u}"));
+    let said = units_per_m.map_or("the format's".to_string(), |u| {
+        format!("{u} (your --depth-scale)")
+    });
     if m > 15.0 {
         Some(format!(
-            "the median depth is {m:.1} m at {said} units per metre: too far for an indoor RGB-D camera; the depth is likely in finer units (give --depth-scale: units per metre, e.g. 1000 for millimetres, 4000 for 0.25 mm, 5000 for TUM's)"
+            "the median depth is {m:.1} m at {said} units per metre: too far for an indoor RGB-D camera; the depth is likely in finer units (give --depth-scale with the sensor's units per metre, e.g. 1000 for millimetres, 4000 for 0.25 mm, 5000 for TUM's)"
         ))
     } else if m < 0.15 {
         Some(format!(
-            "the median depth is {m:.3} m at {said} units per metre: too near for an indoor RGB-D camera; the depth is likely in coarser units (give --depth-scale: units per metre, e.g. 1000 for millimetres, 5000 for TUM's)"
+            "the median depth is {m:.3} m at {said} units per metre: too near for an indoor RGB-D camera; the depth is likely in coarser units (give --depth-scale with the sensor's units per metre, e.g. 1000 for millimetres, 5000 for TUM's)"
         ))
     } else {
         None

@@ -249,6 +249,21 @@ impl TumSequence {
                 "not a folder (expected a TUM RGB-D sequence: rgb.txt, depth.txt, rgb/, depth/)",
             ));
         }
+        if !root.join("rgb.txt").is_file() {
+            let mcap = std::fs::read_dir(root).is_ok_and(|d| {
+                d.filter_map(|e| e.ok()).any(|e| {
+                    e.path()
+                        .extension()
+                        .is_some_and(|x| x.eq_ignore_ascii_case("mcap"))
+                })
+            });
+            if mcap {
+                return Err(layout(
+                    root,
+                    "a folder of .mcap files without metadata.yaml: give the .mcap file itself, or the rosbag2 folder with its metadata.yaml",
+                ));
+            }
+        }
         let rgb = file_list(root, "rgb.txt")?;
         let depth = file_list(root, "depth.txt")?;
         let gt_path = root.join("groundtruth.txt");

@@ -100,7 +100,7 @@ fn infer_up(down_sum: &Vector3<f64>, n: usize) -> (String, Option<String>) {
         ))
     } else if v.abs() < 0.7 * up.norm().max(1e-9) {
         Some(format!(
-            "the cameras' mean up direction ({:.2}, {:.2}, {:.2}) is not close to an axis; up recorded as {axis} (give --up-axis)",
+            "the cameras' mean up direction ({:.2}, {:.2}, {:.2}) is not close to the y or z axis; up recorded as {axis}. Are the poses of the optical frame (x right, y down, z forward)? A body frame such as camera_link or base_link (x forward, z up) gives this: check --camera-frame or --pose-topic (or give --up-axis if the poses are right)",
             up.x, up.y, up.z
         ))
     } else {
@@ -186,7 +186,7 @@ pub fn build(
                 )));
             }
             if !unit_checked && depth.valid_count() > 0 {
-                if let Some(hint) = depth_unit_hint(&depth, None) {
+                if let Some(hint) = depth_unit_hint(&depth, rec.depth_units_per_m()) {
                     return Err(PipelineError::Config(format!(
                         "{}: frame {i}: {hint}",
                         rec.path.display()
