@@ -260,7 +260,7 @@ impl TumSequence {
             if mcap {
                 return Err(layout(
                     root,
-                    "a folder of .mcap files without metadata.yaml: give the .mcap file itself, or the rosbag2 folder with its metadata.yaml",
+                    "no rgb.txt (not a TUM RGB-D sequence), and .mcap files without metadata.yaml (not a rosbag2 folder): give the .mcap file itself, or the rosbag2 folder with its metadata.yaml",
                 ));
             }
         }
