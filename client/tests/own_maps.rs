@@ -4,33 +4,12 @@
 //! lists the map's images with their stamps and poses, and `pntr eval` localizes the scene's
 //! HPointLoc queries (Habitat axes) against the recording's map (optical axes).
 
+mod support;
+
 use std::path::Path;
-use std::process::{Command, Output};
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
-
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .env_remove("PNTR_TOKEN")
-        .output()
-        .expect("pntr runs")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn err(out: &Output) -> String {
-    assert!(!out.status.success(), "expected a failure");
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
+use support::{err, ok, pntr};
 
 /// groundtruth.txt rows: (stamp, translation, rotation).
 fn trajectory(path: &Path) -> Vec<(f64, Vector3<f64>, UnitQuaternion<f64>)> {

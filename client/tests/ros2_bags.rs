@@ -4,35 +4,15 @@
 //! TF: `/tf_static` base_link -> camera_link -> optical frame and `/tf` map -> odom -> base_link, or a
 //! PoseStamped topic), and `pntr build-db --sequence BAG_DIR` and `pntr replay` read them.
 
+mod support;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
 use pntr_service::config::Settings;
 use pntr_service::tokio;
-
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .env_remove("PNTR_TOKEN")
-        .output()
-        .expect("pntr runs")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn err(out: &Output) -> String {
-    assert!(!out.status.success(), "expected a failure");
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
+use support::{err, ok, pntr};
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

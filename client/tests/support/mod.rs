@@ -1,6 +1,36 @@
 //! Checks shared by the CLI tests.
 
+// Each test binary uses its own part of this module.
+#![allow(dead_code)]
+
 use std::path::Path;
+use std::process::{Command, Output};
+
+/// Run the `pntr` binary under test (without a token from the environment).
+pub fn pntr(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(args)
+        .env_remove("PNTR_TOKEN")
+        .output()
+        .expect("pntr runs")
+}
+
+/// Its stdout, asserting it succeeded (stdout and stderr shown when not).
+pub fn ok(out: &Output) -> String {
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Its stderr, asserting it failed.
+pub fn err(out: &Output) -> String {
+    assert!(!out.status.success(), "expected a failure");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
 
 /// A picture `pntr ... --plot` wrote: `dir/name.png` decodes at `size` with more than a few colours
 /// (lines and text, not a blank canvas), and `dir/name.svg` is an SVG document holding every one of
