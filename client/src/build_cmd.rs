@@ -9,7 +9,7 @@ use pntr_dataset::recording::{Recording, RecordingOptions};
 use pntr_pipeline::keyframes::KeyframeParams;
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::Pipeline;
-use pntr_pipeline::recording_map::{self, CheckReport, Session};
+use pntr_pipeline::recording_map::{self, Session};
 use serde_json::json;
 
 use crate::map_cmd::{bar, feature_stage, map_feature_stage, models_dir, BuildArgs};
@@ -105,18 +105,6 @@ fn as_sessions(recs: &[(Recording, Intrinsics)]) -> Vec<Session<'_>> {
             camera: *camera,
         })
         .collect()
-}
-
-fn check_json(c: &CheckReport) -> serde_json::Value {
-    json!({
-        "frames": c.frames,
-        "localized_share": c.localized_share,
-        "ate_rmse_m": c.ate_rmse_m,
-        "frames_over_1m": c.frames_over_1m,
-        "frames_over_10deg": c.frames_over_10deg,
-        "kind": c.kind,
-        "seconds": c.seconds,
-    })
 }
 
 /// `pntr build-db --sequence ...`.
@@ -258,7 +246,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         "up_axis_inferred": report.up_axis_inferred,
         "stage_seconds": stage_seconds,
         "sequences": args.sequence.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
-        "check": check.as_ref().map(check_json),
+        "check": check.as_ref().map(serde_json::to_value).transpose()?,
         "warnings": report.warnings,
     });
     if args.json {
