@@ -9,6 +9,7 @@ mod build_cmd;
 mod calibrate_cmd;
 mod localize_cmd;
 mod map_cmd;
+mod maps_cmd;
 mod plot;
 mod register_cmd;
 mod remote;
@@ -67,6 +68,10 @@ enum Command {
         #[arg(long, requires = "db")]
         images: bool,
     },
+    /// Administer the maps of a running pntr-server without a restart: list, load, replace, unload,
+    /// reload (needs the server's admin token).
+    #[command(subcommand)]
+    Maps(maps_cmd::MapsCommand),
     /// The main job on the embedded default: the demo scene and its map (made once, cached), served by
     /// an in-process pntr-server and queried over gRPC; prints the recall table and stage timings.
     Demo {
@@ -103,6 +108,7 @@ fn main() {
         Command::Replay(args) => replay_cmd::run(&args),
         Command::Eval(args) => map_cmd::eval(&args),
         Command::Calibrate(args) => calibrate_cmd::run(&args),
+        Command::Maps(cmd) => maps_cmd::run(&cmd),
         Command::Info {
             dataset,
             db,

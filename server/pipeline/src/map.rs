@@ -129,6 +129,10 @@ pub struct MapHeader {
     pub built_by: String,
     /// Seconds the build took.
     pub build_seconds: f64,
+    /// When the map was built (or last extended), seconds since the Unix epoch, UTC. Maps written
+    /// before it was recorded have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub built_at_unix_s: Option<f64>,
 }
 
 fn default_up_axis() -> String {
@@ -161,6 +165,10 @@ pub struct Map {
     pub images: Vec<MapImage>,
     /// Retrieval over the images.
     pub retriever: Retriever,
+    /// FNV-1a over the checksums of the file's sections (HEAD, IMGS, RETR) when the map was read
+    /// from a file, so two files with the same content have the same value; 0 for a map built in
+    /// memory and not read back.
+    pub checksum: u64,
 }
 
 impl Map {
@@ -212,6 +220,13 @@ impl Map {
             .map(String::as_str)
             .unwrap_or("")
     }
+}
+
+/// Seconds since the Unix epoch now (0 on a clock set before 1970).
+pub fn unix_now_s() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
 }
 
 /// FNV-1a checksum of a model file, as hex.
@@ -450,9 +465,11 @@ impl<'a> MapBuilder<'a> {
                 scenes,
                 built_by: format!("pntr {}", env!("CARGO_PKG_VERSION")),
                 build_seconds: self.t0.elapsed().as_secs_f64(),
+                built_at_unix_s: Some(unix_now_s()),
             },
             images: self.images,
             retriever,
+            checksum: 0,
         })
     }
 }

@@ -466,6 +466,7 @@ pub fn load(
     let (tag, head) = small_section(&mut r, path)?;
     expect(&tag, b"HEAD", path)?;
     let header = parse_header(&head, path)?;
+    let mut content = fnv1a_update(FNV1A_START, &pntr_core::bytes::fnv1a(&head).to_le_bytes());
     let (tag, len) = section_head(&mut r, path)?;
     expect(&tag, b"IMGS", path)?;
     let file_len = std::fs::metadata(path).map_err(io(path))?.len();
@@ -524,8 +525,10 @@ pub fn load(
         ));
     }
     read_sum(&mut r, path, b"IMGS", state)?;
+    content = fnv1a_update(content, &state.to_le_bytes());
     let (tag, retr) = small_section(&mut r, path)?;
     expect(&tag, b"RETR", path)?;
+    content = fnv1a_update(content, &pntr_core::bytes::fnv1a(&retr).to_le_bytes());
     let retriever =
         Retriever::from_bytes(&retr, onnx).map_err(|e| bad(path, format!("section RETR: {e}")))?;
     let (tag, _) = small_section(&mut r, path)?;
@@ -558,5 +561,6 @@ pub fn load(
         header,
         images,
         retriever,
+        checksum: content,
     })
 }

@@ -114,6 +114,15 @@ pub struct Args {
     /// Read the bearer token from this file (surrounding whitespace is ignored).
     #[arg(long, env = "PNTR_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
+    /// Turn on map administration (`pntr.v1.MapAdmin`: `pntr maps list|load|replace|unload`) with this
+    /// token, which admin calls must send as `authorization: Bearer <TOKEN>` and which must differ
+    /// from --token (prefer PNTR_ADMIN_TOKEN or --admin-token-file) [default: off, every admin call
+    /// refused].
+    #[arg(long, env = "PNTR_ADMIN_TOKEN", hide_env_values = true)]
+    pub admin_token: Option<String>,
+    /// Read the admin token from this file (surrounding whitespace is ignored).
+    #[arg(long, env = "PNTR_ADMIN_TOKEN_FILE")]
+    pub admin_token_file: Option<PathBuf>,
     /// TLS certificate chain (PEM); needs --tls-key.
     #[arg(long, env = "PNTR_TLS_CERT")]
     pub tls_cert: Option<PathBuf>,
@@ -173,6 +182,8 @@ struct FileSettings {
     keepalive_timeout_s: Option<f64>,
     token: Option<String>,
     token_file: Option<PathBuf>,
+    admin_token: Option<String>,
+    admin_token_file: Option<PathBuf>,
     tls_cert: Option<PathBuf>,
     tls_key: Option<PathBuf>,
     calibration: Option<PathBuf>,
@@ -203,6 +214,7 @@ impl FileSettings {
         [
             &mut s.models,
             &mut s.token_file,
+            &mut s.admin_token_file,
             &mut s.tls_cert,
             &mut s.tls_key,
             &mut s.calibration,
@@ -249,6 +261,8 @@ pub struct Settings {
     pub keepalive_timeout: Duration,
     /// Bearer token required on every RPC but health.
     pub token: Option<String>,
+    /// Token of the map administration API (`None`: every admin call is refused).
+    pub admin_token: Option<String>,
     /// TLS certificate chain and key (PEM files).
     pub tls: Option<(PathBuf, PathBuf)>,
     /// Confidence calibration file (`None`: the embedded default).
@@ -281,6 +295,10 @@ impl std::fmt::Debug for Settings {
             .field("keepalive_interval", &self.keepalive_interval)
             .field("keepalive_timeout", &self.keepalive_timeout)
             .field("token", &self.token.as_ref().map(|_| "<redacted>"))
+            .field(
+                "admin_token",
+                &self.admin_token.as_ref().map(|_| "<redacted>"),
+            )
             .field("tls", &self.tls)
             .field("calibration", &self.calibration)
             .field("min_confidence", &self.min_confidence)
@@ -304,6 +322,25 @@ fn seconds(
         ));
     }
     Ok(Duration::from_secs_f64(s))
+}
+
+/// A token given directly or in a file (not both); `what` names it in errors.
+fn token_of(
+    what: &str,
+    given: Option<String>,
+    file: Option<PathBuf>,
+) -> Result<Option<String>, ConfigError> {
+    match (given, file) {
+        (Some(_), Some(_)) => bad(format!("give the {what} or a {what} file, not both")),
+        (Some(t), None) => Ok(Some(t)),
+        (None, Some(p)) => Ok(Some(
+            std::fs::read_to_string(&p)
+                .or_else(|e| bad(format!("{what} file {}: {e}", p.display())))?
+                .trim()
+                .to_string(),
+        )),
+        (None, None) => Ok(None),
+    }
 }
 
 fn default_workers() -> usize {
@@ -335,6 +372,7 @@ impl Settings {
             keepalive_interval: Some(Duration::from_secs_f64(DEFAULT_KEEPALIVE_INTERVAL_S)),
             keepalive_timeout: Duration::from_secs_f64(DEFAULT_KEEPALIVE_TIMEOUT_S),
             token: None,
+            admin_token: None,
             tls: None,
             calibration: None,
             min_confidence: None,
@@ -365,20 +403,16 @@ impl Settings {
             .workers
             .or(file.workers)
             .unwrap_or_else(default_workers);
-        let token = match (
+        let token = token_of(
+            "token",
             args.token.or(file.token),
             args.token_file.or(file.token_file),
-        ) {
-            (Some(_), Some(_)) => return bad("give the token or a token file, not both"),
-            (Some(t), None) => Some(t),
-            (None, Some(p)) => Some(
-                std::fs::read_to_string(&p)
-                    .or_else(|e| bad(format!("token file {}: {e}", p.display())))?
-                    .trim()
-                    .to_string(),
-            ),
-            (None, None) => None,
-        };
+        )?;
+        let admin_token = token_of(
+            "admin token",
+            args.admin_token.or(file.admin_token),
+            args.admin_token_file.or(file.admin_token_file),
+        )?;
         let tls = match (
             args.tls_cert.or(file.tls_cert),
             args.tls_key.or(file.tls_key),
@@ -441,6 +475,7 @@ impl Settings {
                 600.0,
             )?,
             token,
+            admin_token,
             tls,
             calibration: args.calibration.or(file.calibration),
             min_confidence: args.min_confidence.or(file.min_confidence),
@@ -542,14 +577,22 @@ impl Settings {
                 }
             }
         }
-        if let Some(t) = &self.token {
-            // Checked without echoing the value.
-            if t.is_empty() {
-                return bad("the bearer token is empty");
+        for (what, token) in [
+            ("the bearer token", &self.token),
+            ("the admin token", &self.admin_token),
+        ] {
+            if let Some(t) = token {
+                // Checked without echoing the value.
+                if t.is_empty() {
+                    return bad(format!("{what} is empty"));
+                }
+                if !t.bytes().all(|b| b.is_ascii_graphic()) {
+                    return bad(format!("{what} must be printable ASCII without spaces"));
+                }
             }
-            if !t.bytes().all(|b| b.is_ascii_graphic()) {
-                return bad("the bearer token must be printable ASCII without spaces");
-            }
+        }
+        if self.admin_token.is_some() && self.admin_token == self.token {
+            return bad("the admin token must differ from the clients' bearer token (--token): a robot must not be able to change maps");
         }
         if let Some((c, k)) = &self.tls {
             for (name, p) in [("tls-cert", c), ("tls-key", k)] {

@@ -15,10 +15,10 @@
 
 use std::collections::{BTreeSet, HashMap};
 use std::panic::AssertUnwindSafe;
-use std::path::Path;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, RwLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -37,8 +37,9 @@ use tracing::Span;
 use crate::config::Settings;
 use crate::telemetry;
 
-/// One loaded map.
-#[derive(Debug)]
+/// One loaded map, with what each worker needs to localize in it. Held by `Arc`: the engine's list
+/// holds one, every job in flight another, so a map that is replaced or unloaded is freed when the
+/// last job that started on it is done.
 pub struct LoadedMap {
     /// The id from the map's header.
     pub id: String,
@@ -50,12 +51,110 @@ pub struct LoadedMap {
     pub preset: Preset,
     /// Where its preset's extractor network runs ([`pntr_features::Extractor::engine`]).
     pub extractor_engine: &'static str,
+    /// The file it was loaded from, as given.
+    pub file: PathBuf,
+    /// Its version ([`MapVersion`]).
+    pub version: MapVersion,
+    /// The world frame its poses are in: equal for two loaded maps when a replacement shares the
+    /// frame of the map it replaced ([`shares_frame`]), so that a stream's tracking state carries over.
+    pub frame: u64,
+    /// Unique to this load: a stream's keyframe refers to map images by index, valid only here.
+    pub serial: u64,
+    /// Size and modification time of the file when it was read (SIGHUP reloads changed files only).
+    pub file_stamp: Option<(u64, std::time::SystemTime)>,
+    /// One pipeline per worker (each over that worker's own model sessions).
+    pipelines: Vec<Pipeline>,
+}
+
+impl std::fmt::Debug for LoadedMap {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "LoadedMap({} {} from {})",
+            self.id,
+            self.version.label,
+            self.file.display()
+        )
+    }
+}
+
+/// A map's version: its build time and a checksum of its content.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapVersion {
+    /// [`pntr_pipeline::map::Map::checksum`].
+    pub checksum: u64,
+    /// When it was built or last extended, seconds since the Unix epoch (`None`: older maps).
+    pub built_at_unix_s: Option<f64>,
+    /// `20261203T041500Z-3f2a9c1e0b7d4a55`, or `unknown-3f2a9c1e0b7d4a55`.
+    pub label: String,
+    /// RFC 3339 UTC, or empty.
+    pub built_at: String,
+}
+
+impl MapVersion {
+    /// The version of `map` (its header's build time and its content checksum).
+    pub fn of(map: &Map) -> Self {
+        let at = map
+            .header
+            .built_at_unix_s
+            .filter(|s| s.is_finite())
+            .and_then(|s| time::OffsetDateTime::from_unix_timestamp(s.floor() as i64).ok());
+        let compact = time::macros::format_description!(
+            "[year][month][day]T[hour][minute][second]Z"
+        );
+        let label = match at.and_then(|t| t.format(&compact).ok()) {
+            Some(t) => format!("{t}-{:016x}", map.checksum),
+            None => format!("unknown-{:016x}", map.checksum),
+        };
+        let built_at = at
+            .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+            .unwrap_or_default();
+        Self {
+            checksum: map.checksum,
+            built_at_unix_s: map.header.built_at_unix_s,
+            label,
+            built_at,
+        }
+    }
+}
+
+/// Whether map `new` holds its poses in the world frame of `old` (see the proto's
+/// `MapChange.same_frame`): the same camera axes and up axis, and among the images both hold under
+/// the same id at least 3 (all of `old`'s when it has fewer), whose poses agree within 5 cm and
+/// 1 degree at the median.
+pub fn shares_frame(old: &Map, new: &Map) -> bool {
+    if old.header.camera_axes != new.header.camera_axes || old.header.up_axis != new.header.up_axis
+    {
+        return false;
+    }
+    let by_id: HashMap<&str, &pntr_pipeline::map::MapImage> =
+        new.images.iter().map(|im| (im.id.as_str(), im)).collect();
+    let mut dt = Vec::new();
+    let mut dr = Vec::new();
+    for a in &old.images {
+        if let Some(b) = by_id.get(a.id.as_str()) {
+            if old.header.scenes.get(a.scene as usize) != new.header.scenes.get(b.scene as usize) {
+                continue;
+            }
+            let d = a.world_from_camera.inverse() * b.world_from_camera;
+            dt.push(d.translation.vector.norm());
+            dr.push(d.rotation.angle().to_degrees());
+        }
+    }
+    if dt.len() < 3.min(old.images.len()).max(1) {
+        return false;
+    }
+    let median = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    median(&mut dt) <= 0.05 && median(&mut dr) <= 1.0
 }
 
 /// A frame waiting for a worker.
 pub struct Job {
-    /// Index into [`Engine::maps`].
-    pub map: usize,
+    /// The map to localize in (held until the job is done).
+    pub map: Arc<LoadedMap>,
     /// The decoded frame.
     pub query: Query,
     /// A prior or tracking region to try first.
@@ -92,6 +191,27 @@ pub enum Outcome {
     },
 }
 
+/// Why a map could not be swapped in or out.
+#[derive(Debug, thiserror::Error)]
+pub enum InstallError {
+    /// Loading a map whose id is already loaded.
+    #[error("map `{0}` is already loaded: replace it instead")]
+    Exists(String),
+    /// Replacing or unloading a map that is not loaded.
+    #[error("no map `{0}` is loaded")]
+    Missing(String),
+    /// Replacing a map by a file that holds another map.
+    #[error("{file} holds map `{found}`, not `{wanted}`: a map is replaced by a file of the same map id (build it with --map-id {wanted})", file = .file.display())]
+    OtherId {
+        /// The map to replace.
+        wanted: String,
+        /// The id in the file.
+        found: String,
+        /// The file.
+        file: PathBuf,
+    },
+}
+
 /// Why a job was not queued.
 #[derive(Debug, PartialEq, Eq)]
 pub enum SubmitError {
@@ -101,16 +221,26 @@ pub enum SubmitError {
     Closed,
 }
 
+/// Key of a feature stage: extractor, matcher, keypoints.
+type StageKey = (String, String, usize);
+
 /// The maps and the worker pool.
 pub struct Engine {
-    /// Loaded maps, in `--db` order.
-    pub maps: Vec<LoadedMap>,
+    /// Loaded maps, swapped whole on every change (readers take a snapshot).
+    maps: RwLock<Arc<Vec<Arc<LoadedMap>>>>,
     /// Worker threads.
     pub workers: usize,
     /// Queue capacity.
     pub queue: usize,
     /// The LOCALIZED threshold on the calibrated confidence.
     pub min_confidence: f64,
+    runtime: RuntimeOptions,
+    models: PathBuf,
+    preset_override: Option<String>,
+    calibration: Arc<pntr_pipeline::calibration::Calibration>,
+    /// Each worker's feature stage per preset key, built once and shared by the maps that use it.
+    stages: Mutex<HashMap<StageKey, Vec<FeatureStage>>>,
+    serial: AtomicU64,
     tx: Mutex<Option<SyncSender<Job>>>,
     queued: Arc<AtomicUsize>,
     busy: Arc<AtomicUsize>,
@@ -119,7 +249,8 @@ pub struct Engine {
 
 impl std::fmt::Debug for Engine {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let ids: Vec<&str> = self.maps.iter().map(|m| m.id.as_str()).collect();
+        let maps = self.maps();
+        let ids: Vec<&str> = maps.iter().map(|m| m.id.as_str()).collect();
         write!(
             f,
             "Engine(maps {ids:?}, {} workers, queue {})",
@@ -141,59 +272,31 @@ fn load_map(path: &Path, runtime: &RuntimeOptions) -> Result<Map, PipelineError>
     })
 }
 
+/// Size and modification time of a file (`None` when unreadable).
+pub fn file_stamp(path: &Path) -> Option<(u64, std::time::SystemTime)> {
+    let m = std::fs::metadata(path).ok()?;
+    Some((m.len(), m.modified().ok()?))
+}
+
+/// Why a map could not be prepared for serving.
+#[derive(Debug, thiserror::Error)]
+pub enum PrepareError {
+    /// The file cannot be read or is not a usable map.
+    #[error("{0}")]
+    Map(String),
+    /// The map cannot be served with this server's preset or models.
+    #[error("{0}")]
+    Serve(String),
+}
+
 impl Engine {
-    /// Load every map and build `workers` sets of pipelines (blocking; seconds).
+    /// Load every map of `s.db` and start `workers` worker threads (blocking; seconds).
     pub fn load(s: &Settings) -> Result<Self, String> {
         let runtime = RuntimeOptions {
             threads: s.ort_threads,
             device: s.device,
             ..RuntimeOptions::default()
         };
-        let mut maps: Vec<LoadedMap> = Vec::new();
-        for path in &s.db {
-            let t = Instant::now();
-            let map =
-                load_map(path, &runtime).map_err(|e| format!("loading {}: {e}", path.display()))?;
-            let id = map.header.map_id.clone();
-            if let Some(other) = maps.iter().position(|m| m.id == id) {
-                return Err(format!(
-                    "{} and {} both hold map `{id}`: map ids must be unique",
-                    s.db[other].display(),
-                    path.display()
-                ));
-            }
-            let points = map
-                .images
-                .iter()
-                .map(|im| (im.scene, im.point))
-                .collect::<BTreeSet<_>>()
-                .len();
-            tracing::info!(map_id = %id, images = map.images.len(), file = %path.display(),
-                seconds = t.elapsed().as_secs_f64(), "map loaded");
-            let preset = match &s.preset {
-                Some(name) => Preset::named(name).map_err(|e| format!("--preset: {e}"))?,
-                None => map.header.preset.clone(),
-            };
-            let built = &map.header.preset;
-            preset.serves(built).map_err(|e| {
-                format!(
-                    "--preset {} cannot serve map `{id}` ({}): {e}",
-                    preset.name,
-                    path.display()
-                )
-            })?;
-            if preset.name != built.name {
-                tracing::info!(map_id = %id, built_with = %built.name,
-                    served_with = %preset.name, "map served with another preset of the same descriptors");
-            }
-            maps.push(LoadedMap {
-                id,
-                map: Arc::new(map),
-                points,
-                preset,
-                extractor_engine: "",
-            });
-        }
         let calibration = Arc::new(match &s.calibration {
             Some(p) => {
                 pntr_pipeline::calibration::Calibration::load(p).map_err(|e| e.to_string())?
@@ -206,101 +309,225 @@ impl Engine {
             min_confidence,
             "confidence calibration"
         );
-        // One set of pipelines per worker; maps built with the same preset share the worker's stage.
-        let mut per_worker: Vec<Vec<Pipeline>> = Vec::with_capacity(s.workers);
-        for w in 0..s.workers {
-            let mut stages: HashMap<(String, String, usize), FeatureStage> = HashMap::new();
-            let mut pipelines = Vec::with_capacity(maps.len());
-            for m in &maps {
-                let preset = m.preset.clone();
-                let key = (
-                    preset.extractor.clone(),
-                    preset.matcher.clone(),
-                    preset.keypoints,
-                );
-                let stage = match stages.get(&key) {
-                    Some(st) => st.clone(),
-                    None => {
-                        let cfg = pntr_features::config::FeatureConfig {
-                            runtime: runtime.clone(),
-                            ..preset.feature_config(s.models.clone())
-                        };
-                        let st = cfg.build().map_err(|e| {
-                            format!(
-                                "loading the models of preset {} from {}: {e}",
-                                preset.name,
-                                s.models.display()
-                            )
-                        })?;
-                        st.warm_up().map_err(|e| {
-                            format!("warming up the models of preset {}: {e}", preset.name)
-                        })?;
-                        stages.insert(key, st.clone());
-                        st
-                    }
-                };
-                let p = Pipeline::new(m.map.clone(), stage, preset)
-                    .map_err(|e| format!("map `{}`: {e}", m.id))?
-                    .with_calibration(calibration.clone(), Some(min_confidence));
-                pipelines.push(p);
-            }
-            tracing::debug!(worker = w, "pipelines ready");
-            per_worker.push(pipelines);
-        }
-        if let Some(first) = per_worker.first() {
-            for (m, p) in maps.iter_mut().zip(first) {
-                m.extractor_engine = p.stage.extractor.engine();
-                tracing::info!(map_id = %m.id, extractor = %m.preset.extractor,
-                    engine = m.extractor_engine, "extractor ready");
-            }
-        }
         let (tx, rx) = sync_channel::<Job>(s.queue);
-        let rx = Arc::new(Mutex::new(rx));
-        let queued = Arc::new(AtomicUsize::new(0));
-        let busy = Arc::new(AtomicUsize::new(0));
-        let mut threads = Vec::new();
-        for (w, pipelines) in per_worker.into_iter().enumerate() {
-            let rx = rx.clone();
-            let counters = (queued.clone(), busy.clone());
-            let t = std::thread::Builder::new()
-                .name(format!("pntr-worker-{w}"))
-                .spawn(move || worker(pipelines, rx, counters))
-                .map_err(|e| format!("starting worker {w}: {e}"))?;
-            threads.push(t);
-        }
-        Ok(Self {
-            maps,
+        let mut engine = Self {
+            maps: RwLock::new(Arc::new(Vec::new())),
             workers: s.workers,
             queue: s.queue,
             min_confidence,
+            runtime,
+            models: s.models.clone(),
+            preset_override: s.preset.clone(),
+            calibration,
+            stages: Mutex::new(HashMap::new()),
+            serial: AtomicU64::new(1),
             tx: Mutex::new(Some(tx)),
-            queued,
-            busy,
-            threads: Mutex::new(threads),
+            queued: Arc::new(AtomicUsize::new(0)),
+            busy: Arc::new(AtomicUsize::new(0)),
+            threads: Mutex::new(Vec::new()),
+        };
+        let mut maps: Vec<Arc<LoadedMap>> = Vec::new();
+        for path in &s.db {
+            let m = engine.prepare(path).map_err(|e| e.to_string())?;
+            if let Some(other) = maps.iter().find(|o| o.id == m.id) {
+                return Err(format!(
+                    "{} and {} both hold map `{}`: map ids must be unique",
+                    other.file.display(),
+                    path.display(),
+                    m.id
+                ));
+            }
+            maps.push(Arc::new(m));
+        }
+        *engine.maps.get_mut().unwrap_or_else(|e| e.into_inner()) = Arc::new(maps);
+        let rx = Arc::new(Mutex::new(rx));
+        let mut threads = Vec::new();
+        for w in 0..s.workers {
+            let rx = rx.clone();
+            let counters = (engine.queued.clone(), engine.busy.clone());
+            let t = std::thread::Builder::new()
+                .name(format!("pntr-worker-{w}"))
+                .spawn(move || worker(w, rx, counters))
+                .map_err(|e| format!("starting worker {w}: {e}"))?;
+            threads.push(t);
+        }
+        *engine.threads.get_mut().unwrap_or_else(|e| e.into_inner()) = threads;
+        Ok(engine)
+    }
+
+    /// Read the map file at `path` and make it ready to serve: its preset checked against the
+    /// server's, each worker's pipeline over it built (model sessions of a preset no loaded map used
+    /// yet are created and warmed up). Blocking; seconds for a large map. Nothing is served from it
+    /// until it is installed ([`Engine::install`]).
+    pub fn prepare(&self, path: &Path) -> Result<LoadedMap, PrepareError> {
+        let t = Instant::now();
+        let map = load_map(path, &self.runtime)
+            .map_err(|e| PrepareError::Map(format!("loading {}: {e}", path.display())))?;
+        let id = map.header.map_id.clone();
+        let points = map
+            .images
+            .iter()
+            .map(|im| (im.scene, im.point))
+            .collect::<BTreeSet<_>>()
+            .len();
+        let preset = match &self.preset_override {
+            Some(name) => {
+                Preset::named(name).map_err(|e| PrepareError::Serve(format!("--preset: {e}")))?
+            }
+            None => map.header.preset.clone(),
+        };
+        let built = &map.header.preset;
+        preset.serves(built).map_err(|e| {
+            PrepareError::Serve(format!(
+                "--preset {} cannot serve map `{id}` ({}): {e}",
+                preset.name,
+                path.display()
+            ))
+        })?;
+        if preset.name != built.name {
+            tracing::info!(map_id = %id, built_with = %built.name,
+                served_with = %preset.name, "map served with another preset of the same descriptors");
+        }
+        let stages = self.stages_for(&preset).map_err(PrepareError::Serve)?;
+        let map = Arc::new(map);
+        let mut pipelines = Vec::with_capacity(stages.len());
+        for stage in stages {
+            let p = Pipeline::new(map.clone(), stage, preset.clone())
+                .map_err(|e| PrepareError::Serve(format!("map `{id}`: {e}")))?
+                .with_calibration(self.calibration.clone(), Some(self.min_confidence));
+            pipelines.push(p);
+        }
+        let extractor_engine = pipelines
+            .first()
+            .map_or("", |p| p.stage.extractor.engine());
+        let version = MapVersion::of(&map);
+        let serial = self.serial.fetch_add(1, Ordering::SeqCst);
+        tracing::info!(map_id = %id, version = %version.label, images = map.images.len(),
+            file = %path.display(), extractor = %preset.extractor, engine = extractor_engine,
+            seconds = t.elapsed().as_secs_f64(), "map ready");
+        Ok(LoadedMap {
+            id,
+            map,
+            points,
+            preset,
+            extractor_engine,
+            file: path.to_path_buf(),
+            version,
+            frame: serial,
+            serial,
+            file_stamp: file_stamp(path),
+            pipelines,
         })
     }
 
+    /// Every worker's feature stage for `preset`, built (and warmed up) on first use.
+    fn stages_for(&self, preset: &Preset) -> Result<Vec<FeatureStage>, String> {
+        let key = (
+            preset.extractor.clone(),
+            preset.matcher.clone(),
+            preset.keypoints,
+        );
+        let mut stages = self.stages.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(s) = stages.get(&key) {
+            return Ok(s.clone());
+        }
+        let mut built = Vec::with_capacity(self.workers);
+        for _ in 0..self.workers {
+            let cfg = pntr_features::config::FeatureConfig {
+                runtime: self.runtime.clone(),
+                ..preset.feature_config(self.models.clone())
+            };
+            let st = cfg.build().map_err(|e| {
+                format!(
+                    "loading the models of preset {} from {}: {e}",
+                    preset.name,
+                    self.models.display()
+                )
+            })?;
+            st.warm_up()
+                .map_err(|e| format!("warming up the models of preset {}: {e}", preset.name))?;
+            built.push(st);
+        }
+        stages.insert(key, built.clone());
+        Ok(built)
+    }
+
+    /// The loaded maps now (a snapshot: later changes do not affect it).
+    pub fn maps(&self) -> Arc<Vec<Arc<LoadedMap>>> {
+        self.maps.read().unwrap_or_else(|e| e.into_inner()).clone()
+    }
+
+    /// Swap in `map`. With `replacing` the loaded map of that id is replaced (it must be loaded, and
+    /// `map` must hold the same id) and returned; without, `map`'s id must not be loaded yet. The
+    /// change is one pointer swap: a request resolves its map once, so it runs on either the old map
+    /// or the new one.
+    pub fn install(
+        &self,
+        map: LoadedMap,
+        replacing: Option<&str>,
+    ) -> Result<Option<Arc<LoadedMap>>, InstallError> {
+        let mut guard = self.maps.write().unwrap_or_else(|e| e.into_inner());
+        let mut next: Vec<Arc<LoadedMap>> = guard.as_ref().clone();
+        let at = next.iter().position(|m| m.id == map.id);
+        let old = match (replacing, at) {
+            (None, Some(_)) => return Err(InstallError::Exists(map.id)),
+            (None, None) => {
+                next.push(Arc::new(map));
+                None
+            }
+            (Some(id), _) if id != map.id => {
+                return Err(InstallError::OtherId {
+                    wanted: id.to_string(),
+                    found: map.id,
+                    file: map.file,
+                })
+            }
+            (Some(id), None) => return Err(InstallError::Missing(id.to_string())),
+            (Some(_), Some(i)) => Some(std::mem::replace(&mut next[i], Arc::new(map))),
+        };
+        *guard = Arc::new(next);
+        Ok(old)
+    }
+
+    /// Stop serving map `id`; returns it (freed once its last job is done).
+    pub fn remove(&self, id: &str) -> Result<Arc<LoadedMap>, InstallError> {
+        let mut guard = self.maps.write().unwrap_or_else(|e| e.into_inner());
+        let mut next: Vec<Arc<LoadedMap>> = guard.as_ref().clone();
+        let i = next
+            .iter()
+            .position(|m| m.id == id)
+            .ok_or_else(|| InstallError::Missing(id.to_string()))?;
+        let old = next.remove(i);
+        *guard = Arc::new(next);
+        Ok(old)
+    }
+
     /// The map a request names (empty = the only one).
-    pub fn resolve(&self, id: &str) -> Result<usize, tonic::Status> {
+    pub fn resolve(&self, id: &str) -> Result<Arc<LoadedMap>, tonic::Status> {
+        let maps = self.maps();
         let ids = || {
-            self.maps
-                .iter()
+            maps.iter()
                 .map(|m| m.id.as_str())
                 .collect::<Vec<_>>()
                 .join(", ")
         };
+        if maps.is_empty() {
+            return Err(tonic::Status::not_found(
+                "this server holds no map now (all were unloaded): load one with MapAdmin",
+            ));
+        }
         if id.is_empty() {
-            return if self.maps.len() == 1 {
-                Ok(0)
+            return if maps.len() == 1 {
+                Ok(maps[0].clone())
             } else {
                 Err(tonic::Status::invalid_argument(format!(
                     "map_id is empty but this server holds {} maps ({}): name one",
-                    self.maps.len(),
+                    maps.len(),
                     ids()
                 )))
             };
         }
-        self.maps.iter().position(|m| m.id == id).ok_or_else(|| {
+        maps.iter().find(|m| m.id == id).cloned().ok_or_else(|| {
             tonic::Status::not_found(format!("no map `{id}` on this server (maps: {})", ids()))
         })
     }
@@ -369,7 +596,7 @@ impl Drop for Busy<'_> {
 }
 
 fn worker(
-    pipelines: Vec<Pipeline>,
+    index: usize,
     rx: Arc<Mutex<Receiver<Job>>>,
     (queued, busy): (Arc<AtomicUsize>, Arc<AtomicUsize>),
 ) {
@@ -398,7 +625,7 @@ fn worker(
         } = job;
         let outcome = span.in_scope(|| {
             run(
-                &pipelines[map],
+                &map.pipelines[index],
                 &query,
                 &options,
                 deadline,
@@ -417,6 +644,8 @@ fn worker(
         }
         // The worker counts as free before the caller hears back.
         drop(guard);
+        // The job's hold on its map ends here, before the reply.
+        drop(map);
         if let Some(o) = outcome {
             let _ = reply.send(o);
         }

@@ -25,6 +25,7 @@
 //!   tests and `pntr eval --remote` encode frames exactly as the server decodes them. Clients use the
 //!   re-exported [`tonic`] (and health / reflection clients) so their versions always match.
 
+pub mod admin;
 pub mod config;
 pub mod decode;
 pub mod demo;
@@ -34,7 +35,7 @@ pub mod service;
 pub mod telemetry;
 pub mod wire;
 
-pub use server::{start, LoadState, Running, ServerError, SERVICE_NAME};
+pub use server::{start, LoadState, Running, ServerError, ADMIN_SERVICE_NAME, SERVICE_NAME};
 
 pub use {tokio, tokio_stream, tonic, tonic_health, tonic_reflection};
 

@@ -31,6 +31,30 @@ async fn signal() {
     }
 }
 
+/// Listens for SIGHUP (reload the map files); never resolves where there is none.
+struct Hangup {
+    #[cfg(unix)]
+    signal: Option<tokio::signal::unix::Signal>,
+}
+
+impl Hangup {
+    fn new() -> Self {
+        Self {
+            #[cfg(unix)]
+            signal: tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup()).ok(),
+        }
+    }
+
+    async fn recv(&mut self) {
+        #[cfg(unix)]
+        if let Some(s) = self.signal.as_mut() {
+            s.recv().await;
+            return;
+        }
+        std::future::pending::<()>().await
+    }
+}
+
 fn main() -> ExitCode {
     let mut args = Args::parse();
     pntr_service::telemetry::init_tracing();
@@ -95,17 +119,37 @@ fn main() -> ExitCode {
             running.addr, running.metrics_addr
         );
         let _ = std::io::stdout().flush();
-        let result = tokio::select! {
-            r = running.wait() => r,
-            _ = signal() => {
-                tracing::info!("signal received; shutting down (a second signal exits at once)");
-                running.shutdown();
-                tokio::select! {
-                    r = running.wait() => r,
-                    _ = signal() => {
-                        eprintln!("pntr-server: second signal; exiting without draining");
-                        return ExitCode::FAILURE;
-                    }
+        let state = running.state.clone();
+        let mut hangup = Hangup::new();
+        let result = loop {
+            tokio::select! {
+                r = running.wait() => break r,
+                _ = hangup.recv() => {
+                    // Reloads run beside the serving (and one at a time, with admin calls).
+                    tracing::info!("SIGHUP: reloading the map files that changed");
+                    let state = state.clone();
+                    tokio::spawn(async move {
+                        match pntr_service::admin::reload(&state).await {
+                            Ok(r) => tracing::info!(
+                                reloaded = r.reloaded.len(),
+                                unchanged = r.unchanged_map_ids.len(),
+                                failed = r.failed.len(),
+                                "SIGHUP reload done"
+                            ),
+                            Err(e) => tracing::warn!(error = %e, "SIGHUP reload refused"),
+                        }
+                    });
+                }
+                _ = signal() => {
+                    tracing::info!("signal received; shutting down (a second signal exits at once)");
+                    running.shutdown();
+                    break tokio::select! {
+                        r = running.wait() => r,
+                        _ = signal() => {
+                            eprintln!("pntr-server: second signal; exiting without draining");
+                            return ExitCode::FAILURE;
+                        }
+                    };
                 }
             }
         };

@@ -20,11 +20,14 @@ use crate::config::{ConfigError, Settings};
 use crate::decode::Limits;
 use crate::engine::Engine;
 use crate::proto;
+use crate::admin::{AdminGate, MapAdminService};
 use crate::service::{Gate, LocalizerService, State};
 use crate::telemetry;
 
 /// The gRPC name of the localizer service (for health checks).
 pub const SERVICE_NAME: &str = "pntr.v1.Localizer";
+/// The gRPC name of the map administration service.
+pub const ADMIN_SERVICE_NAME: &str = "pntr.v1.MapAdmin";
 
 /// Why a server could not start or stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -87,6 +90,12 @@ impl Running {
     /// timeout, stop the workers.
     pub fn shutdown(&self) {
         let _ = self.shutdown.send(true);
+    }
+
+    /// Read every loaded map's file again and replace those that changed, atomically, as
+    /// `MapAdmin.ReloadMaps` does (SIGHUP). Refused while the server is still loading.
+    pub async fn reload(&self) -> Result<proto::ReloadMapsResponse, crate::admin::AdminError> {
+        crate::admin::reload(&self.state).await
     }
 
     /// Wait until the maps and models are loaded (Ok) or loading failed (Err).
@@ -160,14 +169,17 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
         .set_service_status(SERVICE_NAME, ServingStatus::NotServing)
         .await;
 
+    let (shutdown, shutdown_rx) = watch::channel(false);
     let state = Arc::new(State::new(
         Limits {
             max_width: settings.max_image_width,
             max_height: settings.max_image_height,
         },
         settings.workers.max(2),
+        shutdown_rx.clone(),
     ));
     let gate = Gate::new(settings.token.as_deref());
+    let admin = proto::map_admin_server::MapAdminServer::new(MapAdminService::new(state.clone()));
     let localizer =
         proto::localizer_server::LocalizerServer::new(LocalizerService::new(state.clone()))
             .max_decoding_message_size(settings.max_message_bytes)
@@ -198,10 +210,13 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
     let router = builder
         .add_service(health_service)
         .add_service(InterceptedService::new(localizer, gate.clone()))
+        .add_service(InterceptedService::new(
+            admin,
+            AdminGate::new(settings.admin_token.as_deref()),
+        ))
         .add_service(InterceptedService::new(reflection, gate.clone()))
         .add_service(InterceptedService::new(reflection_v1alpha, gate));
 
-    let (shutdown, shutdown_rx) = watch::channel(false);
     let (load_tx, load_rx) = watch::channel(LoadState::Loading);
     let mut stop_serving = shutdown_rx.clone();
     let incoming = TcpIncoming::from(listener).with_nodelay(Some(true));
@@ -210,10 +225,19 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
             .serve_with_incoming_shutdown(incoming, async move { stopped(&mut stop_serving).await })
             .await
     });
+    let maps_state = state.clone();
     let metrics_task = tokio::spawn(telemetry::serve_metrics(
         metrics_listener,
         prometheus,
         shutdown_rx.clone(),
+        Arc::new(move || {
+            maps_state.engine().map_or_else(Vec::new, |e| {
+                e.maps()
+                    .iter()
+                    .map(|m| (m.id.clone(), m.version.label.clone(), m.map.images.len()))
+                    .collect()
+            })
+        }),
     ));
 
     let task = tokio::spawn(supervise(Supervised {
@@ -272,12 +296,7 @@ async fn supervise(mut s: Supervised) -> Result<(), ServerError> {
     tokio::select! {
         r = &mut load => match r {
             Ok(Ok(engine)) => {
-                let engine = Arc::new(engine);
-                for m in &engine.maps {
-                    metrics::gauge!(telemetry::MAP_IMAGES, "map_id" => m.id.clone())
-                        .set(m.map.images.len() as f64);
-                }
-                s.state.set_engine(engine);
+                s.state.set_engine(Arc::new(engine));
                 s.health.set_service_status("", ServingStatus::Serving).await;
                 s.health.set_service_status(SERVICE_NAME, ServingStatus::Serving).await;
                 let _ = s.load_tx.send(LoadState::Ready);

@@ -20,7 +20,7 @@ use tonic::{Code, Request, Response, Status, Streaming};
 use tracing::Instrument;
 
 use crate::decode::{self, Limits};
-use crate::engine::{Engine, Job, Outcome, SubmitError};
+use crate::engine::{Engine, Job, LoadedMap, Outcome, SubmitError};
 use crate::proto;
 use crate::telemetry::{
     ANSWERS_BY_MODE, IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION, STREAMS_ACTIVE,
@@ -34,6 +34,10 @@ pub struct State {
     engine: OnceLock<Arc<Engine>>,
     limits: Limits,
     decoders: Arc<tokio::sync::Semaphore>,
+    /// Turns true when the server begins to shut down (open streams then end with UNAVAILABLE).
+    stop: tokio::sync::watch::Receiver<bool>,
+    /// Held by each map change (MapAdmin, SIGHUP), so changes apply one at a time.
+    pub(crate) admin: tokio::sync::Mutex<()>,
 }
 
 impl State {
@@ -41,11 +45,18 @@ impl State {
     /// At most `decoders` frames are decoded at once (PNG/JPEG decoding runs on blocking threads, so a
     /// large frame never stalls the async threads that answer health checks and other calls, and the
     /// permits bound the memory that decoded frames can take before the queue admits them).
-    pub fn new(limits: Limits, decoders: usize) -> Self {
+    /// `stop` turns true when the server begins to shut down.
+    pub fn new(
+        limits: Limits,
+        decoders: usize,
+        stop: tokio::sync::watch::Receiver<bool>,
+    ) -> Self {
         Self {
             engine: OnceLock::new(),
             limits,
             decoders: Arc::new(tokio::sync::Semaphore::new(decoders.max(1))),
+            stop,
+            admin: tokio::sync::Mutex::new(()),
         }
     }
 
@@ -59,7 +70,7 @@ impl State {
         self.engine.get()
     }
 
-    fn loaded(&self) -> Result<&Arc<Engine>, Status> {
+    pub(crate) fn loaded(&self) -> Result<&Arc<Engine>, Status> {
         self.engine
             .get()
             .ok_or_else(|| Status::unavailable("the server is still loading its maps and models"))
@@ -87,7 +98,7 @@ impl Gate {
 }
 
 /// Compare without an early exit, so response time does not reveal how much of a token matched.
-fn same(a: &[u8], b: &[u8]) -> bool {
+pub(crate) fn same(a: &[u8], b: &[u8]) -> bool {
     let mut diff = (a.len() != b.len()) as u8;
     for (i, x) in a.iter().enumerate() {
         diff |= x ^ b.get(i).copied().unwrap_or(!x);
@@ -255,6 +266,11 @@ pub const ODOMETRY_MAX_AGE_S: f64 = 60.0;
 /// stream, freed with the stream.
 struct Track {
     map_id: String,
+    /// [`LoadedMap::frame`] of the map the track's poses are in.
+    frame: u64,
+    /// [`LoadedMap::serial`] of the map its keyframe was made on (the keyframe names map images by
+    /// index).
+    serial: u64,
     position_m: Vector3<f64>,
     rotation: UnitQuaternion<f64>,
     at: Instant,
@@ -287,6 +303,9 @@ struct Followup {
     odometry: bool,
     /// The map's answer refused for lying outside the track's bounds: pose (map frame) and confidence.
     off_track: Option<(Isometry3<f64>, f64)>,
+    /// [`LoadedMap::frame`] and [`LoadedMap::serial`] of the map that answered.
+    frame: u64,
+    serial: u64,
 }
 
 /// What the stream's state offers the next frame (all empty for a unary call).
@@ -326,6 +345,8 @@ impl Track {
         let now = Instant::now();
         Some(Self {
             map_id: r.map_id.clone(),
+            frame: f.frame,
+            serial: f.serial,
             position_m,
             rotation,
             at: now,
@@ -390,6 +411,8 @@ impl Track {
         let earlier = self.challenger.take().map_or(confidence, |p| p.confidence);
         Some(Track {
             map_id: self.map_id.clone(),
+            frame: self.frame,
+            serial: self.serial,
             position_m: c.position_m,
             rotation: c.rotation,
             at: now,
@@ -445,9 +468,11 @@ impl LocalizerService {
     }
 
     /// Localize one frame end to end, recording metrics; never panics.
+    /// `map`: the map the stream resolved for this frame (`None`: resolve the request's map_id).
     async fn one(
         &self,
         msg: proto::LocalizeRequest,
+        map: Option<Arc<LoadedMap>>,
         request_id: String,
         deadline: Option<Instant>,
         tracking: Tracking,
@@ -455,7 +480,7 @@ impl LocalizerService {
         let mut in_flight = InFlight::new();
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
         let result = self
-            .run(msg, deadline, tracking, span.clone())
+            .run(msg, map, deadline, tracking, span.clone())
             .instrument(span.clone())
             .await;
         let _entered = span.enter();
@@ -479,12 +504,17 @@ impl LocalizerService {
     async fn run(
         &self,
         msg: proto::LocalizeRequest,
+        map: Option<Arc<LoadedMap>>,
         deadline: Option<Instant>,
         tracking: Tracking,
         span: tracing::Span,
     ) -> Result<(proto::LocalizeResponse, Followup), Status> {
         let engine = self.state.loaded()?.clone();
-        let map = engine.resolve(&msg.map_id)?;
+        // Resolved once: the whole request runs on this map, whatever MapAdmin swaps meanwhile.
+        let lm = match map {
+            Some(m) => m,
+            None => engine.resolve(&msg.map_id)?,
+        };
         // The caller's prior wins over the stream's own state (its region and its keyframe); a
         // stream's LOCALIZED answer still leaves a keyframe for the next frame.
         let options = match (decode::prior(&msg)?, tracking.region) {
@@ -504,7 +534,7 @@ impl LocalizerService {
                 ..LocalizeOptions::default()
             },
         };
-        let map_id = engine.maps[map].id.clone();
+        let map_id = lm.id.clone();
         span.record("map_id", map_id.as_str());
         let permit = self
             .state
@@ -526,7 +556,7 @@ impl LocalizerService {
         })??;
         let (tx, rx) = oneshot::channel();
         let job = Job {
-            map,
+            map: lm.clone(),
             query,
             options,
             deadline,
@@ -575,7 +605,7 @@ impl LocalizerService {
         let t = &loc.times;
         metrics::counter!(ANSWERS_BY_MODE, "mode" => loc.mode.name()).increment(1);
         let stages = crate::engine::stage_seconds(&loc, queued);
-        let m = &engine.maps[map].map;
+        let m = &lm.map;
         let localized = loc.status == pntr_pipeline::pipeline::Status::Localized;
         let matched = loc.image.filter(|_| localized).map(|i| &m.images[i]);
         tracing::info!(
@@ -622,13 +652,25 @@ impl LocalizerService {
             },
             min_confidence: engine.min_confidence,
             mode: wire::mode_message(loc.mode) as i32,
+            map_version: lm.version.label.clone(),
         };
         let followup = Followup {
             keyframe: loc.keyframe.clone().filter(|_| localized),
             odometry: loc.odometry,
             off_track: loc.off_track,
+            frame: lm.frame,
+            serial: lm.serial,
         };
+        release(lm);
         Ok((response, followup))
+    }
+}
+
+/// Drop a request's hold on its map; when it was the last (the map was replaced or unloaded while
+/// the request ran), the map is freed on a blocking thread, not on the async one.
+fn release(map: Arc<LoadedMap>) {
+    if Arc::strong_count(&map) == 1 {
+        tokio::task::spawn_blocking(move || drop(map));
     }
 }
 
@@ -658,7 +700,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
             }
         };
         let mut out = self
-            .one(msg, id.clone(), deadline, Tracking::default())
+            .one(msg, None, id.clone(), deadline, Tracking::default())
             .await
             .map(|(r, _)| r)
             .map_err(|mut e| {
@@ -685,6 +727,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
         let mut input = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         let this = self.clone();
+        let mut stop = self.state.stop.clone();
         tokio::spawn(
             async move {
                 let _open = StreamGauge::new();
@@ -693,7 +736,19 @@ impl proto::localizer_server::Localizer for LocalizerService {
                 // the keyframe.
                 let mut track: Option<Track> = None;
                 loop {
-                    let msg = match input.message().await {
+                    // A shutdown ends the stream between frames (the transport has sent GOAWAY
+                    // by then), so the robot reconnects at once instead of at the drain's end.
+                    let next = tokio::select! {
+                        m = input.message() => m,
+                        _ = crate::server::stopped(&mut stop) => {
+                            count("ERROR", Code::Unavailable);
+                            let _ = tx.send(Err(Status::unavailable(
+                                "the server is shutting down: reconnect (to another replica when there is one)",
+                            ))).await;
+                            break;
+                        }
+                    };
+                    let msg = match next {
                         Ok(Some(m)) => m,
                         Ok(None) => break,
                         Err(e) => {
@@ -707,6 +762,29 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     } else {
                         request_id(&msg.request_id, &MetadataMap::new())
                     };
+                    // The frame's map, resolved once. After a replacement, a track carries over
+                    // only onto a map in the same frame, and without its keyframe (whose map image
+                    // indices belonged to the old map).
+                    let map = match this.state.loaded().and_then(|e| e.resolve(&msg.map_id)) {
+                        Ok(m) => m,
+                        Err(e) => {
+                            count("ERROR", e.code());
+                            let _ = tx.send(Err(e)).await;
+                            break;
+                        }
+                    };
+                    if let Some(t) = track.as_mut().filter(|t| t.map_id == map.id) {
+                        if t.frame != map.frame {
+                            tracing::info!(map_id = %map.id, version = %map.version.label,
+                                "the map was replaced by one in another frame; the track starts afresh");
+                            track = None;
+                        } else if t.serial != map.serial {
+                            tracing::info!(map_id = %map.id, version = %map.version.label,
+                                "the map was replaced by one in the same frame; the track carries over");
+                            t.keyframe = None;
+                            t.serial = map.serial;
+                        }
+                    }
                     // A relocalizing frame is localized globally, as a unary call would be.
                     let tracking = match &mut track {
                         _ if msg.relocalize => Tracking::default(),
@@ -724,7 +802,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     };
                     let result =
                         match id {
-                            Ok(id) => this.one(msg, id.clone(), deadline, tracking).await.map(
+                            Ok(id) => this.one(msg, Some(map), id.clone(), deadline, tracking).await.map(
                                 |(mut r, f)| {
                                     r.request_id = id;
                                     (r, f)
@@ -771,8 +849,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
         request: Request<proto::GetMapInfoRequest>,
     ) -> Result<Response<proto::MapInfo>, Status> {
         let engine = self.state.loaded()?;
-        let i = engine.resolve(&request.get_ref().map_id)?;
-        let lm = &engine.maps[i];
+        let lm = engine.resolve(&request.get_ref().map_id)?;
         let h = &lm.map.header;
         Ok(Response::new(proto::MapInfo {
             map_id: lm.id.clone(),
@@ -791,7 +868,9 @@ impl proto::localizer_server::Localizer for LocalizerService {
             image_width: h.intrinsics.width,
             image_height: h.intrinsics.height,
             build_seconds: h.build_seconds,
-            loaded_map_ids: engine.maps.iter().map(|m| m.id.clone()).collect(),
+            loaded_map_ids: engine.maps().iter().map(|m| m.id.clone()).collect(),
+            version: lm.version.label.clone(),
+            built_at: lm.version.built_at.clone(),
         }))
     }
 }

@@ -27,8 +27,11 @@ pub const IN_FLIGHT: &str = "pntr_in_flight_requests";
 pub const QUEUE_DEPTH: &str = "pntr_queue_depth";
 /// Gauge of workers running the pipeline now (work outlives a caller that left; this shows it end).
 pub const BUSY_WORKERS: &str = "pntr_busy_workers";
-/// Gauge of database images per loaded map (`map_id`).
+/// Gauge of database images per loaded map (`map_id`), rendered from the loaded maps at each scrape.
 pub const MAP_IMAGES: &str = "pntr_map_images";
+/// Info gauge (always 1) of each loaded map's version (`map_id`, `version`), rendered from the loaded
+/// maps at each scrape: a replaced version's series disappears with it.
+pub const MAP_INFO: &str = "pntr_map_info";
 /// Gauge: open `LocalizeStream` calls (each holds its tracking state until it ends).
 pub const STREAMS_ACTIVE: &str = "pntr_streams_active";
 /// Counter: answers by the path that produced them, labelled `mode` (GLOBAL, PRIOR, TRACKING).
@@ -63,7 +66,6 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
             metrics::describe_gauge!(IN_FLIGHT, "Requests being handled (queued or running)");
             metrics::describe_gauge!(QUEUE_DEPTH, "Requests waiting for a worker");
             metrics::describe_gauge!(BUSY_WORKERS, "Workers running the pipeline");
-            metrics::describe_gauge!(MAP_IMAGES, "Database images of each loaded map");
             metrics::describe_gauge!(
                 STREAMS_ACTIVE,
                 "Open LocalizeStream calls, each holding its tracking state"
@@ -88,12 +90,41 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
         .clone()
 }
 
+/// The per-map series, in Prometheus text: [`MAP_INFO`] and [`MAP_IMAGES`] for each `(map_id,
+/// version, images)`. They are written from the maps loaded at the time of the scrape rather than
+/// kept in the recorder, so a map that was unloaded or replaced leaves no stale series behind.
+pub fn render_maps(maps: &[(String, String, usize)]) -> String {
+    let escape = |v: &str| {
+        v.replace('\\', "\\\\")
+            .replace('"', "\\\"")
+            .replace('\n', "\\n")
+    };
+    let mut out = format!(
+        "# HELP {MAP_INFO} Version of each loaded map (always 1)\n# TYPE {MAP_INFO} gauge\n"
+    );
+    for (id, version, _) in maps {
+        out += &format!(
+            "{MAP_INFO}{{map_id=\"{}\",version=\"{}\"}} 1\n",
+            escape(id),
+            escape(version)
+        );
+    }
+    out += &format!(
+        "# HELP {MAP_IMAGES} Database images of each loaded map\n# TYPE {MAP_IMAGES} gauge\n"
+    );
+    for (id, _, images) in maps {
+        out += &format!("{MAP_IMAGES}{{map_id=\"{}\"}} {images}\n", escape(id));
+    }
+    out
+}
+
 /// Serve `GET /metrics` (any path, in fact) on `listener` until `stop` resolves; also runs the
-/// recorder's periodic upkeep.
+/// recorder's periodic upkeep. `maps` gives the loaded maps at each scrape ([`render_maps`]).
 pub async fn serve_metrics(
     listener: TcpListener,
     handle: PrometheusHandle,
     mut stop: tokio::sync::watch::Receiver<bool>,
+    maps: std::sync::Arc<dyn Fn() -> Vec<(String, String, usize)> + Send + Sync>,
 ) {
     let upkeep = handle.clone();
     let upkeep_task = tokio::spawn(async move {
@@ -111,15 +142,19 @@ pub async fn serve_metrics(
             continue;
         };
         let handle = handle.clone();
+        let maps = maps.clone();
         tokio::spawn(async move {
             let svc =
                 hyper::service::service_fn(move |req: hyper::Request<hyper::body::Incoming>| {
                     let handle = handle.clone();
+                    let maps = maps.clone();
                     async move {
                         let resp = if req.uri().path() == "/metrics" {
+                            let mut text = handle.render();
+                            text += &render_maps(&maps());
                             hyper::Response::builder()
                                 .header("content-type", "text/plain; version=0.0.4")
-                                .body(Full::new(Bytes::from(handle.render())))
+                                .body(Full::new(Bytes::from(text)))
                         } else {
                             hyper::Response::builder()
                                 .status(404)

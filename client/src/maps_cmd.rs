@@ -1,0 +1,270 @@
+//! `pntr maps`: administer the maps of a running pntr-server (`pntr.v1.MapAdmin`): list, load,
+//! replace, unload and reload them without a restart.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use pntr_service::proto::map_admin_client::MapAdminClient;
+use pntr_service::proto::{self, MapChange};
+use pntr_service::tokio;
+use pntr_service::tonic::transport::Channel;
+
+use crate::remote::{self, ConnectArgs};
+
+/// How to reach the server's admin API.
+#[derive(Args, Debug, Clone)]
+pub struct AdminConnect {
+    /// Server address, HOST:PORT (or a URL).
+    #[arg(long)]
+    pub addr: String,
+    /// The server's admin token (`pntr-server --admin-token`; not the clients' token), or
+    /// PNTR_ADMIN_TOKEN.
+    #[arg(long, env = "PNTR_ADMIN_TOKEN", hide_env_values = true)]
+    pub admin_token: Option<String>,
+    /// PEM file of the CA that signed the server's certificate: connect with TLS.
+    #[arg(long)]
+    pub tls_ca: Option<PathBuf>,
+    /// Name to verify in the server's certificate (default: the host of --addr).
+    #[arg(long)]
+    pub tls_domain: Option<String>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `pntr maps ...`.
+#[derive(Subcommand, Debug)]
+pub enum MapsCommand {
+    /// List the maps the server holds: id, version, images, file.
+    List {
+        #[command(flatten)]
+        connect: AdminConnect,
+    },
+    /// Load a map file (a path on the server) under the id its header gives.
+    Load {
+        #[command(flatten)]
+        connect: AdminConnect,
+        /// The map file, as a path on the server's file system.
+        #[arg(long)]
+        file: String,
+    },
+    /// Replace a loaded map by a new file of the same map id, atomically: frames being localized
+    /// finish on the old map, later ones use the new one.
+    Replace {
+        #[command(flatten)]
+        connect: AdminConnect,
+        /// The loaded map to replace.
+        #[arg(long)]
+        map_id: String,
+        /// The new map file, as a path on the server's file system.
+        #[arg(long)]
+        file: String,
+    },
+    /// Stop serving a map.
+    Unload {
+        #[command(flatten)]
+        connect: AdminConnect,
+        /// The map to unload.
+        #[arg(long)]
+        map_id: String,
+    },
+    /// Read every loaded map's file again and replace those that changed (what SIGHUP does).
+    Reload {
+        #[command(flatten)]
+        connect: AdminConnect,
+    },
+}
+
+async fn client(c: &AdminConnect) -> Result<MapAdminClient<Channel>> {
+    let ch = remote::channel(&connect_args(c)).await?;
+    Ok(MapAdminClient::new(ch))
+}
+
+fn connect_args(c: &AdminConnect) -> ConnectArgs {
+    ConnectArgs {
+        addr: c.addr.clone(),
+        token: c.admin_token.clone(),
+        tls_ca: c.tls_ca.clone(),
+        tls_domain: c.tls_domain.clone(),
+        ..ConnectArgs::default()
+    }
+}
+
+fn request<T>(c: &AdminConnect, message: T) -> Result<pntr_service::tonic::Request<T>> {
+    if c.admin_token.is_none() {
+        anyhow::bail!("no admin token: give --admin-token or set PNTR_ADMIN_TOKEN (the server's --admin-token)");
+    }
+    remote::authorized(&connect_args(c), message)
+}
+
+fn refused(s: pntr_service::tonic::Status) -> anyhow::Error {
+    anyhow::anyhow!(
+        "the server refused: {} ({:?})",
+        s.message(),
+        pntr_service::tonic::Code::from(s.code())
+    )
+}
+
+fn entry_json(m: &proto::LoadedMap) -> serde_json::Value {
+    serde_json::json!({
+        "map_id": m.map_id,
+        "version": m.version,
+        "images": m.images,
+        "file": m.file,
+        "preset": m.preset,
+        "built_at": m.built_at,
+        "heap_bytes": m.heap_bytes,
+    })
+}
+
+fn change_json(c: &MapChange) -> serde_json::Value {
+    serde_json::json!({
+        "map": c.map.as_ref().map(entry_json),
+        "previous_version": c.previous_version,
+        "same_frame": c.same_frame,
+        "load_seconds": c.load_seconds,
+    })
+}
+
+fn print_change(what: &str, c: &MapChange, json: bool) {
+    if json {
+        println!("{}", change_json(c));
+        return;
+    }
+    let Some(m) = &c.map else {
+        println!("{what}");
+        return;
+    };
+    print!(
+        "{what} `{}` version {} ({} images, preset {}, {})",
+        m.map_id, m.version, m.images, m.preset, m.file
+    );
+    if !c.previous_version.is_empty() {
+        print!(
+            "; replaced version {}; {}",
+            c.previous_version,
+            if c.same_frame {
+                "same frame: open streams keep their track"
+            } else {
+                "another frame: open streams start afresh"
+            }
+        );
+    }
+    if c.load_seconds > 0.0 {
+        print!("; prepared in {:.1} s", c.load_seconds);
+    }
+    println!();
+}
+
+/// `pntr maps`.
+pub fn run(cmd: &MapsCommand) -> Result<()> {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(async {
+        match cmd {
+            MapsCommand::List { connect } => {
+                let maps = client(connect)
+                    .await?
+                    .list_maps(request(connect, proto::ListMapsRequest {})?)
+                    .await
+                    .map_err(refused)?
+                    .into_inner()
+                    .maps;
+                if connect.json {
+                    let list: Vec<_> = maps.iter().map(entry_json).collect();
+                    println!("{}", serde_json::json!({ "maps": list }));
+                } else if maps.is_empty() {
+                    println!("no maps loaded");
+                } else {
+                    for m in &maps {
+                        println!(
+                            "{}  version {}  {} images  preset {}  {}",
+                            m.map_id, m.version, m.images, m.preset, m.file
+                        );
+                    }
+                }
+            }
+            MapsCommand::Load { connect, file } => {
+                let c = client(connect)
+                    .await?
+                    .load_map(request(connect, proto::LoadMapRequest { file: file.clone() })?)
+                    .await
+                    .map_err(refused)?
+                    .into_inner();
+                print_change("loaded", &c, connect.json);
+            }
+            MapsCommand::Replace {
+                connect,
+                map_id,
+                file,
+            } => {
+                let c = client(connect)
+                    .await?
+                    .replace_map(request(
+                        connect,
+                        proto::ReplaceMapRequest {
+                            map_id: map_id.clone(),
+                            file: file.clone(),
+                        },
+                    )?)
+                    .await
+                    .map_err(refused)?
+                    .into_inner();
+                print_change("serving", &c, connect.json);
+            }
+            MapsCommand::Unload { connect, map_id } => {
+                let c = client(connect)
+                    .await?
+                    .unload_map(request(
+                        connect,
+                        proto::UnloadMapRequest {
+                            map_id: map_id.clone(),
+                        },
+                    )?)
+                    .await
+                    .map_err(refused)?
+                    .into_inner();
+                print_change("unloaded", &c, connect.json);
+            }
+            MapsCommand::Reload { connect } => {
+                let r = client(connect)
+                    .await?
+                    .reload_maps(request(connect, proto::ReloadMapsRequest {})?)
+                    .await
+                    .map_err(refused)?
+                    .into_inner();
+                if connect.json {
+                    let reloaded: Vec<_> = r.reloaded.iter().map(change_json).collect();
+                    println!(
+                        "{}",
+                        serde_json::json!({
+                            "reloaded": reloaded,
+                            "unchanged_map_ids": r.unchanged_map_ids,
+                            "failed": r.failed,
+                        })
+                    );
+                } else {
+                    for c in &r.reloaded {
+                        print_change("reloaded", c, false);
+                    }
+                    for id in &r.unchanged_map_ids {
+                        println!("unchanged `{id}`");
+                    }
+                    for f in &r.failed {
+                        println!("failed {f}");
+                    }
+                }
+                if !r.failed.is_empty() {
+                    anyhow::bail!(
+                        "{} map(s) could not be reloaded and keep their loaded version",
+                        r.failed.len()
+                    );
+                }
+            }
+        }
+        Ok(())
+    })
+}

@@ -1,0 +1,297 @@
+//! `pntr.v1.MapAdmin`: load, replace, unload and reload maps while the server answers robots.
+//!
+//! A change reads and prepares the new map beside the old one (file checksums, preset, one pipeline
+//! per worker) on a blocking thread, then swaps the engine's list of maps in one step
+//! ([`crate::engine::Engine::install`]). Requests resolve their map once, so each runs wholly on the
+//! old map or wholly on the new one; the old map is freed when the last request holding it is done.
+//! Changes are applied one at a time (the state's admin lock), whether they come from this API or
+//! from SIGHUP ([`reload`]).
+//!
+//! Admin calls need their own token (`pntr-server --admin-token`), checked by [`AdminGate`] before
+//! the message is decoded; a server without one refuses every admin call.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use tonic::service::Interceptor;
+use tonic::{Request, Response, Status};
+
+use crate::engine::{shares_frame, InstallError, LoadedMap, PrepareError};
+use crate::proto;
+use crate::service::State;
+
+/// Checks the admin token on every MapAdmin call; without a configured token every call is refused.
+#[derive(Clone, Default)]
+pub struct AdminGate {
+    token: Option<Arc<[u8]>>,
+}
+
+impl AdminGate {
+    /// A gate requiring `authorization: Bearer <token>`; `None` refuses every call.
+    pub fn new(token: Option<&str>) -> Self {
+        Self {
+            token: token.map(|t| Arc::from(format!("Bearer {t}").into_bytes())),
+        }
+    }
+}
+
+impl Interceptor for AdminGate {
+    fn call(&mut self, req: Request<()>) -> Result<Request<()>, Status> {
+        let Some(want) = &self.token else {
+            return Err(Status::permission_denied(
+                "map administration is off on this server: start pntr-server with --admin-token or --admin-token-file",
+            ));
+        };
+        let got = req
+            .metadata()
+            .get("authorization")
+            .map(|v| v.as_bytes())
+            .unwrap_or_default();
+        if !crate::service::same(got, want) {
+            return Err(Status::unauthenticated(
+                "missing or invalid admin token (send `authorization: Bearer <admin token>`; the clients' token is not the admin token)",
+            ));
+        }
+        Ok(req)
+    }
+}
+
+/// Why a map change was refused. Mapped to a gRPC status in one place ([`From<AdminError>`]).
+#[derive(Debug, thiserror::Error)]
+pub enum AdminError {
+    /// The server has not finished loading.
+    #[error("the server is still loading its maps and models")]
+    Loading,
+    /// A required field is empty.
+    #[error("{0} is empty")]
+    Missing(&'static str),
+    /// The named file does not exist on the server.
+    #[error("{0}: no such file on the server")]
+    NoFile(PathBuf),
+    /// The file could not be made ready to serve.
+    #[error(transparent)]
+    Prepare(#[from] PrepareError),
+    /// The swap was refused.
+    #[error(transparent)]
+    Install(#[from] InstallError),
+    /// A blocking task failed.
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl From<AdminError> for Status {
+    fn from(e: AdminError) -> Self {
+        let m = e.to_string();
+        match e {
+            AdminError::Loading => Status::unavailable(m),
+            AdminError::Missing(_) => Status::invalid_argument(m),
+            AdminError::NoFile(_) | AdminError::Install(InstallError::Missing(_)) => {
+                Status::not_found(m)
+            }
+            AdminError::Install(InstallError::Exists(_)) => Status::already_exists(m),
+            AdminError::Install(InstallError::OtherId { .. })
+            | AdminError::Prepare(PrepareError::Map(_) | PrepareError::Serve(_)) => {
+                Status::failed_precondition(m)
+            }
+            AdminError::Internal(_) => Status::internal(m),
+        }
+    }
+}
+
+/// The entry a listing or a change reports for `m`.
+pub fn entry(m: &LoadedMap) -> proto::LoadedMap {
+    proto::LoadedMap {
+        map_id: m.id.clone(),
+        version: m.version.label.clone(),
+        images: m.map.images.len() as u32,
+        file: m.file.display().to_string(),
+        preset: m.preset.name.clone(),
+        built_at: m.version.built_at.clone(),
+        heap_bytes: m.map.heap_bytes() as u64,
+    }
+}
+
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, AdminError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| AdminError::Internal(e.to_string()))
+}
+
+/// Read and prepare the map at `file`, then swap it in: as a new map (`replacing` = `None`) or in
+/// place of the loaded map `replacing`. The caller holds the admin lock.
+async fn install(
+    state: &State,
+    file: PathBuf,
+    replacing: Option<String>,
+) -> Result<proto::MapChange, AdminError> {
+    let engine = state.loaded().map_err(|_| AdminError::Loading)?.clone();
+    if file.as_os_str().is_empty() {
+        return Err(AdminError::Missing("file"));
+    }
+    if !file.is_file() {
+        return Err(AdminError::NoFile(file));
+    }
+    if let Some(id) = &replacing {
+        // Refused before minutes of loading when the map is not there to replace.
+        if !engine.maps().iter().any(|m| &m.id == id) {
+            return Err(InstallError::Missing(id.clone()).into());
+        }
+    }
+    let t = Instant::now();
+    blocking(move || {
+        let mut new = engine.prepare(&file)?;
+        let old = replacing
+            .as_deref()
+            .and_then(|id| engine.maps().iter().find(|m| m.id == id).cloned());
+        let same_frame = old.as_ref().is_some_and(|o| {
+            let same = shares_frame(&o.map, &new.map);
+            if same {
+                new.frame = o.frame;
+            }
+            same
+        });
+        let load_seconds = t.elapsed().as_secs_f64();
+        let map = entry(&new);
+        let id = new.id.clone();
+        let replaced = engine.install(new, replacing.as_deref())?;
+        let previous_version = replaced
+            .as_ref()
+            .map(|o| o.version.label.clone())
+            .unwrap_or_default();
+        tracing::info!(map_id = %id, version = %map.version, previous = %previous_version,
+            same_frame, load_seconds, "map {}", if replaced.is_some() { "replaced" } else { "loaded" });
+        // The old map is freed here when no request holds it, else by the last one that does.
+        drop(old);
+        drop(replaced);
+        Ok(proto::MapChange {
+            map: Some(map),
+            previous_version,
+            same_frame,
+            load_seconds,
+        })
+    })
+    .await?
+}
+
+/// Load the map file `file` (its header names the id).
+pub async fn load(state: &State, file: PathBuf) -> Result<proto::MapChange, AdminError> {
+    let _one_at_a_time = state.admin.lock().await;
+    install(state, file, None).await
+}
+
+/// Replace loaded map `map_id` by the map in `file`.
+pub async fn replace(
+    state: &State,
+    map_id: String,
+    file: PathBuf,
+) -> Result<proto::MapChange, AdminError> {
+    if map_id.is_empty() {
+        return Err(AdminError::Missing("map_id"));
+    }
+    let _one_at_a_time = state.admin.lock().await;
+    install(state, file, Some(map_id)).await
+}
+
+/// Stop serving `map_id`.
+pub async fn unload(state: &State, map_id: String) -> Result<proto::MapChange, AdminError> {
+    if map_id.is_empty() {
+        return Err(AdminError::Missing("map_id"));
+    }
+    let _one_at_a_time = state.admin.lock().await;
+    let engine = state.loaded().map_err(|_| AdminError::Loading)?.clone();
+    blocking(move || {
+        let old = engine.remove(&map_id)?;
+        tracing::info!(map_id = %old.id, version = %old.version.label, "map unloaded");
+        Ok(proto::MapChange {
+            map: Some(entry(&old)),
+            ..proto::MapChange::default()
+        })
+    })
+    .await?
+}
+
+/// Read every loaded map's file again and replace the maps whose file changed (size or
+/// modification time), each the way [`replace`] does; a file that fails leaves its map as it was.
+/// What SIGHUP runs.
+pub async fn reload(state: &State) -> Result<proto::ReloadMapsResponse, AdminError> {
+    let _one_at_a_time = state.admin.lock().await;
+    let engine = state.loaded().map_err(|_| AdminError::Loading)?.clone();
+    let mut out = proto::ReloadMapsResponse::default();
+    for m in engine.maps().iter() {
+        if m.file_stamp.is_some() && crate::engine::file_stamp(&m.file) == m.file_stamp {
+            out.unchanged_map_ids.push(m.id.clone());
+            continue;
+        }
+        match install(state, m.file.clone(), Some(m.id.clone())).await {
+            Ok(c) => out.reloaded.push(c),
+            Err(e) => {
+                tracing::warn!(map_id = %m.id, file = %m.file.display(), error = %e,
+                    "reload failed; the map keeps serving its loaded version");
+                out.failed.push(format!("{}: {e}", m.id));
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The MapAdmin service.
+#[derive(Debug, Clone)]
+pub struct MapAdminService {
+    state: Arc<State>,
+}
+
+impl MapAdminService {
+    /// A service over `state`.
+    pub fn new(state: Arc<State>) -> Self {
+        Self { state }
+    }
+}
+
+#[tonic::async_trait]
+impl proto::map_admin_server::MapAdmin for MapAdminService {
+    async fn list_maps(
+        &self,
+        _request: Request<proto::ListMapsRequest>,
+    ) -> Result<Response<proto::ListMapsResponse>, Status> {
+        let engine = self.state.loaded()?;
+        Ok(Response::new(proto::ListMapsResponse {
+            maps: engine.maps().iter().map(|m| entry(m)).collect(),
+        }))
+    }
+
+    async fn load_map(
+        &self,
+        request: Request<proto::LoadMapRequest>,
+    ) -> Result<Response<proto::MapChange>, Status> {
+        let file = PathBuf::from(request.into_inner().file);
+        Ok(Response::new(load(&self.state, file).await?))
+    }
+
+    async fn replace_map(
+        &self,
+        request: Request<proto::ReplaceMapRequest>,
+    ) -> Result<Response<proto::MapChange>, Status> {
+        let r = request.into_inner();
+        Ok(Response::new(
+            replace(&self.state, r.map_id, PathBuf::from(r.file)).await?,
+        ))
+    }
+
+    async fn unload_map(
+        &self,
+        request: Request<proto::UnloadMapRequest>,
+    ) -> Result<Response<proto::MapChange>, Status> {
+        let id = request.into_inner().map_id;
+        Ok(Response::new(unload(&self.state, id).await?))
+    }
+
+    async fn reload_maps(
+        &self,
+        _request: Request<proto::ReloadMapsRequest>,
+    ) -> Result<Response<proto::ReloadMapsResponse>, Status> {
+        Ok(Response::new(reload(&self.state).await?))
+    }
+}
