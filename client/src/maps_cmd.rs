@@ -100,9 +100,9 @@ fn request<T>(c: &AdminConnect, message: T) -> Result<pntr_service::tonic::Reque
 
 fn refused(s: pntr_service::tonic::Status) -> anyhow::Error {
     anyhow::anyhow!(
-        "the server refused: {} ({:?})",
+        "the server refused: {} ({})",
         s.message(),
-        pntr_service::tonic::Code::from(s.code())
+        pntr_service::service::code_name(s.code())
     )
 }
 
@@ -190,7 +190,10 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
             MapsCommand::Load { connect, file } => {
                 let c = client(connect)
                     .await?
-                    .load_map(request(connect, proto::LoadMapRequest { file: file.clone() })?)
+                    .load_map(request(
+                        connect,
+                        proto::LoadMapRequest { file: file.clone() },
+                    )?)
                     .await
                     .map_err(refused)?
                     .into_inner();

@@ -295,3 +295,60 @@ impl proto::map_admin_server::MapAdmin for MapAdminService {
         Ok(Response::new(reload(&self.state).await?))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn call(gate: &mut AdminGate, header: Option<&str>) -> Result<(), Status> {
+        let mut req = Request::new(());
+        if let Some(h) = header {
+            req.metadata_mut()
+                .insert("authorization", h.parse().unwrap());
+        }
+        gate.call(req).map(|_| ())
+    }
+
+    #[test]
+    fn admin_calls_need_the_admin_token_and_a_server_that_has_one() {
+        let mut off = AdminGate::new(None);
+        for h in [None, Some("Bearer anything")] {
+            let e = call(&mut off, h).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::PermissionDenied);
+            assert!(e.message().contains("--admin-token"), "{}", e.message());
+        }
+        let mut on = AdminGate::new(Some("adm1n"));
+        assert!(call(&mut on, Some("Bearer adm1n")).is_ok());
+        for h in [
+            None,
+            Some("Bearer adm1"),
+            Some("adm1n"),
+            Some("Bearer adm1nn"),
+        ] {
+            let e = call(&mut on, h).unwrap_err();
+            assert_eq!(e.code(), tonic::Code::Unauthenticated, "{h:?}");
+            assert!(!e.message().contains("adm1n"), "{}", e.message());
+        }
+    }
+
+    #[test]
+    fn every_refusal_has_its_code() {
+        let code = |e: AdminError| Status::from(e).code();
+        use tonic::Code;
+        assert_eq!(code(AdminError::Loading), Code::Unavailable);
+        assert_eq!(code(AdminError::Missing("file")), Code::InvalidArgument);
+        assert_eq!(code(AdminError::NoFile("x".into())), Code::NotFound);
+        assert_eq!(
+            code(InstallError::Missing("a".into()).into()),
+            Code::NotFound
+        );
+        assert_eq!(
+            code(InstallError::Exists("a".into()).into()),
+            Code::AlreadyExists
+        );
+        assert_eq!(
+            code(PrepareError::Map("bad".into()).into()),
+            Code::FailedPrecondition
+        );
+    }
+}

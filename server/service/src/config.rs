@@ -745,6 +745,30 @@ mod tests {
         .unwrap();
         let shown = format!("{s:?}");
         assert!(!shown.contains("s3cret"), "{shown}");
+        let s = Settings::from_args(Args {
+            token: Some("s3cret-token".into()),
+            admin_token: Some("adm1n-token".into()),
+            ..base.clone()
+        })
+        .unwrap();
+        assert_eq!(s.admin_token.as_deref(), Some("adm1n-token"));
+        assert!(!format!("{s:?}").contains("adm1n"), "{s:?}");
+        let e = Settings::from_args(Args {
+            token: Some("same-token".into()),
+            admin_token: Some("same-token".into()),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("admin token must differ"), "{e}");
+        assert!(!e.contains("same-token"), "{e}");
+        let e = Settings::from_args(Args {
+            admin_token: Some("with space".into()),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("the admin token must be printable"), "{e}");
         let e = Settings::from_args(Args {
             models: Some(dir.path().join("nope")),
             ..base

@@ -99,15 +99,17 @@ impl MapVersion {
             .built_at_unix_s
             .filter(|s| s.is_finite())
             .and_then(|s| time::OffsetDateTime::from_unix_timestamp(s.floor() as i64).ok());
-        let compact = time::macros::format_description!(
-            "[year][month][day]T[hour][minute][second]Z"
-        );
+        let compact =
+            time::macros::format_description!("[year][month][day]T[hour][minute][second]Z");
         let label = match at.and_then(|t| t.format(&compact).ok()) {
             Some(t) => format!("{t}-{:016x}", map.checksum),
             None => format!("unknown-{:016x}", map.checksum),
         };
         let built_at = at
-            .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+            .and_then(|t| {
+                t.format(&time::format_description::well_known::Rfc3339)
+                    .ok()
+            })
             .unwrap_or_default();
         Self {
             checksum: map.checksum,
@@ -397,9 +399,7 @@ impl Engine {
                 .with_calibration(self.calibration.clone(), Some(self.min_confidence));
             pipelines.push(p);
         }
-        let extractor_engine = pipelines
-            .first()
-            .map_or("", |p| p.stage.extractor.engine());
+        let extractor_engine = pipelines.first().map_or("", |p| p.stage.extractor.engine());
         let version = MapVersion::of(&map);
         let serial = self.serial.fetch_add(1, Ordering::SeqCst);
         tracing::info!(map_id = %id, version = %version.label, images = map.images.len(),

@@ -16,11 +16,11 @@ use tonic::transport::server::TcpIncoming;
 use tonic::transport::{Identity, Server, ServerTlsConfig};
 use tonic_health::ServingStatus;
 
+use crate::admin::{AdminGate, MapAdminService};
 use crate::config::{ConfigError, Settings};
 use crate::decode::Limits;
 use crate::engine::Engine;
 use crate::proto;
-use crate::admin::{AdminGate, MapAdminService};
 use crate::service::{Gate, LocalizerService, State};
 use crate::telemetry;
 

@@ -46,11 +46,7 @@ impl State {
     /// large frame never stalls the async threads that answer health checks and other calls, and the
     /// permits bound the memory that decoded frames can take before the queue admits them).
     /// `stop` turns true when the server begins to shut down.
-    pub fn new(
-        limits: Limits,
-        decoders: usize,
-        stop: tokio::sync::watch::Receiver<bool>,
-    ) -> Self {
+    pub fn new(limits: Limits, decoders: usize, stop: tokio::sync::watch::Receiver<bool>) -> Self {
         Self {
             engine: OnceLock::new(),
             limits,
