@@ -195,6 +195,21 @@ fn vlad_finds_the_right_point_and_faiss_agrees_with_brute_force() {
         assert!(index.search_among(q, 5, &[]).unwrap().is_empty());
         assert!(index.search_among(q, 5, &[n_db + 7]).unwrap().is_empty());
     }
+    // An index built on the first images and extended with the rest (a map extended with a new
+    // session) answers as the index of all of them: ids continue, scores are the same.
+    let half = n_db / 2 * book.vlad_dim();
+    let mut grown = GlobalIndex::build(&db[..half], book.vlad_dim(), IndexKind::Flat).unwrap();
+    grown.add(&db[half..]).unwrap();
+    assert_eq!(grown.len(), n_db);
+    assert!(grown.add(&db[..book.vlad_dim() - 1]).is_err(), "a short vector");
+    for q in &queries {
+        let got = grown.search(q, 5).unwrap();
+        let want = index.search(q, 5).unwrap();
+        assert_eq!(
+            got.iter().map(|h| h.id).collect::<Vec<_>>(),
+            want.iter().map(|h| h.id).collect::<Vec<_>>()
+        );
+    }
     let mut hnsw = GlobalIndex::build(&db, book.vlad_dim(), IndexKind::Hnsw { m: 16 }).unwrap();
     let agree = queries
         .iter()

@@ -132,36 +132,60 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         .map(|(i, p)| open(p, args, args.trajectory.get(i).map(|t| t.as_path())))
         .collect::<Result<_>>()?;
     let sessions = as_sessions(&recordings);
-    let map_id = args
-        .map_id
+    let out = args
+        .out
         .clone()
-        .unwrap_or_else(|| sessions[0].recording.name());
-    let preset = crate::map_cmd::build_preset(args)?;
+        .or_else(|| args.extend.clone())
+        .context("--out is required")?;
     let models = models_dir(args.models.as_deref())?;
-    let stage = map_feature_stage(&preset, &models, args.threads)?;
     let total: usize = sessions.iter().map(|s| s.recording.len()).sum();
     let pb = bar(total, "choosing keyframes");
-    let (map, report) = recording_map::build(
-        &map_id,
-        &sessions,
-        params,
-        up_axis.as_deref(),
-        &preset,
-        &stage,
-        &models,
-        &mut |done, total| {
-            pb.set_length(total as u64);
-            pb.set_position(done as u64);
-        },
-    )?;
+    let mut progress = |done: usize, total: usize| {
+        pb.set_length(total as u64);
+        pb.set_position(done as u64);
+    };
+    let (map, report, preset) = match &args.extend {
+        Some(base_path) => {
+            if let Some(id) = &args.map_id {
+                bail!("--map-id {id}: an extended map keeps its own id (give --out for a copy)");
+            }
+            let base = crate::map_cmd::load_map(base_path, args.threads)
+                .with_context(|| format!("--extend {}", base_path.display()))?;
+            let preset = base.header.preset.clone();
+            let stage = map_feature_stage(&preset, &models, args.threads)?;
+            let (map, report) =
+                recording_map::extend(base, &sessions, params, &preset, &stage, &mut progress)
+                    .with_context(|| format!("extending {}", base_path.display()))?;
+            (map, report, preset)
+        }
+        None => {
+            let map_id = args
+                .map_id
+                .clone()
+                .unwrap_or_else(|| sessions[0].recording.name());
+            let preset = crate::map_cmd::build_preset(args)?;
+            let stage = map_feature_stage(&preset, &models, args.threads)?;
+            let (map, report) = recording_map::build(
+                &map_id,
+                &sessions,
+                params,
+                up_axis.as_deref(),
+                &preset,
+                &stage,
+                &models,
+                &mut progress,
+            )?;
+            (map, report, preset)
+        }
+    };
     pb.finish_and_clear();
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }
     let t = std::time::Instant::now();
-    mapfile::save(&map, &args.out).with_context(|| format!("writing {}", args.out.display()))?;
+    mapfile::save(&map, &out).with_context(|| format!("writing {}", out.display()))?;
     let write_s = t.elapsed().as_secs_f64();
-    let bytes = std::fs::metadata(&args.out)?.len();
+    let bytes = std::fs::metadata(&out)?.len();
     let map_positions: Vec<[f64; 3]> = map
         .images
         .iter()
@@ -233,7 +257,10 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         "preset": preset.name,
         "images": images,
         "scenes": header.scenes,
-        "file": args.out.display().to_string(),
+        "file": out.display().to_string(),
+        "extended": args.extend.as_ref().map(|p| p.display().to_string()),
+        "base_images": report.base_images,
+        "images_added": images - report.base_images,
         "file_bytes": bytes,
         "heap_bytes": heap,
         "build_seconds": header.build_seconds,
@@ -253,6 +280,13 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
         return Ok(());
     }
+    if args.extend.is_some() {
+        print!(
+            "extended with {} new images (had {}); ",
+            images - report.base_images,
+            report.base_images
+        );
+    }
     println!(
         "map {} ({} preset): {images} keyframes of {} frames in {} places (left out: {}), axes {} with up {}; {} written ({:.1} MB)",
         header.map_id,
@@ -267,7 +301,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
             .join(", "),
         header.camera_axes,
         header.up_axis,
-        args.out.display(),
+        out.display(),
         bytes as f64 / 1e6
     );
     if let Some(c) = &check {

@@ -83,9 +83,21 @@ pub struct BuildArgs {
     /// Only this scene (map id = the scene name); without it, every scene in one map (map id `all`).
     #[arg(long)]
     pub scene: Option<String>,
-    /// The map file to write (atomically).
-    #[arg(long)]
-    pub out: PathBuf,
+    /// The map file to write (atomically: a temporary name, then renamed). With --extend, the
+    /// extended map's file [default: the map given to --extend, replaced by its new version].
+    #[arg(long, required_unless_present = "extend")]
+    pub out: Option<PathBuf>,
+    /// Add the keyframes of the --sequence recordings (poses in this map's frame) to this existing
+    /// map instead of building a new one: frames the map already covers are left out, the map's
+    /// id, preset, axes and retrieval codebook are kept, its index grows, and the file is rewritten
+    /// atomically as a new version (or written to --out). Its preset is used; --preset is ignored.
+    #[arg(
+        long,
+        value_name = "MAP.pntrmap",
+        requires = "sequence",
+        conflicts_with_all = ["dataset", "up_axis", "global_model"]
+    )]
+    pub extend: Option<PathBuf>,
     /// Preset (fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
     /// xfeat-mnn-int8, xfeat-mnn-bf16).
     #[arg(long, default_value = DEFAULT_PRESET)]
@@ -415,16 +427,17 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
     let preset = build_preset(args)?;
     let models = models_dir(args.models.as_deref())?;
     let map = build_map(&map_id, &scenes, &preset, &models, args.threads)?;
+    let out = args.out.as_deref().context("--out is required")?;
     let t = std::time::Instant::now();
-    mapfile::save(&map, &args.out).with_context(|| format!("writing {}", args.out.display()))?;
+    mapfile::save(&map, out).with_context(|| format!("writing {}", out.display()))?;
     let write_s = t.elapsed().as_secs_f64();
-    let bytes = std::fs::metadata(&args.out)?.len();
+    let bytes = std::fs::metadata(out)?.len();
     let summary = serde_json::json!({
         "map_id": map.header.map_id,
         "preset": preset.name,
         "images": map.images.len(),
         "scenes": map.header.scenes,
-        "file": args.out.display().to_string(),
+        "file": out.display().to_string(),
         "file_bytes": bytes,
         "heap_bytes": map.heap_bytes(),
         "build_seconds": map.header.build_seconds,
@@ -440,7 +453,7 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
             map.images.len(),
             map.header.scenes.len(),
             map.header.build_seconds,
-            args.out.display(),
+            out.display(),
             write_s,
             bytes as f64 / 1e6
         );

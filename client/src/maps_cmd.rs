@@ -69,11 +69,132 @@ pub enum MapsCommand {
         #[arg(long)]
         map_id: String,
     },
+    /// Add recordings on the server (poses in the map's frame) to a loaded map: new keyframes only,
+    /// the map's file rewritten atomically as a new version, then served as `replace` does.
+    Extend {
+        #[command(flatten)]
+        connect: AdminConnect,
+        /// The loaded map to extend.
+        #[arg(long)]
+        map_id: String,
+        /// A recording on the server's file system: TUM RGB-D folder, rosbag2 folder or .mcap file
+        /// (repeat for several).
+        #[arg(long, required = true)]
+        sequence: Vec<String>,
+        /// A TUM trajectory on the server for each --sequence (the map frame's poses of the camera).
+        #[arg(long)]
+        trajectory: Vec<String>,
+        /// Units per metre of integer depth, when the recording's format says otherwise.
+        #[arg(long)]
+        depth_scale: Option<f64>,
+    },
     /// Read every loaded map's file again and replace those that changed (what SIGHUP does).
     Reload {
         #[command(flatten)]
         connect: AdminConnect,
     },
+    /// Join two map files of one building whose poses are in different frames (two SLAM sessions
+    /// that started elsewhere), offline: B's keyframes are localized in A, the rigid transform from
+    /// B's frame to A's is estimated from the verified ones that agree (refused when too few do),
+    /// and one map in A's frame with both sessions' images is written (atomically).
+    Merge(MergeArgs),
+}
+
+/// Arguments of `pntr maps merge`.
+#[derive(Args, Debug)]
+pub struct MergeArgs {
+    /// The map whose frame, id, preset and codebook the result keeps.
+    pub a: PathBuf,
+    /// The map joined into it.
+    pub b: PathBuf,
+    /// The merged map file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// B's keyframes tried, evenly spaced (0: all).
+    #[arg(long, default_value_t = 300)]
+    pub keyframes: usize,
+    /// Fewest agreeing keyframes for a transform.
+    #[arg(long, default_value_t = 6)]
+    pub min_support: usize,
+    /// Threads for ONNX Runtime while loading.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Print JSON: transform (translation, rotation_wxyz: B's map frame into A's), covariance (36
+    /// values, ROS order, A's frame), supporting_keyframes, keyframes_tried, keyframes_verified,
+    /// images, rms_m, file.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `pntr maps merge`.
+fn merge(args: &MergeArgs) -> Result<()> {
+    use pntr_pipeline::merge::{merge, MergeParams};
+    let a = crate::map_cmd::load_map(&args.a, args.threads)
+        .with_context(|| format!("reading map A {}", args.a.display()))?;
+    let b = crate::map_cmd::load_map(&args.b, args.threads)
+        .with_context(|| format!("reading map B {}", args.b.display()))?;
+    let params = MergeParams {
+        keyframes: args.keyframes,
+        min_support: args.min_support.max(2),
+        ..MergeParams::default()
+    };
+    let t = std::time::Instant::now();
+    let (merged, r) = merge(a, &b, &params).with_context(|| {
+        format!(
+            "merging {} into {}",
+            args.b.display(),
+            args.a.display()
+        )
+    })?;
+    let seconds = t.elapsed().as_secs_f64();
+    pntr_pipeline::mapfile::save(&merged, &args.out)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let tr = r.a_from_b.translation.vector;
+    let q = r.a_from_b.rotation;
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "transform": {
+                    "translation": [tr.x, tr.y, tr.z],
+                    "rotation_wxyz": [q.w, q.i, q.j, q.k],
+                },
+                "covariance": r.covariance,
+                "supporting_keyframes": r.supporting_keyframes,
+                "keyframes_tried": r.keyframes_tried,
+                "keyframes_verified": r.keyframes_verified,
+                "images": r.images,
+                "rms_m": r.rms_m,
+                "seconds": seconds,
+                "file": args.out.display().to_string(),
+            })
+        );
+        return Ok(());
+    }
+    let sd = |i: usize| r.covariance[i * 7].max(0.0).sqrt();
+    println!(
+        "B's frame into A's: translation ({:.3}, {:.3}, {:.3}) m, rotation {:.2} deg about ({:.3}, {:.3}, {:.3}); standard error {:.1} mm, {:.2} deg",
+        tr.x,
+        tr.y,
+        tr.z,
+        q.angle().to_degrees(),
+        q.axis().map_or(0.0, |a| a.x),
+        q.axis().map_or(0.0, |a| a.y),
+        q.axis().map_or(1.0, |a| a.z),
+        1e3 * (sd(0).powi(2) + sd(1).powi(2) + sd(2).powi(2)).sqrt(),
+        (sd(3).powi(2) + sd(4).powi(2) + sd(5).powi(2)).sqrt().to_degrees()
+    );
+    println!(
+        "{} of {} keyframes tried agree ({} localized in A); refit RMS {:.3} m; {} images written to {} in {:.1} s",
+        r.supporting_keyframes,
+        r.keyframes_tried,
+        r.keyframes_verified,
+        r.rms_m,
+        r.images,
+        args.out.display(),
+        seconds
+    );
+    Ok(())
 }
 
 async fn client(c: &AdminConnect) -> Result<MapAdminClient<Channel>> {
@@ -124,6 +245,7 @@ fn change_json(c: &MapChange) -> serde_json::Value {
         "previous_version": c.previous_version,
         "same_frame": c.same_frame,
         "load_seconds": c.load_seconds,
+        "images_added": c.images_added,
     })
 }
 
@@ -159,6 +281,9 @@ fn print_change(what: &str, c: &MapChange, json: bool) {
 
 /// `pntr maps`.
 pub fn run(cmd: &MapsCommand) -> Result<()> {
+    if let MapsCommand::Merge(args) = cmd {
+        return merge(args);
+    }
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -218,6 +343,32 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
                     .into_inner();
                 print_change("serving", &c, connect.json);
             }
+            MapsCommand::Extend {
+                connect,
+                map_id,
+                sequence,
+                trajectory,
+                depth_scale,
+            } => {
+                let c = client(connect)
+                    .await?
+                    .extend_map(request(
+                        connect,
+                        proto::ExtendMapRequest {
+                            map_id: map_id.clone(),
+                            sequence: sequence.clone(),
+                            trajectory: trajectory.clone(),
+                            depth_scale: depth_scale.unwrap_or(0.0),
+                        },
+                    )?)
+                    .await
+                    .map_err(refused)?
+                    .into_inner();
+                if !connect.json {
+                    print!("added {} images; ", c.images_added);
+                }
+                print_change("serving", &c, connect.json);
+            }
             MapsCommand::Unload { connect, map_id } => {
                 let c = client(connect)
                     .await?
@@ -267,6 +418,7 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
                     );
                 }
             }
+            MapsCommand::Merge(_) => unreachable!("merged offline above"),
         }
         Ok(())
     })

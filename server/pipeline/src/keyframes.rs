@@ -19,6 +19,8 @@ use std::collections::VecDeque;
 use nalgebra::{Isometry3, Point3, Vector3};
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 
+use crate::verify::{dense_check_both, Thumb};
+
 /// Radius of a place, metres: kept frames whose camera is this near a place's first frame join it.
 pub const PLACE_RADIUS_M: f64 = 1.0;
 /// Frames whose sharpness makes the running median a blurred frame is compared with.
@@ -43,6 +45,10 @@ pub struct KeyframeParams {
     pub min_valid_depth: f64,
     /// A frame whose sharpness is under this share of the recent median is left out as blurred.
     pub blur_ratio: f64,
+    /// When a map is extended ([`Selector::seed`]), one of its images covers a frame only if their
+    /// grey levels also correlate at least this much under the relative pose (Pearson, -1..1, on
+    /// the verification thumbnails): the same place under other lighting is a view the map lacks.
+    pub min_appearance: f64,
 }
 
 impl Default for KeyframeParams {
@@ -53,6 +59,7 @@ impl Default for KeyframeParams {
             min_overlap: 0.6,
             min_valid_depth: 0.2,
             blur_ratio: 0.4,
+            min_appearance: 0.8,
         }
     }
 }
@@ -135,14 +142,16 @@ pub fn quality(rgb: &RgbImage, depth: &DepthMap) -> FrameQuality {
 struct Kept {
     world_from_camera: Isometry3<f64>,
     camera: Intrinsics,
+    /// A seeded map image's thumbnail: it covers a frame only where their appearance agrees.
+    thumb: Option<Thumb>,
 }
 
 /// Keyframe selection over one or more recordings in one world frame.
 pub struct Selector {
     params: KeyframeParams,
     kept: Vec<Kept>,
-    /// First frame position of each place.
-    places: Vec<Vector3<f64>>,
+    /// Each place's id and the position of its first frame.
+    places: Vec<(u32, Vector3<f64>)>,
     sharpness: VecDeque<f64>,
 }
 
@@ -160,6 +169,28 @@ impl Selector {
     /// Places so far.
     pub fn places(&self) -> usize {
         self.places.len()
+    }
+
+    /// Start from a map's images (`world_from_camera` in optical axes, camera, place), as when a map
+    /// is extended: frames they already cover are left out, new frames near one of their places
+    /// join it (a place's position is its first image's), and new places take ids after theirs.
+    /// Each image's thumbnail makes it cover only frames of the same appearance
+    /// ([`KeyframeParams::min_appearance`]).
+    pub fn seed(
+        &mut self,
+        images: impl IntoIterator<Item = (Isometry3<f64>, Intrinsics, u32, Thumb)>,
+    ) {
+        for (world_from_camera, camera, place, thumb) in images {
+            if !self.places.iter().any(|(p, _)| *p == place) {
+                self.places
+                    .push((place, world_from_camera.translation.vector));
+            }
+            self.kept.push(Kept {
+                world_from_camera,
+                camera,
+                thumb: Some(thumb),
+            });
+        }
     }
 
     /// Start of a new recording: the sharpness history of the last one does not apply.
@@ -197,31 +228,34 @@ impl Selector {
         {
             return Err(Skip::Blurred);
         }
-        if self.covered(depth, camera, world_from_camera) {
+        if self.covered(rgb, depth, camera, world_from_camera) {
             return Err(Skip::Covered);
         }
         self.kept.push(Kept {
             world_from_camera: *world_from_camera,
             camera: *camera,
+            thumb: None,
         });
         let at = world_from_camera.translation.vector;
         let place = match self
             .places
             .iter()
-            .position(|p| (p - at).norm() <= PLACE_RADIUS_M)
+            .find(|(_, p)| (p - at).norm() <= PLACE_RADIUS_M)
         {
-            Some(p) => p,
+            Some((id, _)) => *id,
             None => {
-                self.places.push(at);
-                self.places.len() - 1
+                let id = self.places.iter().map(|(id, _)| id + 1).max().unwrap_or(0);
+                self.places.push((id, at));
+                id
             }
         };
-        Ok(place as u32)
+        Ok(place)
     }
 
     /// Whether a kept frame is near enough, turned little enough and sees enough of this frame.
     fn covered(
         &self,
+        rgb: &RgbImage,
         depth: &DepthMap,
         camera: &Intrinsics,
         world_from_camera: &Isometry3<f64>,
@@ -229,6 +263,7 @@ impl Selector {
         let p = &self.params;
         let at = world_from_camera.translation.vector;
         let mut samples: Option<Vec<Point3<f64>>> = None;
+        let mut thumb: Option<Thumb> = None;
         for k in &self.kept {
             // Ties (a drive of exact steps) count as near whatever the rounding of the poses'
             // source (a TF chain, a text file), so the same drive gives the same keyframes.
@@ -255,7 +290,16 @@ impl Selector {
                             .is_some_and(|uv| k.camera.pixel_of(&uv).is_some())
                 })
                 .count();
-            if seen as f64 >= p.min_overlap * pts.len() as f64 {
+            if (seen as f64) < p.min_overlap * pts.len() as f64 {
+                continue;
+            }
+            let Some(theirs) = &k.thumb else {
+                return true;
+            };
+            let ours = thumb.get_or_insert_with(|| Thumb::new(rgb, depth, camera));
+            let corr = dense_check_both(ours, theirs, &k_from_frame).gray_correlation();
+            tracing::trace!(corr, "appearance against a map image");
+            if corr >= p.min_appearance {
                 return true;
             }
         }

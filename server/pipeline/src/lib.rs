@@ -37,6 +37,7 @@ pub mod depth_noise;
 pub mod eval;
 pub mod keyframes;
 pub mod map;
+pub mod merge;
 pub mod mapfile;
 pub mod odometry;
 pub mod pipeline;

@@ -321,6 +321,9 @@ pub struct MapBuilder<'a> {
     onnx_desc: Vec<Descriptor>,
     header_camera: Option<Intrinsics>,
     t0: Instant,
+    /// The map being extended ([`MapBuilder::extending`]): its header and retrieval, and how many
+    /// of `images` are its own.
+    base: Option<(MapHeader, Retriever, usize)>,
 }
 
 /// One image offered to [`MapBuilder::add`].
@@ -366,6 +369,65 @@ impl<'a> MapBuilder<'a> {
             onnx_desc: Vec::new(),
             header_camera: None,
             t0: Instant::now(),
+            base: None,
+        })
+    }
+
+    /// A builder that adds images to `base` (their poses in `base`'s frame and camera axes):
+    /// [`MapBuilder::finish_extension`] keeps the base's images, header and learned retrieval (VLAD
+    /// codebook or BoW vocabulary, the index's training) and appends the new images to its index.
+    /// `stage` must describe images as the base's preset does. Errors: a preset that cannot describe
+    /// images for this map, an ONNX model that does not load.
+    pub fn extending(
+        base: Map,
+        preset: &'a Preset,
+        stage: &'a FeatureStage,
+    ) -> Result<Self, PipelineError> {
+        preset.serves(&base.header.preset)?;
+        let mut b = Self::new(preset, stage)?;
+        b.header_camera = Some(base.header.intrinsics);
+        let n = base.images.len();
+        b.images = base.images;
+        b.base = Some((base.header, base.retriever, n));
+        Ok(b)
+    }
+
+    /// Images the map being extended had ([`MapBuilder::extending`]); 0 for a new map.
+    pub fn base_len(&self) -> usize {
+        self.base.as_ref().map_or(0, |b| b.2)
+    }
+
+    /// The images so far (the base's first).
+    pub fn images(&self) -> &[MapImage] {
+        &self.images
+    }
+
+    /// Finish a map made by [`MapBuilder::extending`]: the new images described with the base's
+    /// own describer and appended to its index; the header keeps everything but the build time
+    /// (now) and the build seconds (the base's plus this extension's). Errors: not an extension,
+    /// the describer failing.
+    pub fn finish_extension(self) -> Result<Map, PipelineError> {
+        let Some((mut header, mut retriever, n)) = self.base else {
+            return Err(PipelineError::Config(
+                "finish_extension on a builder that extends no map".into(),
+            ));
+        };
+        let descriptors = if let Describer::Onnx(_) = retriever.describer {
+            self.onnx_desc
+        } else {
+            self.images[n..]
+                .iter()
+                .map(|im| retriever.describer.describe_features(&im.features()))
+                .collect::<Result<Vec<_>, _>>()?
+        };
+        retriever.extend(descriptors)?;
+        header.build_seconds += self.t0.elapsed().as_secs_f64();
+        header.built_at_unix_s = Some(unix_now_s());
+        Ok(Map {
+            header,
+            images: self.images,
+            retriever,
+            checksum: 0,
         })
     }
 

@@ -57,6 +57,8 @@ pub struct BuildReport {
     pub left_out: Vec<(usize, usize)>,
     /// Warnings for the user (unreadable frames, a world whose up axis is unusual).
     pub warnings: Vec<String>,
+    /// Images the map had before ([`extend`]); 0 for a new map.
+    pub base_images: usize,
 }
 
 /// The camera a distorted `camera`'s frames are undistorted to (same size and focal length), and
@@ -127,10 +129,123 @@ pub fn build(
     models_dir: &std::path::Path,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(Map, BuildReport), PipelineError> {
-    let total: usize = sessions.iter().map(|s| s.recording.len()).sum();
     let mut builder = MapBuilder::new(preset, stage)?;
     let mut selector = Selector::new(params);
     let mut report = BuildReport::default();
+    let (seconds, down_sum, posed) = collect(
+        &mut builder,
+        &mut selector,
+        sessions,
+        CameraAxes::OpenCv,
+        &mut report,
+        progress,
+    )?;
+    let (up, warning) = match up_axis {
+        Some(a) => (a.to_string(), None),
+        None => infer_up(&down_sum, posed),
+    };
+    report.up_axis_inferred = up_axis.is_none();
+    report.warnings.extend(warning);
+    report.up_axis = up.clone();
+    report.places = selector.places();
+    let t = Instant::now();
+    let map = builder.finish(
+        map_id,
+        vec![map_id.to_string()],
+        CameraAxes::OpenCv,
+        &up,
+        models_dir,
+    )?;
+    record_seconds(&mut report, seconds, t.elapsed().as_secs_f64());
+    Ok((map, report))
+}
+
+/// Add the keyframes of `sessions` (poses in `base`'s frame) to map `base`, which keeps its id,
+/// header, camera axes, up axis and learned retrieval (its index grows; [`MapBuilder::extending`]).
+/// Frames the map already covers are left out by the keyframe rule, as between a recording's own
+/// frames; new keyframes join the map's places within [`crate::keyframes::PLACE_RADIUS_M`] or start
+/// new ones. Describe with `stage` built from the base's preset.
+///
+/// Errors: a map of several scenes (several world frames: which one would the recording be in?),
+/// those of [`build`], and no new frame kept (the recording adds nothing the map does not have).
+pub fn extend(
+    base: Map,
+    sessions: &[Session<'_>],
+    params: KeyframeParams,
+    preset: &Preset,
+    stage: &FeatureStage,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(Map, BuildReport), PipelineError> {
+    if base.header.scenes.len() > 1 {
+        return Err(PipelineError::Config(format!(
+            "map `{}` holds {} scenes, each in its own world frame: extend a map of one scene (build-db --dataset ... --scene NAME)",
+            base.header.map_id,
+            base.header.scenes.len()
+        )));
+    }
+    let axes = base.header.axes();
+    let mut selector = Selector::new(params);
+    selector.seed(base.images.iter().map(|im| {
+        (
+            pntr_core::pose::convert_axes(&im.world_from_camera, axes, CameraAxes::OpenCv),
+            im.camera,
+            im.point,
+            im.thumb.clone(),
+        )
+    }));
+    let mut report = BuildReport {
+        base_images: base.images.len(),
+        up_axis: base.header.up_axis.clone(),
+        ..BuildReport::default()
+    };
+    let mut builder = MapBuilder::extending(base, preset, stage)?;
+    let (seconds, _, _) = collect(
+        &mut builder,
+        &mut selector,
+        sessions,
+        axes,
+        &mut report,
+        progress,
+    )?;
+    if builder.len() == builder.base_len() {
+        return Err(PipelineError::Config(format!(
+            "no frame was added: the map already covers every usable frame ({} read; left out: {:?})",
+            report.frames, report.skipped
+        )));
+    }
+    report.places = selector.places();
+    let t = Instant::now();
+    let map = builder.finish_extension()?;
+    record_seconds(&mut report, seconds, t.elapsed().as_secs_f64());
+    Ok((map, report))
+}
+
+fn record_seconds(report: &mut BuildReport, seconds: [f64; 3], index_s: f64) {
+    for (k, v) in [
+        ("read", seconds[0]),
+        ("select", seconds[1]),
+        ("describe", seconds[2]),
+        ("index", index_s),
+    ] {
+        report.stage_seconds.insert(k.into(), v);
+    }
+}
+
+/// Read every session's frames in order, judge them, and describe the kept ones into `builder`
+/// with poses in the map's camera axes `axes` (recordings give optical ones). Returns the seconds
+/// spent reading, selecting and describing, the sum of the cameras' down axes and how many posed
+/// frames were read (for the up axis).
+fn collect(
+    builder: &mut MapBuilder<'_>,
+    selector: &mut Selector,
+    sessions: &[Session<'_>],
+    axes: CameraAxes,
+    report: &mut BuildReport,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<([f64; 3], Vector3<f64>, usize), PipelineError> {
+    let total: usize = sessions.iter().map(|s| s.recording.len()).sum();
+    let known: std::collections::HashSet<String> =
+        builder.images().iter().map(|im| im.id.clone()).collect();
     let mut seconds = [0.0f64; 3];
     let mut down_sum = Vector3::zeros();
     let mut posed = 0usize;
@@ -208,11 +323,24 @@ pub fn build(
                 Ok(place) => {
                     let t = Instant::now();
                     let stamp = rec.timestamp(i);
+                    let id = format!("{name}/place{place}/{stamp:.6}");
+                    if known.contains(&id) {
+                        // The same frame of the same recording, already in the map.
+                        *report
+                            .skipped
+                            .entry(Skip::Covered.name().into())
+                            .or_default() += 1;
+                        continue;
+                    }
                     builder.add(NewImage {
-                        id: format!("{name}/place{place}/{stamp:.6}"),
+                        id,
                         scene: 0,
                         point: place,
-                        world_from_camera: pose,
+                        world_from_camera: pntr_core::pose::convert_axes(
+                            &pose,
+                            CameraAxes::OpenCv,
+                            axes,
+                        ),
                         stamp: Some(stamp),
                         rgb: &rgb,
                         depth: &depth,
@@ -240,32 +368,7 @@ pub fn build(
             report.frames, report.skipped
         )));
     }
-    let (up, warning) = match up_axis {
-        Some(a) => (a.to_string(), None),
-        None => infer_up(&down_sum, posed),
-    };
-    report.up_axis_inferred = up_axis.is_none();
-    report.warnings.extend(warning);
-    report.up_axis = up.clone();
-    report.places = selector.places();
-    let t = Instant::now();
-    let map = builder.finish(
-        map_id,
-        vec![map_id.to_string()],
-        CameraAxes::OpenCv,
-        &up,
-        models_dir,
-    )?;
-    let index_s = t.elapsed().as_secs_f64();
-    for (k, v) in [
-        ("read", seconds[0]),
-        ("select", seconds[1]),
-        ("describe", seconds[2]),
-        ("index", index_s),
-    ] {
-        report.stage_seconds.insert(k.into(), v);
-    }
-    Ok((map, report))
+    Ok((seconds, down_sum, posed))
 }
 
 /// One frame localized by [`check`].

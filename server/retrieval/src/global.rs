@@ -193,6 +193,56 @@ impl Retriever {
         Ok(Self { describer, store })
     }
 
+    /// Append database images (their descriptors, of the describer's kind) after the ones indexed,
+    /// keeping what was learned: the VLAD codebook or BoW vocabulary and, for a dense index, its
+    /// training (PCA-whitening, IVF cells); ids continue from [`Retriever::len`]. How a map is
+    /// extended without relearning it. Errors: a descriptor of another kind or length.
+    pub fn extend(&mut self, descriptors: Vec<Descriptor>) -> Result<(), RetrievalError> {
+        match &mut self.store {
+            Store::Bow(inv, vecs) => {
+                let Describer::Bow(voc) = &self.describer else {
+                    return Err(RetrievalError::Input("a BoW store without a vocabulary".into()));
+                };
+                for d in descriptors {
+                    match d {
+                        Descriptor::Bow(v) => vecs.push(v),
+                        Descriptor::Dense(_) => {
+                            return Err(RetrievalError::Input(
+                                "a dense descriptor in a BoW map".into(),
+                            ))
+                        }
+                    }
+                }
+                *inv = InvertedFile::build(voc.words(), vecs)?;
+            }
+            Store::Dense(index, _) => {
+                let mut index = index
+                    .lock()
+                    .map_err(|_| RetrievalError::Faiss("a previous search panicked".into()))?;
+                let mut flat = Vec::new();
+                for d in descriptors {
+                    match d {
+                        Descriptor::Dense(v) if v.len() == index.dim() => flat.extend(v),
+                        Descriptor::Dense(v) => {
+                            return Err(RetrievalError::Input(format!(
+                                "a {}-d descriptor for a {}-d index",
+                                v.len(),
+                                index.dim()
+                            )))
+                        }
+                        Descriptor::Bow(_) => {
+                            return Err(RetrievalError::Input(
+                                "a BoW descriptor in a dense map".into(),
+                            ))
+                        }
+                    }
+                }
+                index.add(&flat)?;
+            }
+        }
+        Ok(())
+    }
+
     /// Number of database images.
     pub fn len(&self) -> usize {
         match &self.store {

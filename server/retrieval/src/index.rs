@@ -191,6 +191,24 @@ impl GlobalIndex {
         })
     }
 
+    /// Append `vectors` (`n * dim` values) to the trained index; their ids continue from
+    /// [`GlobalIndex::len`].
+    pub fn add(&mut self, vectors: &[f32]) -> Result<(), RetrievalError> {
+        if vectors.len() % self.dim != 0 {
+            return Err(RetrievalError::Input(format!(
+                "{} values are not {}-d vectors",
+                vectors.len(),
+                self.dim
+            )));
+        }
+        if vectors.is_empty() {
+            return Ok(());
+        }
+        self.index.add(vectors)?;
+        self.len += vectors.len() / self.dim;
+        Ok(())
+    }
+
     /// Serialise with faiss's own writer (through a temporary file: the crate has no in-memory writer).
     pub fn to_bytes(&self) -> Result<Vec<u8>, RetrievalError> {
         let dir = tempfile::tempdir().map_err(|e| RetrievalError::Faiss(e.to_string()))?;

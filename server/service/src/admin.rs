@@ -75,6 +75,22 @@ pub enum AdminError {
     /// The swap was refused.
     #[error(transparent)]
     Install(#[from] InstallError),
+    /// The map's file no longer holds the loaded version.
+    #[error("{file} changed since map `{map_id}` was loaded from it (reload it first, then extend)", file = .file.display())]
+    Changed {
+        /// The map.
+        map_id: String,
+        /// Its file.
+        file: PathBuf,
+    },
+    /// The map could not be extended (a recording that cannot be read, nothing new kept).
+    #[error("extending map `{map_id}`: {message}")]
+    Extend {
+        /// The map.
+        map_id: String,
+        /// Why.
+        message: String,
+    },
     /// A blocking task failed.
     #[error("internal error: {0}")]
     Internal(String),
@@ -91,9 +107,9 @@ impl From<AdminError> for Status {
             }
             AdminError::Install(InstallError::Exists(_)) => Status::already_exists(m),
             AdminError::Install(InstallError::OtherId { .. })
-            | AdminError::Prepare(PrepareError::Map(_) | PrepareError::Serve(_)) => {
-                Status::failed_precondition(m)
-            }
+            | AdminError::Prepare(PrepareError::Map(_) | PrepareError::Serve(_))
+            | AdminError::Changed { .. }
+            | AdminError::Extend { .. } => Status::failed_precondition(m),
             AdminError::Internal(_) => Status::internal(m),
         }
     }
@@ -171,6 +187,7 @@ async fn install(
             previous_version,
             same_frame,
             load_seconds,
+            images_added: 0,
         })
     })
     .await?
@@ -193,6 +210,126 @@ pub async fn replace(
     }
     let _one_at_a_time = state.admin.lock().await;
     install(state, file, Some(map_id)).await
+}
+
+/// What [`extend`] adds to a map: recordings on the server and how to read them.
+#[derive(Debug, Clone, Default)]
+pub struct Extension {
+    /// Recordings (TUM folders, rosbag2 folders, .mcap files).
+    pub sequences: Vec<PathBuf>,
+    /// Optional TUM trajectories, one per sequence.
+    pub trajectories: Vec<PathBuf>,
+    /// Units per metre of integer depth (`None`: the recording's own).
+    pub depth_units_per_m: Option<f64>,
+}
+
+/// Add the keyframes of `ext`'s recordings to loaded map `map_id`, write the result over the map's
+/// file (atomically) and serve it in place of the loaded version.
+pub async fn extend(
+    state: &State,
+    map_id: String,
+    ext: Extension,
+) -> Result<proto::MapChange, AdminError> {
+    if map_id.is_empty() {
+        return Err(AdminError::Missing("map_id"));
+    }
+    if ext.sequences.is_empty() {
+        return Err(AdminError::Missing("sequence"));
+    }
+    let failed = {
+        let map_id = map_id.clone();
+        move |message: String| AdminError::Extend {
+            map_id: map_id.clone(),
+            message,
+        }
+    };
+    if !ext.trajectories.is_empty() && ext.trajectories.len() != ext.sequences.len() {
+        return Err(failed(format!(
+            "{} trajectories for {} sequences: give one per sequence, or none",
+            ext.trajectories.len(),
+            ext.sequences.len()
+        )));
+    }
+    if let Some(p) = ext
+        .sequences
+        .iter()
+        .chain(&ext.trajectories)
+        .find(|p| !p.exists())
+    {
+        return Err(AdminError::NoFile(p.clone()));
+    }
+    let _one_at_a_time = state.admin.lock().await;
+    let engine = state.loaded().map_err(|_| AdminError::Loading)?.clone();
+    let loaded = engine.resolve(&map_id).map_err(|_| InstallError::Missing(map_id.clone()))?;
+    let t = Instant::now();
+    let file = loaded.file.clone();
+    let checksum = loaded.version.checksum;
+    drop(loaded);
+    let (id, path) = (map_id.clone(), file.clone());
+    let added = blocking(move || -> Result<usize, AdminError> {
+        // The file, not the loaded map, is extended (the loaded one is shared and read-only); it
+        // must still be the version being served.
+        let base = pntr_pipeline::mapfile::load(&file, |_| {
+            Err(pntr_retrieval::RetrievalError::Model(
+                "extending a map with an onnx global descriptor is not supported".into(),
+            ))
+        })
+        .map_err(|e| failed(format!("reading {}: {e}", file.display())))?;
+        if base.checksum != checksum {
+            return Err(AdminError::Changed {
+                map_id: map_id.clone(),
+                file: file.clone(),
+            });
+        }
+        let before = base.images.len();
+        let mut recordings = Vec::new();
+        for (i, path) in ext.sequences.iter().enumerate() {
+            let opts = pntr_dataset::recording::RecordingOptions {
+                trajectory: ext.trajectories.get(i).cloned(),
+                depth_units_per_m: ext.depth_units_per_m,
+                ..Default::default()
+            };
+            let rec = pntr_dataset::recording::Recording::open(path, &opts)
+                .map_err(|e| failed(format!("{}: {e}", path.display())))?;
+            let camera = rec.intrinsics().ok_or_else(|| {
+                failed(format!(
+                    "{}: {} (extend it with `pntr build-db --extend ... --intrinsics`)",
+                    path.display(),
+                    rec.camera_problem()
+                        .unwrap_or_else(|| "no camera calibration".into())
+                ))
+            })?;
+            recordings.push((rec, camera));
+        }
+        let sessions: Vec<_> = recordings
+            .iter()
+            .map(|(recording, camera)| pntr_pipeline::recording_map::Session {
+                recording,
+                camera: *camera,
+            })
+            .collect();
+        let preset = base.header.preset.clone();
+        let stage = engine.map_stage(&preset).map_err(&failed)?;
+        let (map, _) = pntr_pipeline::recording_map::extend(
+            base,
+            &sessions,
+            pntr_pipeline::keyframes::KeyframeParams::default(),
+            &preset,
+            &stage,
+            &mut |_, _| {},
+        )
+        .map_err(|e| failed(e.to_string()))?;
+        let added = map.images.len() - before;
+        pntr_pipeline::mapfile::save(&map, &file)
+            .map_err(|e| failed(format!("writing {}: {e}", file.display())))?;
+        tracing::info!(map_id = %map.header.map_id, added, file = %file.display(), "map extended and written");
+        Ok(added)
+    })
+    .await??;
+    let mut change = install(state, path, Some(id)).await?;
+    change.images_added = added as u32;
+    change.load_seconds = t.elapsed().as_secs_f64();
+    Ok(change)
 }
 
 /// Stop serving `map_id`.
@@ -286,6 +423,24 @@ impl proto::map_admin_server::MapAdmin for MapAdminService {
     ) -> Result<Response<proto::MapChange>, Status> {
         let id = request.into_inner().map_id;
         Ok(Response::new(unload(&self.state, id).await?))
+    }
+
+    async fn extend_map(
+        &self,
+        request: Request<proto::ExtendMapRequest>,
+    ) -> Result<Response<proto::MapChange>, Status> {
+        let r = request.into_inner();
+        let ext = Extension {
+            sequences: r.sequence.iter().map(PathBuf::from).collect(),
+            trajectories: r.trajectory.iter().map(PathBuf::from).collect(),
+            depth_units_per_m: (r.depth_scale > 0.0).then_some(r.depth_scale),
+        };
+        if !(r.depth_scale.is_finite() && r.depth_scale >= 0.0) {
+            return Err(Status::invalid_argument(
+                "depth_scale must be a positive number of units per metre, or 0",
+            ));
+        }
+        Ok(Response::new(extend(&self.state, r.map_id, ext).await?))
     }
 
     async fn reload_maps(

@@ -420,6 +420,23 @@ impl Engine {
         })
     }
 
+    /// A feature stage that describes map images for `preset` (its float backbone, as `pntr
+    /// build-db` does), for extending a map. Built anew: model loading takes a second or two.
+    pub fn map_stage(&self, preset: &Preset) -> Result<FeatureStage, String> {
+        pntr_features::config::FeatureConfig {
+            runtime: self.runtime.clone(),
+            ..preset.map_feature_config(self.models.clone())
+        }
+        .build()
+        .map_err(|e| {
+            format!(
+                "loading the models of preset {} from {}: {e}",
+                preset.name,
+                self.models.display()
+            )
+        })
+    }
+
     /// Every worker's feature stage for `preset`, built (and warmed up) on first use.
     fn stages_for(&self, preset: &Preset) -> Result<Vec<FeatureStage>, String> {
         let key = (
