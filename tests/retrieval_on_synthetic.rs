@@ -201,7 +201,10 @@ fn vlad_finds_the_right_point_and_faiss_agrees_with_brute_force() {
     let mut grown = GlobalIndex::build(&db[..half], book.vlad_dim(), IndexKind::Flat).unwrap();
     grown.add(&db[half..]).unwrap();
     assert_eq!(grown.len(), n_db);
-    assert!(grown.add(&db[..book.vlad_dim() - 1]).is_err(), "a short vector");
+    assert!(
+        grown.add(&db[..book.vlad_dim() - 1]).is_err(),
+        "a short vector"
+    );
     for q in &queries {
         let got = grown.search(q, 5).unwrap();
         let want = index.search(q, 5).unwrap();

@@ -139,13 +139,8 @@ fn merge(args: &MergeArgs) -> Result<()> {
         ..MergeParams::default()
     };
     let t = std::time::Instant::now();
-    let (merged, r) = merge(a, &b, &params).with_context(|| {
-        format!(
-            "merging {} into {}",
-            args.b.display(),
-            args.a.display()
-        )
-    })?;
+    let (merged, r) = merge(a, &b, &params)
+        .with_context(|| format!("merging {} into {}", args.b.display(), args.a.display()))?;
     let seconds = t.elapsed().as_secs_f64();
     pntr_pipeline::mapfile::save(&merged, &args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;

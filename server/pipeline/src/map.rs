@@ -133,6 +133,22 @@ pub struct MapHeader {
     /// before it was recorded have none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub built_at_unix_s: Option<f64>,
+    /// The recordings the map was built or extended from, in order (empty for a dataset's map).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sessions: Vec<SessionRecord>,
+}
+
+/// One recording a map was built or extended from: what tells it again.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SessionRecord {
+    /// The recording's name (its folder or file name).
+    pub name: String,
+    /// Frames it has.
+    pub frames: usize,
+    /// Stamps of its first and last frames, seconds.
+    pub first_stamp: f64,
+    /// See `first_stamp`.
+    pub last_stamp: f64,
 }
 
 fn default_up_axis() -> String {
@@ -528,6 +544,7 @@ impl<'a> MapBuilder<'a> {
                 built_by: format!("pntr {}", env!("CARGO_PKG_VERSION")),
                 build_seconds: self.t0.elapsed().as_secs_f64(),
                 built_at_unix_s: Some(unix_now_s()),
+                sessions: Vec::new(),
             },
             images: self.images,
             retriever,

@@ -180,7 +180,11 @@ fn localize(
 /// Whether two proposals agree: each moves the other's camera centre by at most `agree_m` and
 /// their rotations differ by at most `agree_deg`.
 fn agree(x: &Proposal, y: &Proposal, p: &MergeParams) -> bool {
-    x.a_from_b.rotation.angle_to(&y.a_from_b.rotation).to_degrees() <= p.agree_deg
+    x.a_from_b
+        .rotation
+        .angle_to(&y.a_from_b.rotation)
+        .to_degrees()
+        <= p.agree_deg
         && [x.centre_b, y.centre_b].iter().all(|c| {
             let c = nalgebra::Point3::from(*c);
             (x.a_from_b * c - y.a_from_b * c).norm() <= p.agree_m
@@ -244,7 +248,8 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
                 .collect()
         })
         .collect();
-    let Some(best) = (0..proposals.len()).max_by_key(|&i| (support[i].len(), usize::MAX - i)) else {
+    let Some(best) = (0..proposals.len()).max_by_key(|&i| (support[i].len(), usize::MAX - i))
+    else {
         return Err(too_few(0, tried.len(), verified, p));
     };
     let chosen = &support[best];
@@ -290,7 +295,8 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         .map(|(s, d)| (a_from_b * nalgebra::Point3::from(*s) - nalgebra::Point3::from(*d)).norm())
         .filter(|r| *r <= 0.1)
         .collect();
-    let rms_m = (residuals.iter().map(|r| r * r).sum::<f64>() / residuals.len().max(1) as f64).sqrt();
+    let rms_m =
+        (residuals.iter().map(|r| r * r).sum::<f64>() / residuals.len().max(1) as f64).sqrt();
     // The spread of the agreeing proposals about the estimate: the standard error of their mean.
     let mut cov = Matrix6::<f64>::zeros();
     for &i in chosen {
@@ -347,6 +353,7 @@ fn append(mut a: Map, b: &Map, a_from_b: &Isometry3<f64>) -> Result<Map, Pipelin
         a.images.push(im);
     }
     a.retriever.extend(descriptors)?;
+    a.header.sessions.extend(b.header.sessions.iter().cloned());
     a.header.built_at_unix_s = Some(unix_now_s());
     a.checksum = 0;
     Ok(a)

@@ -21,7 +21,7 @@ use pntr_features::config::FeatureStage;
 use serde::Serialize;
 
 use crate::keyframes::{KeyframeParams, Selector, Skip};
-use crate::map::{Map, MapBuilder, NewImage};
+use crate::map::{Map, MapBuilder, NewImage, SessionRecord};
 use crate::pipeline::{Pipeline, Query};
 use crate::preset::Preset;
 use crate::prior::LocalizeOptions;
@@ -149,15 +149,31 @@ pub fn build(
     report.up_axis = up.clone();
     report.places = selector.places();
     let t = Instant::now();
-    let map = builder.finish(
+    let mut map = builder.finish(
         map_id,
         vec![map_id.to_string()],
         CameraAxes::OpenCv,
         &up,
         models_dir,
     )?;
+    map.header.sessions = sessions.iter().map(|s| record_of(s.recording)).collect();
     record_seconds(&mut report, seconds, t.elapsed().as_secs_f64());
     Ok((map, report))
+}
+
+/// What a map remembers of a recording it holds.
+fn record_of(rec: &Recording) -> SessionRecord {
+    let n = rec.len();
+    SessionRecord {
+        name: rec.name(),
+        frames: n,
+        first_stamp: if n > 0 { rec.timestamp(0) } else { f64::NAN },
+        last_stamp: if n > 0 {
+            rec.timestamp(n - 1)
+        } else {
+            f64::NAN
+        },
+    }
 }
 
 /// Add the keyframes of `sessions` (poses in `base`'s frame) to map `base`, which keeps its id,
@@ -183,6 +199,20 @@ pub fn extend(
             base.header.scenes.len()
         )));
     }
+    for s in sessions {
+        let r = record_of(s.recording);
+        if base.header.sessions.contains(&r) {
+            return Err(PipelineError::Config(format!(
+                "{} is already in map `{}` ({} frames from {:.3} s to {:.3} s): it was built or extended with it",
+                s.recording.path.display(),
+                base.header.map_id,
+                r.frames,
+                r.first_stamp,
+                r.last_stamp
+            )));
+        }
+    }
+    let added: Vec<SessionRecord> = sessions.iter().map(|s| record_of(s.recording)).collect();
     let axes = base.header.axes();
     let mut selector = Selector::new(params);
     selector.seed(base.images.iter().map(|im| {
@@ -215,7 +245,8 @@ pub fn extend(
     }
     report.places = selector.places();
     let t = Instant::now();
-    let map = builder.finish_extension()?;
+    let mut map = builder.finish_extension()?;
+    map.header.sessions.extend(added);
     record_seconds(&mut report, seconds, t.elapsed().as_secs_f64());
     Ok((map, report))
 }

@@ -201,7 +201,9 @@ impl Retriever {
         match &mut self.store {
             Store::Bow(inv, vecs) => {
                 let Describer::Bow(voc) = &self.describer else {
-                    return Err(RetrievalError::Input("a BoW store without a vocabulary".into()));
+                    return Err(RetrievalError::Input(
+                        "a BoW store without a vocabulary".into(),
+                    ));
                 };
                 for d in descriptors {
                     match d {

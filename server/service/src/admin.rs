@@ -260,7 +260,9 @@ pub async fn extend(
     }
     let _one_at_a_time = state.admin.lock().await;
     let engine = state.loaded().map_err(|_| AdminError::Loading)?.clone();
-    let loaded = engine.resolve(&map_id).map_err(|_| InstallError::Missing(map_id.clone()))?;
+    let loaded = engine
+        .resolve(&map_id)
+        .map_err(|_| InstallError::Missing(map_id.clone()))?;
     let t = Instant::now();
     let file = loaded.file.clone();
     let checksum = loaded.version.checksum;

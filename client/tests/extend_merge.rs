@@ -1,0 +1,321 @@
+//! Growing maps from more sessions, through the `pntr` binary: `build-db --extend` adds a second
+//! session's keyframes (another route, other lighting) to a map and keeps what the map had;
+//! `maps merge` finds the transform between two sessions whose SLAM frames differ and joins them,
+//! and refuses sessions of another building; an extend killed half-way leaves the old map file.
+
+mod support;
+
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use support::{err, ok, pntr};
+
+const MODELS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+
+fn synth(root: &Path, seed: &str, extra: &[&str]) {
+    let mut args = vec![
+        "synth",
+        "--out",
+        root.to_str().unwrap(),
+        "--points-per-scene",
+        "4",
+        "--queries-per-point",
+        "4",
+        "--seed",
+        seed,
+        "--trajectory-seconds",
+        "300",
+        "--mapping-run",
+    ];
+    args.extend_from_slice(extra);
+    ok(&pntr(&args));
+}
+
+fn build(seq: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
+    let mut args = vec![
+        "build-db",
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--models",
+        MODELS,
+        "--no-check",
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    serde_json::from_str(&ok(&pntr(&args))).unwrap()
+}
+
+/// `(id, world_from_camera)` of every image of a map (`pntr info --images`).
+fn images(map: &Path) -> Vec<(String, Isometry3<f64>)> {
+    let out = ok(&pntr(&[
+        "info",
+        "--db",
+        map.to_str().unwrap(),
+        "--images",
+        "--json",
+    ]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    v["image_list"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|im| {
+            let t: Vec<f64> = serde_json::from_value(im["translation"].clone()).unwrap();
+            let q: Vec<f64> = serde_json::from_value(im["rotation_wxyz"].clone()).unwrap();
+            (
+                im["id"].as_str().unwrap().to_string(),
+                Isometry3::from_parts(
+                    Translation3::new(t[0], t[1], t[2]),
+                    UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
+                ),
+            )
+        })
+        .collect()
+}
+
+/// A TUM trajectory file with every pose moved by `t` (a SLAM session whose origin was elsewhere).
+fn move_trajectory(src: &Path, dst: &Path, t: &Isometry3<f64>) {
+    let text = std::fs::read_to_string(src).unwrap();
+    let mut out = String::new();
+    for l in text.lines() {
+        if l.starts_with('#') || l.trim().is_empty() {
+            continue;
+        }
+        let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+        let pose = Isometry3::from_parts(
+            Translation3::new(v[1], v[2], v[3]),
+            UnitQuaternion::from_quaternion(Quaternion::new(v[7], v[4], v[5], v[6])),
+        );
+        let m = t * pose;
+        let (p, q) = (m.translation.vector, m.rotation);
+        out += &format!(
+            "{:.6} {:.9} {:.9} {:.9} {:.12} {:.12} {:.12} {:.12}\n",
+            v[0], p.x, p.y, p.z, q.i, q.j, q.k, q.w
+        );
+    }
+    std::fs::write(dst, out).unwrap();
+}
+
+#[test]
+fn sessions_extend_and_merge_maps() {
+    let dir = tempfile::tempdir().unwrap();
+    let (first, second, elsewhere) = (
+        dir.path().join("first"),
+        dir.path().join("second"),
+        dir.path().join("elsewhere"),
+    );
+    synth(&first, "44", &[]);
+    // The same apartment driven along another route, under other lighting.
+    synth(
+        &second,
+        "44",
+        &["--route-seed", "2", "--realism", "lighting"],
+    );
+    synth(&elsewhere, "45", &[]);
+    let seq = |root: &Path| root.join("sequences/synth000");
+
+    let a = dir.path().join("a.pntrmap");
+    let s = build(&seq(&first), &a, &["--map-id", "lab"]);
+    let a_images = images(&a);
+    assert_eq!(s["images"].as_u64().unwrap() as usize, a_images.len());
+
+    // Extend: the map keeps its id and every image it had, and gains the views the second
+    // session adds (other lighting counts as another view).
+    let ext = dir.path().join("ext.pntrmap");
+    let e: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+        "build-db",
+        "--extend",
+        a.to_str().unwrap(),
+        "--sequence",
+        seq(&second).to_str().unwrap(),
+        "--out",
+        ext.to_str().unwrap(),
+        "--models",
+        MODELS,
+        "--no-check",
+        "--json",
+    ])))
+    .unwrap();
+    assert_eq!(e["map_id"], "lab", "{e}");
+    assert_eq!(e["base_images"].as_u64().unwrap() as usize, a_images.len());
+    let added = e["images_added"].as_u64().unwrap() as usize;
+    assert!(added >= 10, "{e}");
+    assert!(e["skipped"]["covered"].as_u64().unwrap() > 0, "{e}");
+    let ext_images = images(&ext);
+    assert_eq!(ext_images.len(), a_images.len() + added);
+    assert_eq!(
+        ext_images[..a_images.len()],
+        a_images[..],
+        "the map's own images are kept"
+    );
+    // Extending again with the same session is refused, the file untouched.
+    let before = std::fs::read(&ext).unwrap();
+    let msg = err(&pntr(&[
+        "build-db",
+        "--extend",
+        ext.to_str().unwrap(),
+        "--sequence",
+        seq(&second).to_str().unwrap(),
+        "--models",
+        MODELS,
+        "--no-check",
+    ]));
+    assert!(msg.contains("is already in map `lab`"), "{msg}");
+    assert_eq!(std::fs::read(&ext).unwrap(), before);
+    // An extended map keeps its id: --map-id is refused.
+    let msg = err(&pntr(&[
+        "build-db",
+        "--extend",
+        a.to_str().unwrap(),
+        "--sequence",
+        seq(&second).to_str().unwrap(),
+        "--map-id",
+        "other",
+        "--out",
+        ext.to_str().unwrap(),
+    ]));
+    assert!(msg.contains("--map-id"), "{msg}");
+
+    // An extend killed while it writes the new version leaves the map file as it was (it writes a
+    // temporary file and renames it), so a server restarted then serves the old map.
+    let victim_dir = dir.path().join("victim");
+    std::fs::create_dir(&victim_dir).unwrap();
+    let victim = victim_dir.join("victim.pntrmap");
+    std::fs::copy(&a, &victim).unwrap();
+    let original = std::fs::read(&victim).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_pntr"))
+        .args(["build-db", "--extend"])
+        .arg(&victim)
+        .arg("--sequence")
+        .arg(seq(&second))
+        .args(["--models", MODELS, "--no-check"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let writing = || {
+        std::fs::read_dir(&victim_dir).unwrap().any(|e| {
+            e.unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with("victim.pntrmap.partial-")
+        })
+    };
+    let t = Instant::now();
+    loop {
+        if writing() {
+            break;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the extend finished before it was seen writing"
+        );
+        assert!(t.elapsed() < Duration::from_secs(600), "never wrote");
+        std::thread::sleep(Duration::from_micros(200));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert_eq!(
+        std::fs::read(&victim).unwrap(),
+        original,
+        "an extend killed while writing changed the map file"
+    );
+    assert_eq!(images(&victim), a_images);
+
+    // Merge: the second session mapped by a SLAM whose origin was 7 m away and turned 35 degrees.
+    let slam = Isometry3::from_parts(
+        Translation3::new(5.0, -1.0, 4.5),
+        UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 35f64.to_radians())
+            * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 6f64.to_radians()),
+    );
+    let moved = dir.path().join("moved.txt");
+    move_trajectory(&seq(&second).join("groundtruth.txt"), &moved, &slam);
+    let b = dir.path().join("b.pntrmap");
+    let sb = build(
+        &seq(&second),
+        &b,
+        &["--trajectory", moved.to_str().unwrap()],
+    );
+    let merged = dir.path().join("merged.pntrmap");
+    let m: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "--out",
+        merged.to_str().unwrap(),
+        "--json",
+    ])))
+    .unwrap();
+    let t: Vec<f64> = serde_json::from_value(m["transform"]["translation"].clone()).unwrap();
+    let q: Vec<f64> = serde_json::from_value(m["transform"]["rotation_wxyz"].clone()).unwrap();
+    let a_from_b = Isometry3::from_parts(
+        Translation3::new(t[0], t[1], t[2]),
+        UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
+    );
+    let error = a_from_b * slam;
+    assert!(
+        error.translation.vector.norm() < 0.05 && error.rotation.angle().to_degrees() < 1.0,
+        "transform off by {:.3} m, {:.2} deg: {m}",
+        error.translation.vector.norm(),
+        error.rotation.angle().to_degrees()
+    );
+    let tried = m["keyframes_tried"].as_u64().unwrap();
+    let support = m["supporting_keyframes"].as_u64().unwrap();
+    assert!(support >= 6 && support <= tried, "{m}");
+    let cov: Vec<f64> = serde_json::from_value(m["covariance"].clone()).unwrap();
+    assert_eq!(cov.len(), 36);
+    assert!((0..6).all(|i| cov[i * 7] >= 0.0), "{m}");
+    let all = images(&merged);
+    assert_eq!(
+        all.len(),
+        a_images.len() + sb["images"].as_u64().unwrap() as usize
+    );
+    assert_eq!(m["images"].as_u64().unwrap() as usize, all.len());
+    // B's images land where the second session really was (its unmoved poses, in A's frame).
+    let truth = super_trajectory(&seq(&second).join("groundtruth.txt"));
+    let worst = all[a_images.len()..]
+        .iter()
+        .map(|(id, pose)| {
+            let stamp: f64 = id.rsplit('/').next().unwrap().parse().unwrap();
+            let want = truth
+                .iter()
+                .min_by(|x, y| (x.0 - stamp).abs().total_cmp(&(y.0 - stamp).abs()))
+                .unwrap()
+                .1;
+            (pose.translation.vector - want).norm()
+        })
+        .fold(0.0, f64::max);
+    assert!(worst < 0.1, "a merged image is {worst:.3} m off");
+
+    // Sessions of another apartment are refused: too few keyframes agree.
+    let c = dir.path().join("c.pntrmap");
+    build(&seq(&elsewhere), &c, &[]);
+    let msg = err(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        c.to_str().unwrap(),
+        "--out",
+        dir.path().join("no.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(msg.contains("too few keyframes agree"), "{msg}");
+    assert!(!dir.path().join("no.pntrmap").exists());
+}
+
+/// groundtruth.txt rows: (stamp, position).
+fn super_trajectory(path: &Path) -> Vec<(f64, Vector3<f64>)> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+            (v[0], Vector3::new(v[1], v[2], v[3]))
+        })
+        .collect()
+}
