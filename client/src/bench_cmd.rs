@@ -88,6 +88,7 @@ struct Record {
     code: Option<String>,
     localized: bool,
     stages: Vec<(String, f64)>,
+    map_version: String,
 }
 
 /// Latency percentiles, ms.
@@ -110,6 +111,9 @@ pub struct BenchReport {
     errors_by_code: BTreeMap<String, usize>,
     stage_ms: BTreeMap<String, f64>,
     localized_share: f64,
+    /// Answers per map version (`LocalizeResponse.map_version`): how many came from each version of
+    /// the map while it was replaced or extended during the run.
+    answers_by_map_version: BTreeMap<String, usize>,
     concurrency: usize,
     rate: Option<f64>,
     duration_s: f64,
@@ -161,6 +165,10 @@ fn report(
         errors_by_code,
         stage_ms: sums.into_iter().map(|(k, v)| (k, 1e3 * v / n)).collect(),
         localized_share: ok.iter().filter(|r| r.localized).count() as f64 / n,
+        answers_by_map_version: ok.iter().fold(BTreeMap::new(), |mut m, r| {
+            *m.entry(r.map_version.clone()).or_insert(0) += 1;
+            m
+        }),
         concurrency,
         rate,
         duration_s: wall,
@@ -225,6 +233,7 @@ async fn one(
                 code: None,
                 localized: r.status == proto::Status::Localized as i32,
                 stages: stage_seconds(&r),
+                map_version: r.map_version,
             }
         }
         Err(s) => Record {
@@ -232,6 +241,7 @@ async fn one(
             code: Some(pntr_service::service::code_name(s.code()).to_string()),
             localized: false,
             stages: Vec::new(),
+            map_version: String::new(),
         },
     }
 }

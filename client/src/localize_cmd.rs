@@ -180,6 +180,7 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
             "inliers": r.inliers,
             "matched_image_id": r.matched_image_id,
             "map_id": r.map_id,
+            "map_version": r.map_version,
             "reason": r.reason,
             "stage_ms": timings,
             "pose": pose.map(|p| {

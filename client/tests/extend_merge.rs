@@ -292,6 +292,85 @@ fn sessions_extend_and_merge_maps() {
         .fold(0.0, f64::max);
     assert!(worst < 0.1, "a merged image is {worst:.3} m off");
 
+    // A running server extends its map with a recording on its disk, writes the map's file and
+    // serves the new version (`pntr maps extend`, the admin token from PNTR_ADMIN_TOKEN).
+    let served = dir.path().join("served.pntrmap");
+    std::fs::copy(&a, &served).unwrap();
+    let rt = pntr_service::tokio::runtime::Runtime::new().unwrap();
+    let mut settings = pntr_service::config::Settings::local(vec![served.clone()], MODELS.into());
+    settings.admin_token = Some("adm1n-t0ken".into());
+    settings.workers = 1;
+    let running = rt.block_on(async {
+        let running = pntr_service::start(settings).await.unwrap();
+        running.ready().await.unwrap();
+        running
+    });
+    let addr = running.addr.to_string();
+    let admin = |args: &[&str], token: bool| {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_pntr"));
+        c.arg("maps").args(args).args(["--addr", &addr]);
+        if token {
+            c.env("PNTR_ADMIN_TOKEN", "adm1n-t0ken");
+        } else {
+            c.env_remove("PNTR_ADMIN_TOKEN");
+        }
+        c.output().unwrap()
+    };
+    let list = |token| -> serde_json::Value {
+        serde_json::from_str(&ok(&admin(&["list", "--json"], token))).unwrap()
+    };
+    let before = list(true);
+    let v1 = before["maps"][0]["version"].as_str().unwrap().to_string();
+    assert_eq!(before["maps"][0]["map_id"], "lab");
+    let change: serde_json::Value = serde_json::from_str(&ok(&admin(
+        &[
+            "extend",
+            "--map-id",
+            "lab",
+            "--sequence",
+            seq(&second).to_str().unwrap(),
+            "--json",
+        ],
+        true,
+    )))
+    .unwrap();
+    assert_eq!(
+        change["images_added"].as_u64().unwrap() as usize,
+        added,
+        "{change}"
+    );
+    assert_eq!(change["previous_version"], v1.as_str());
+    assert_eq!(change["same_frame"], true, "{change}");
+    let after = list(true);
+    assert_ne!(after["maps"][0]["version"], v1.as_str());
+    assert_eq!(
+        after["maps"][0]["images"].as_u64().unwrap() as usize,
+        a_images.len() + added
+    );
+    assert_eq!(
+        images(&served).len(),
+        a_images.len() + added,
+        "written to the map's file"
+    );
+    let msg = err(&admin(
+        &[
+            "extend",
+            "--map-id",
+            "lab",
+            "--sequence",
+            seq(&second).to_str().unwrap(),
+        ],
+        true,
+    ));
+    assert!(msg.contains("already in map"), "{msg}");
+    let msg = err(&admin(&["list"], false));
+    assert!(msg.contains("admin token"), "{msg}");
+    rt.block_on(async move {
+        let mut running = running;
+        running.shutdown();
+        running.wait().await.unwrap();
+    });
+
     // Sessions of another apartment are refused: too few keyframes agree.
     let c = dir.path().join("c.pntrmap");
     build(&seq(&elsewhere), &c, &[]);
