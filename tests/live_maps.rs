@@ -101,6 +101,13 @@ fn maps_change_under_load_and_streams() {
     built.header.map_id = "copy".into();
     let copy_path = dir.path().join("copy.pntrmap");
     mapfile::save(&built, &copy_path).unwrap();
+    // The same data mapped with another preset (MNN matching instead of LighterGlue).
+    let mnn_path = dir.path().join("all-mnn.pntrmap");
+    mapfile::save(
+        &pntr_tests::build_map(&index, "xfeat-mnn", "all"),
+        &mnn_path,
+    )
+    .unwrap();
     let damaged = dir.path().join("damaged.pntrmap");
     let bytes = std::fs::read(&v2_path).unwrap();
     std::fs::write(&damaged, &bytes[..bytes.len() / 2]).unwrap();
@@ -372,6 +379,43 @@ fn maps_change_under_load_and_streams() {
             .unwrap_err();
         assert_eq!(e.code(), Code::NotFound);
 
+        // A replacement may bring another preset: its models are loaded beside the served ones.
+        let c = admin
+            .replace_map(authed(
+                proto::ReplaceMapRequest {
+                    map_id: "all".into(),
+                    file: mnn_path.display().to_string(),
+                },
+                ADMIN,
+            ))
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(c.map.as_ref().unwrap().preset, "xfeat-mnn");
+        let info = client
+            .get_map_info(authed(proto::GetMapInfoRequest::default(), CLIENT))
+            .await
+            .unwrap()
+            .into_inner();
+        assert_eq!(
+            (info.preset.as_str(), info.matcher.as_str()),
+            ("xfeat-mnn", "mnn")
+        );
+        let v_mnn = c.map.unwrap().version;
+        let r = frame(&still.world_from_camera).await;
+        assert_eq!(r.map_version, v_mnn);
+        // Back to the moved map for the reload below.
+        admin
+            .replace_map(authed(
+                proto::ReplaceMapRequest {
+                    map_id: "all".into(),
+                    file: moved_path.display().to_string(),
+                },
+                ADMIN,
+            ))
+            .await
+            .unwrap();
+
         // Reload: only a changed file is read again (here the moved map's file now holds v1).
         let r = running.reload().await.unwrap();
         assert_eq!(r.unchanged_map_ids, ["all"]);
@@ -392,7 +436,7 @@ fn maps_change_under_load_and_streams() {
         assert!(seen.len() >= 4, "{} requests", seen.len());
         for (code, version) in &seen {
             assert_eq!(*code, Code::Ok, "{version}");
-            assert!([&v1, &v2, &v3].contains(&version), "{version}");
+            assert!([&v1, &v2, &v3, &v_mnn].contains(&version), "{version}");
         }
 
         // The replaced maps are freed once their requests are done.
@@ -413,7 +457,10 @@ fn maps_change_under_load_and_streams() {
             )),
             "{text}"
         );
-        assert!(!text.contains(&v2) && !text.contains(&v3), "{text}");
+        assert!(
+            !text.contains(&v2) && !text.contains(&v3) && !text.contains(&v_mnn),
+            "{text}"
+        );
         assert!(!text.contains("map_id=\"copy\""), "{text}");
 
         // Shutdown ends the open stream with UNAVAILABLE at once, not at the 300 s drain's end.

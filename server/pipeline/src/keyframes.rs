@@ -390,6 +390,31 @@ mod tests {
     }
 
     #[test]
+    fn a_map_being_extended_covers_frames_that_look_as_its_images_do() {
+        let k = Intrinsics::from_fov(64, 48, 90.0);
+        let shade = |c: u32, r: u32| ((c * 7 + r * 13) % 200) as u8 + 20;
+        let (rgb, depth) = frame(shade);
+        // The same view under other lighting: the shading reversed.
+        let (relit, _) = frame(|c, r| 240 - shade(c, r));
+        let map_image = Thumb::new(&rgb, &depth, &k);
+        let mut s = Selector::new(KeyframeParams::default());
+        s.seed([(pose(0.0, 0.0), k, 7, map_image)]);
+        assert_eq!(s.places(), 1);
+        assert_eq!(
+            s.judge(&rgb, &depth, &k, &pose(0.0, 0.0)),
+            Err(Skip::Covered),
+            "the map has this view"
+        );
+        assert_eq!(
+            s.judge(&relit, &depth, &k, &pose(0.0, 0.0)),
+            Ok(7),
+            "the map lacks this view under this lighting; it joins the map's place"
+        );
+        // A new place takes an id after the map's.
+        assert_eq!(s.judge(&rgb, &depth, &k, &pose(5.0, 0.0)), Ok(8));
+    }
+
+    #[test]
     fn blurred_dark_and_depthless_frames_are_left_out() {
         let k = Intrinsics::from_fov(64, 48, 90.0);
         let (sharp, depth) = frame(|c, r| if (c / 2 + r / 2) % 2 == 0 { 40 } else { 200 });

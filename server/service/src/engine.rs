@@ -502,8 +502,28 @@ impl Engine {
             (Some(id), None) => return Err(InstallError::Missing(id.to_string())),
             (Some(_), Some(i)) => Some(std::mem::replace(&mut next[i], Arc::new(map))),
         };
+        self.prune_stages(&next);
         *guard = Arc::new(next);
         Ok(old)
+    }
+
+    /// Forget the feature stages no map in `maps` uses (a replacement that brought another preset):
+    /// jobs still running on the old map hold their own references until they are done.
+    fn prune_stages(&self, maps: &[Arc<LoadedMap>]) {
+        let used: BTreeSet<StageKey> = maps
+            .iter()
+            .map(|m| {
+                (
+                    m.preset.extractor.clone(),
+                    m.preset.matcher.clone(),
+                    m.preset.keypoints,
+                )
+            })
+            .collect();
+        self.stages
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .retain(|k, _| used.contains(k));
     }
 
     /// Stop serving map `id`; returns it (freed once its last job is done).
@@ -515,6 +535,7 @@ impl Engine {
             .position(|m| m.id == id)
             .ok_or_else(|| InstallError::Missing(id.to_string()))?;
         let old = next.remove(i);
+        self.prune_stages(&next);
         *guard = Arc::new(next);
         Ok(old)
     }
