@@ -64,7 +64,38 @@ pub struct LoadedMap {
     pub file_stamp: Option<(u64, std::time::SystemTime)>,
     /// One pipeline per worker (each over that worker's own model sessions).
     pipelines: Vec<Pipeline>,
+    /// Declared last, so dropped after the map and the pipelines: gives their memory back to the OS.
+    _release: ReleaseMemory,
 }
+
+/// On drop, returns the C allocator's free memory to the OS. glibc's malloc keeps what a freed map
+/// held (hundreds of MB of small blocks, spread over the arenas of the threads that loaded it) for
+/// reuse and only trims the top of each heap, so without this every replacement left the process
+/// larger by about a map (BENCHMARKS.md, "Live maps"). `malloc_trim` releases the free pages of
+/// every arena (glibc 2.8 and later); elsewhere this does nothing.
+#[derive(Debug, Default)]
+struct ReleaseMemory;
+
+impl Drop for ReleaseMemory {
+    fn drop(&mut self) {
+        release_free_memory();
+    }
+}
+
+/// Give the allocator's free pages back to the OS (glibc only; a few milliseconds).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[allow(unsafe_code)]
+pub fn release_free_memory() {
+    // SAFETY: malloc_trim takes a pad size, touches only the allocator's own free lists, and is
+    // thread-safe (it locks each arena in turn).
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
+/// Give the allocator's free pages back to the OS (glibc only).
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+pub fn release_free_memory() {}
 
 impl std::fmt::Debug for LoadedMap {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -417,6 +448,7 @@ impl Engine {
             serial,
             file_stamp: file_stamp(path),
             pipelines,
+            _release: ReleaseMemory,
         })
     }
 

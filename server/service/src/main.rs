@@ -7,12 +7,6 @@ use std::process::ExitCode;
 use clap::Parser;
 use pntr_service::config::{Args, Settings};
 
-/// mimalloc rather than glibc's malloc: maps are swapped while the server runs, and glibc keeps a
-/// replaced map's freed memory in its per-thread arenas (the resident size grew by three maps' worth
-/// over five replacements in BENCHMARKS.md, "Live maps"), where mimalloc returns it to the OS.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 /// Resolves on the first SIGTERM or SIGINT.
 async fn signal() {
     let ctrl_c = tokio::signal::ctrl_c();
