@@ -218,8 +218,8 @@ impl Retriever {
                 *inv = InvertedFile::build(voc.words(), vecs)?;
             }
             Store::Dense(index, _) => {
-                let mut index = index
-                    .lock()
+                let index = index
+                    .get_mut()
                     .map_err(|_| RetrievalError::Faiss("a previous search panicked".into()))?;
                 let mut flat = Vec::new();
                 for d in descriptors {
