@@ -280,15 +280,17 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
         return Ok(());
     }
-    if args.extend.is_some() {
-        print!(
-            "extended with {} new images (had {}); ",
+    let kept = if args.extend.is_some() {
+        format!(
+            "{} keyframes added to its {} images ({images} now) from",
             images - report.base_images,
             report.base_images
-        );
-    }
+        )
+    } else {
+        format!("{images} keyframes of")
+    };
     println!(
-        "map {} ({} preset): {images} keyframes of {} frames in {} places (left out: {}), axes {} with up {}; {} written ({:.1} MB)",
+        "map {} ({} preset): {kept} {} frames in {} places (left out: {}), axes {} with up {}; {} written ({:.1} MB)",
         header.map_id,
         preset.name,
         report.frames,

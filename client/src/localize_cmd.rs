@@ -202,8 +202,8 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         format!(", matched {}", r.matched_image_id)
     };
     println!(
-        "status {status} (map {}), confidence {:.3} (threshold {:.2}), {} inliers{matched}",
-        r.map_id, r.confidence, r.min_confidence, r.inliers
+        "status {status} (map {} version {}), confidence {:.3} (threshold {:.2}), {} inliers{matched}",
+        r.map_id, r.map_version, r.confidence, r.min_confidence, r.inliers
     );
     if !r.reason.is_empty() {
         println!("reason: {}", r.reason);
@@ -286,6 +286,10 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
         .map_err(|s| anyhow::anyhow!("the server answered {:?}: {}", s.code(), s.message()))?;
     let truth = match (truth, wire::pose(r.pose.as_ref())) {
         (Some((id, gt)), Some(est)) if r.status == proto::Status::Localized as i32 => {
+            // The answer is in the map's camera axes (optical for a map built from a recording),
+            // the dataset's truth in Habitat's.
+            let est =
+                pntr_core::convert_axes(&est, remote.map_axes(), pntr_core::CameraAxes::Habitat);
             let (dt, dr) = pose_error(&est, &gt, false);
             Some((dt, dr, id))
         }

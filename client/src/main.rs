@@ -37,7 +37,8 @@ enum Command {
     Synth(synth_cmd::SynthArgs),
     /// Register 3D-3D correspondences from a CSV file and print the transform as JSON.
     Register(register_cmd::RegisterArgs),
-    /// Build a map database from a dataset.
+    /// Build a map database from a dataset (--dataset) or a robot's recordings (--sequence), or add
+    /// recordings to an existing map (--extend).
     BuildDb(map_cmd::BuildArgs),
     /// Evaluate the pipeline on a dataset's queries (HPointLoc recall table, JSON report).
     Eval(map_cmd::EvalArgs),
@@ -69,7 +70,7 @@ enum Command {
         images: bool,
     },
     /// Administer the maps of a running pntr-server without a restart: list, load, replace, unload,
-    /// reload (needs the server's admin token).
+    /// extend, reload (needs the server's admin token); and merge two map files offline.
     #[command(subcommand)]
     Maps(maps_cmd::MapsCommand),
     /// The main job on the embedded default: the demo scene and its map (made once, cached), served by

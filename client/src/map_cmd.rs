@@ -695,9 +695,11 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
 
 /// Every image of the map at `path`: id, place, stamp (seconds or null) and `world_from_camera`
 /// (translation, rotation w x y z with w >= 0) in the map's frame and camera axes.
-fn image_list(path: &Path) -> Result<Vec<serde_json::Value>> {
+/// Also the map's version (build time and content checksum), which needs the whole file.
+fn image_list(path: &Path) -> Result<(Vec<serde_json::Value>, String)> {
     let map = load_map(path, 1).with_context(|| format!("loading {}", path.display()))?;
-    Ok(map
+    let version = pntr_service::engine::MapVersion::of(&map).label;
+    let list = map
         .images
         .iter()
         .map(|im| {
@@ -712,7 +714,8 @@ fn image_list(path: &Path) -> Result<Vec<serde_json::Value>> {
                 "rotation_wxyz": [s * q.w, s * q.i, s * q.j, s * q.k],
             })
         })
-        .collect())
+        .collect();
+    Ok((list, version))
 }
 
 /// `pntr info --db FILE [--images]`: what a map file says about itself, from its header alone (fast
@@ -727,8 +730,9 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
     };
     if as_json {
         let mut v = serde_json::to_value(&header)?;
-        if let (Some(o), Some(list)) = (v.as_object_mut(), list) {
+        if let (Some(o), Some((list, version))) = (v.as_object_mut(), list) {
             o.insert("image_list".into(), list.into());
+            o.insert("version".into(), version.into());
         }
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -772,7 +776,19 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
         header.scenes.join(", "),
         header.up_axis
     );
-    for im in list.iter().flatten() {
+    if let Some(at) = header.built_at_unix_s {
+        println!("built (or last extended) at {at:.0} s since the Unix epoch");
+    }
+    for r in &header.sessions {
+        println!(
+            "session {}: {} frames, stamps {:.3} .. {:.3} s",
+            r.name, r.frames, r.first_stamp, r.last_stamp
+        );
+    }
+    if let Some((_, version)) = &list {
+        println!("version {version}");
+    }
+    for im in list.iter().flat_map(|(l, _)| l) {
         println!(
             "{} place {} stamp {} t {} q(wxyz) {}",
             im["id"].as_str().unwrap_or(""),

@@ -41,7 +41,8 @@ pub enum MapsCommand {
         #[command(flatten)]
         connect: AdminConnect,
     },
-    /// Load a map file (a path on the server) under the id its header gives.
+    /// Load a map file (a path on the server; a relative one is resolved against the server's working
+    /// folder) under the id its header gives.
     Load {
         #[command(flatten)]
         connect: AdminConnect,
@@ -113,7 +114,8 @@ pub struct MergeArgs {
     /// B's keyframes tried, evenly spaced (0: all).
     #[arg(long, default_value_t = 300)]
     pub keyframes: usize,
-    /// Fewest agreeing keyframes for a transform.
+    /// Fewest agreeing keyframes for a transform (at least 4; and at least 5% of those tried
+    /// must agree whatever this says).
     #[arg(long, default_value_t = 6)]
     pub min_support: usize,
     /// Threads for ONNX Runtime while loading.
@@ -133,9 +135,16 @@ fn merge(args: &MergeArgs) -> Result<()> {
         .with_context(|| format!("reading map A {}", args.a.display()))?;
     let b = crate::map_cmd::load_map(&args.b, args.threads)
         .with_context(|| format!("reading map B {}", args.b.display()))?;
+    if args.min_support < pntr_pipeline::merge::MIN_SUPPORT_FLOOR {
+        anyhow::bail!(
+            "--min-support {}: at least {} agreeing keyframes are needed (fewer agree by chance between different buildings)",
+            args.min_support,
+            pntr_pipeline::merge::MIN_SUPPORT_FLOOR
+        );
+    }
     let params = MergeParams {
         keyframes: args.keyframes,
-        min_support: args.min_support.max(2),
+        min_support: args.min_support,
         ..MergeParams::default()
     };
     let t = std::time::Instant::now();
@@ -405,6 +414,13 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
                     for f in &r.failed {
                         println!("failed {f}");
                     }
+                }
+                if !connect.json
+                    && r.reloaded.is_empty()
+                    && r.unchanged_map_ids.is_empty()
+                    && r.failed.is_empty()
+                {
+                    println!("no maps loaded");
                 }
                 if !r.failed.is_empty() {
                     anyhow::bail!(

@@ -50,9 +50,15 @@ pub struct MergeParams {
     pub agree_m: f64,
     /// ... and differ in rotation by at most this, degrees.
     pub agree_deg: f64,
-    /// Fewest agreeing images for a transform.
+    /// Fewest agreeing images for a transform (at least [`MIN_SUPPORT_FLOOR`]).
     pub min_support: usize,
+    /// Fewest share of the images tried that must agree (sessions of one building agree in most
+    /// of their overlap; a different building's chance agreements are a few per cent at most).
+    pub min_support_share: f64,
 }
+
+/// The smallest `min_support` accepted: three chance agreements are too easy to meet.
+pub const MIN_SUPPORT_FLOOR: usize = 4;
 
 impl Default for MergeParams {
     fn default() -> Self {
@@ -65,6 +71,7 @@ impl Default for MergeParams {
             agree_m: 0.2,
             agree_deg: 2.0,
             min_support: 6,
+            min_support_share: 0.05,
         }
     }
 }
@@ -253,7 +260,9 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         return Err(too_few(0, tried.len(), verified, p));
     };
     let chosen = &support[best];
-    if chosen.len() < p.min_support {
+    if chosen.len() < p.min_support.max(MIN_SUPPORT_FLOOR)
+        || (chosen.len() as f64) < p.min_support_share * tried.len() as f64
+    {
         return Err(too_few(chosen.len(), tried.len(), verified, p));
     }
     let in_chosen: HashSet<usize> = chosen.iter().copied().collect();
@@ -329,8 +338,9 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
 
 fn too_few(agreeing: usize, tried: usize, verified: usize, p: &MergeParams) -> PipelineError {
     PipelineError::Config(format!(
-        "too few keyframes agree on a transform: of {tried} images of B tried, {verified} localized in A and at most {agreeing} agree on one transform (at least {} must): are the two sessions of the same place, and do they overlap?",
-        p.min_support
+        "too few keyframes agree on a transform: of {tried} images of B tried, {verified} localized in A and at most {agreeing} agree on one transform (at least {} and {:.0}% of those tried must): are the two sessions of the same place, and do they overlap?",
+        p.min_support.max(MIN_SUPPORT_FLOOR),
+        100.0 * p.min_support_share
     ))
 }
 

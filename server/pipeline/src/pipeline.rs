@@ -86,6 +86,11 @@ pub const FALLBACK_MIN_SIMILARITY: f32 = 0.78;
 /// position errors' median Mahalanobis distance was 1.93 and 2.47 against 1.54 for a consistent
 /// 3-d covariance, so the variances are doubled (BENCHMARKS.md, "Covariance consistency").
 pub const COVARIANCE_SCALE: f64 = 2.0;
+/// A map view farther than this from the matched one (metres), or turned more (degrees), is an
+/// independent view whose registration counts for the candidates' consensus.
+pub const INDEPENDENT_VIEW_M: f64 = 1.0;
+/// See [`INDEPENDENT_VIEW_M`].
+pub const INDEPENDENT_VIEW_DEG: f64 = 20.0;
 
 /// One RGB-D query.
 #[derive(Debug, Clone)]
@@ -1026,11 +1031,30 @@ impl Pipeline {
         e.inlier_coverage = grid_coverage(&c.inlier_px, q.rgb.width, q.rgb.height, 4);
         let others: Vec<&(usize, Isometry3<f64>, usize)> =
             pool.iter().filter(|p| p.0 != c.image).collect();
-        let agreeing = others
+        // Agreement counts only from views that are not near-copies of the matched one (within
+        // 1 m and 20 deg of it): keyframes 0.3 m apart along a drive register a look-alike to the
+        // same wrong pose as the matched one does, which is no second opinion (out-of-map answers
+        // LOCALIZED against a drive's map: 0.12 with them, 0.047 without; BENCHMARKS.md, "Live
+        // maps"). An HPointLoc Point's views differ in direction, so they all still count.
+        let independent: Vec<&&(usize, Isometry3<f64>, usize)> = others
+            .iter()
+            .filter(|o| {
+                let im = &self.map.images[o.0];
+                (im.world_from_camera.translation.vector - db.world_from_camera.translation.vector)
+                    .norm()
+                    > INDEPENDENT_VIEW_M
+                    || im
+                        .world_from_camera
+                        .rotation
+                        .angle_to(&db.world_from_camera.rotation)
+                        > INDEPENDENT_VIEW_DEG.to_radians()
+            })
+            .collect();
+        let agreeing = independent
             .iter()
             .filter(|o| poses_agree(&o.1, &world_from_query, 0.5, 10.0))
             .count();
-        e.consensus = agreeing as f64 / others.len().max(1) as f64;
+        e.consensus = agreeing as f64 / independent.len().max(1) as f64;
         e.rival_inliers = others
             .iter()
             .filter(|o| !poses_agree(&o.1, &world_from_query, 0.5, 10.0))

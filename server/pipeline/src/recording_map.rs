@@ -201,7 +201,11 @@ pub fn extend(
     }
     for s in sessions {
         let r = record_of(s.recording);
-        if base.header.sessions.contains(&r) {
+        // The same frames, whatever the folder is called now (a copy, a renamed bag).
+        let same = |o: &SessionRecord| {
+            o.frames == r.frames && o.first_stamp == r.first_stamp && o.last_stamp == r.last_stamp
+        };
+        if base.header.sessions.iter().any(same) {
             return Err(PipelineError::Config(format!(
                 "{} is already in map `{}` ({} frames from {:.3} s to {:.3} s): it was built or extended with it",
                 s.recording.path.display(),

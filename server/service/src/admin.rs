@@ -67,8 +67,11 @@ pub enum AdminError {
     #[error("{0} is empty")]
     Missing(&'static str),
     /// The named file does not exist on the server.
-    #[error("{0}: no such file on the server")]
+    #[error("{0}: no such file on the server (paths are the server's; relative ones from its working folder)")]
     NoFile(PathBuf),
+    /// The named path is a folder.
+    #[error("{0} is a folder: give a map file (`pntr build-db --out`)")]
+    NotAFile(PathBuf),
     /// The file could not be made ready to serve.
     #[error(transparent)]
     Prepare(#[from] PrepareError),
@@ -101,7 +104,7 @@ impl From<AdminError> for Status {
         let m = e.to_string();
         match e {
             AdminError::Loading => Status::unavailable(m),
-            AdminError::Missing(_) => Status::invalid_argument(m),
+            AdminError::Missing(_) | AdminError::NotAFile(_) => Status::invalid_argument(m),
             AdminError::NoFile(_) | AdminError::Install(InstallError::Missing(_)) => {
                 Status::not_found(m)
             }
@@ -146,6 +149,9 @@ async fn install(
     let engine = state.loaded().map_err(|_| AdminError::Loading)?.clone();
     if file.as_os_str().is_empty() {
         return Err(AdminError::Missing("file"));
+    }
+    if file.is_dir() {
+        return Err(AdminError::NotAFile(file));
     }
     if !file.is_file() {
         return Err(AdminError::NoFile(file));

@@ -114,7 +114,7 @@ pub struct Args {
     /// Read the bearer token from this file (surrounding whitespace is ignored).
     #[arg(long, env = "PNTR_TOKEN_FILE")]
     pub token_file: Option<PathBuf>,
-    /// Turn on map administration (`pntr.v1.MapAdmin`: `pntr maps list|load|replace|unload`) with this
+    /// Turn on map administration (`pntr.v1.MapAdmin`: `pntr maps list|load|replace|unload|extend|reload`) with this
     /// token, which admin calls must send as `authorization: Bearer <TOKEN>` and which must differ
     /// from --token (prefer PNTR_ADMIN_TOKEN or --admin-token-file) [default: off, every admin call
     /// refused].
