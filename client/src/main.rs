@@ -56,7 +56,11 @@ enum Command {
     /// scenes.
     Info {
         /// Dataset root (the folder holding HPointLoc_dataset, or that folder).
-        #[arg(long, required_unless_present = "db", conflicts_with = "db")]
+        #[arg(
+            long,
+            required_unless_present_any = ["db", "addr"],
+            conflicts_with_all = ["db", "addr"]
+        )]
         dataset: Option<PathBuf>,
         /// A map file (`pntr build-db`) to describe instead; only its header is read.
         #[arg(long)]
@@ -65,9 +69,22 @@ enum Command {
         #[arg(long)]
         json: bool,
         /// With `--db`: also list every map image (id, place, stamp, world_from_camera in the map's
-        /// frame and axes; `image_list` in JSON). Reads the whole map.
+        /// frame and axes; `image_list` in JSON) and the file's version. Reads the whole map.
         #[arg(long, requires = "db")]
         images: bool,
+        /// Describe a map a running pntr-server serves instead (GetMapInfo: version, preset, camera,
+        /// axes, the other maps it holds), HOST:PORT.
+        #[arg(long, conflicts_with = "db")]
+        addr: Option<String>,
+        /// With `--addr`: the map (empty: the server's only map).
+        #[arg(long, default_value = "", requires = "addr")]
+        map_id: String,
+        /// With `--addr`: the clients' bearer token, when the server wants one (or PNTR_TOKEN).
+        #[arg(long, env = "PNTR_TOKEN", hide_env_values = true)]
+        token: Option<String>,
+        /// With `--addr`: PEM file of the CA that signed the server's certificate (TLS).
+        #[arg(long, requires = "addr")]
+        tls_ca: Option<PathBuf>,
     },
     /// Administer the maps of a running pntr-server without a restart: list, load, replace, unload,
     /// extend, reload (needs the server's admin token); and merge two map files offline.
@@ -115,10 +132,24 @@ fn main() {
             db,
             json,
             images,
-        } => match (dataset, db) {
-            (_, Some(db)) => map_cmd::info(&db, json, images),
-            (Some(dataset), None) => synth_cmd::info(&dataset, json),
-            (None, None) => unreachable!("clap requires --dataset or --db"),
+            addr,
+            map_id,
+            token,
+            tls_ca,
+        } => match (dataset, db, addr) {
+            (_, _, Some(addr)) => remote::print_map_info(
+                &remote::ConnectArgs {
+                    addr,
+                    map_id,
+                    token,
+                    tls_ca,
+                    tls_domain: None,
+                },
+                json,
+            ),
+            (_, Some(db), None) => map_cmd::info(&db, json, images),
+            (Some(dataset), None, None) => synth_cmd::info(&dataset, json),
+            (None, None, None) => unreachable!("clap requires --dataset, --db or --addr"),
         },
         Command::Demo {
             out,

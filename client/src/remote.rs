@@ -185,6 +185,78 @@ impl Remote {
     }
 }
 
+/// `pntr info --addr`: what the server says of a map it serves (`GetMapInfo`), as text or JSON
+/// (the message's fields, snake_case, proto3 JSON mapping aside: intrinsics as an object).
+pub fn print_map_info(c: &ConnectArgs, json: bool) -> Result<()> {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let info = rt.block_on(async {
+        let mut client = client(channel(c).await?);
+        let req = authorized(
+            c,
+            proto::GetMapInfoRequest {
+                map_id: c.map_id.clone(),
+            },
+        )?;
+        client.get_map_info(req).await.map_err(|s| {
+            anyhow::anyhow!(
+                "the server refused: {} ({})",
+                s.message(),
+                pntr_service::service::code_name(s.code())
+            )
+        })
+    })?;
+    let m = info.into_inner();
+    let k = m.intrinsics.clone().unwrap_or_default();
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "map_id": m.map_id,
+                "version": m.version,
+                "built_at": m.built_at,
+                "images": m.images,
+                "points": m.points,
+                "scenes": m.scenes,
+                "preset": m.preset,
+                "built_preset": m.built_preset,
+                "extractor": m.extractor,
+                "extractor_engine": m.extractor_engine,
+                "matcher": m.matcher,
+                "global_descriptor": m.global_descriptor,
+                "camera_axes": m.camera_axes,
+                "up_axis": m.up_axis,
+                "intrinsics": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "distortion": k.distortion},
+                "image_width": m.image_width,
+                "image_height": m.image_height,
+                "build_seconds": m.build_seconds,
+                "loaded_map_ids": m.loaded_map_ids,
+            }))?
+        );
+        return Ok(());
+    }
+    println!(
+        "map {} version {} ({} images, {} places, scenes {})",
+        m.map_id,
+        m.version,
+        m.images,
+        m.points,
+        m.scenes.join(", ")
+    );
+    println!(
+        "preset {} (built with {}): {} on {} + {}, retrieval {}",
+        m.preset, m.built_preset, m.extractor, m.extractor_engine, m.matcher, m.global_descriptor
+    );
+    println!(
+        "answers in camera axes {} with the world's up axis {}; camera {}x{} fx {:.2} fy {:.2} cx {:.2} cy {:.2}",
+        m.camera_axes, m.up_axis, m.image_width, m.image_height, k.fx, k.fy, k.cx, k.cy
+    );
+    println!("the server holds: {}", m.loaded_map_ids.join(", "));
+    Ok(())
+}
+
 /// Server-reported stage times of a response, by name (queue included).
 pub fn stage_seconds(r: &LocalizeResponse) -> Vec<(String, f64)> {
     r.timings

@@ -343,6 +343,12 @@ fn sessions_extend_and_merge_maps() {
     assert_eq!(change["same_frame"], true, "{change}");
     let after = list(true);
     assert_ne!(after["maps"][0]["version"], v1.as_str());
+    // What a robot's client sees of it (GetMapInfo, no admin token needed).
+    let info: serde_json::Value =
+        serde_json::from_str(&ok(&pntr(&["info", "--addr", &addr, "--json"]))).unwrap();
+    assert_eq!(info["version"], after["maps"][0]["version"], "{info}");
+    assert_eq!(info["camera_axes"], "opencv", "{info}");
+    assert_eq!(info["loaded_map_ids"], serde_json::json!(["lab"]), "{info}");
     assert_eq!(
         after["maps"][0]["images"].as_u64().unwrap() as usize,
         a_images.len() + added

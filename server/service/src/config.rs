@@ -62,7 +62,8 @@ pub struct Args {
     /// gRPC address, HOST:PORT (port 0 = any free port; the bound one is printed) [default: 127.0.0.1:50051].
     #[arg(long, env = "PNTR_ADDR")]
     pub addr: Option<String>,
-    /// Address of the Prometheus /metrics endpoint, HOST:PORT [default: 127.0.0.1:9464].
+    /// Address of the Prometheus /metrics endpoint, HOST:PORT (printed at start) [default:
+    /// 127.0.0.1:9464; with --addr on port 0, port 0 of that host].
     #[arg(long, env = "PNTR_METRICS_ADDR")]
     pub metrics_addr: Option<String>,
     /// A TOML (or .json) file with any of these settings (snake_case keys, e.g. `max_message_bytes`).
@@ -395,10 +396,14 @@ impl Settings {
             .addr
             .or(file.addr)
             .unwrap_or_else(|| DEFAULT_ADDR.into());
-        let metrics_addr = args
-            .metrics_addr
-            .or(file.metrics_addr)
-            .unwrap_or_else(|| DEFAULT_METRICS_ADDR.into());
+        // A server on an ephemeral port (tests, several on one machine) gets an ephemeral metrics
+        // port too unless one is named: two such servers must not clash on the default 9464.
+        let metrics_addr = args.metrics_addr.or(file.metrics_addr).unwrap_or_else(|| {
+            match parse_addr("addr", &addr) {
+                Ok(a) if a.port() == 0 => SocketAddr::new(a.ip(), 0).to_string(),
+                _ => DEFAULT_METRICS_ADDR.into(),
+            }
+        });
         let workers = args
             .workers
             .or(file.workers)
@@ -662,7 +667,23 @@ mod tests {
         assert_eq!(s.workers, 3);
         assert_eq!(s.queue, 7, "the flag wins over the file");
         assert_eq!(s.addr.port(), 0);
+        assert_eq!(
+            s.metrics_addr.port(),
+            0,
+            "an ephemeral server gets an ephemeral metrics port, not 9464"
+        );
         assert_eq!(s.max_message_bytes, DEFAULT_MAX_MESSAGE_BYTES);
+        let s = Settings::from_args(Args {
+            config: Some(cfg.clone()),
+            metrics_addr: Some("127.0.0.1:9999".into()),
+            ..Args::default()
+        })
+        .unwrap();
+        assert_eq!(
+            s.metrics_addr.port(),
+            9999,
+            "a named metrics address is kept"
+        );
 
         std::fs::write(&cfg, "wrkers = 3\n").unwrap();
         let e = Settings::from_args(Args {
