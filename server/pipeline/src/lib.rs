@@ -59,6 +59,10 @@ pub enum PipelineError {
     /// A configuration that cannot work (unknown preset, unfit stages, map/preset mismatch).
     #[error("configuration: {0}")]
     Config(String),
+    /// A request that is well formed but cannot be done with these inputs (maps that do not
+    /// overlap, a recording already in the map, nothing new to add); the message says why.
+    #[error("{0}")]
+    Refused(String),
     /// A query that cannot be localised as sent.
     #[error("invalid query: {0}")]
     Query(String),

@@ -109,7 +109,7 @@ struct Proposal {
 
 fn single_frame(m: &Map, which: &str) -> Result<(), PipelineError> {
     if m.header.scenes.len() > 1 {
-        return Err(PipelineError::Config(format!(
+        return Err(PipelineError::Refused(format!(
             "map {which} (`{}`) holds {} scenes, each in its own frame: merge maps of one scene",
             m.header.map_id,
             m.header.scenes.len()
@@ -210,7 +210,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
     single_frame(&a, "A")?;
     single_frame(b, "B")?;
     a.header.preset.serves(&b.header.preset).map_err(|e| {
-        PipelineError::Config(format!(
+        PipelineError::Refused(format!(
             "map B (`{}`, preset {}) describes images unlike map A (`{}`, preset {}): {e}; rebuild B with --preset {}",
             b.header.map_id,
             b.header.preset.name,
@@ -220,7 +220,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         ))
     })?;
     if b.images.first().map(|im| im.dim) != a.images.first().map(|im| im.dim) {
-        return Err(PipelineError::Config(
+        return Err(PipelineError::Refused(
             "the maps' descriptors differ in length: rebuild B with A's preset".into(),
         ));
     }
@@ -272,7 +272,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         .max()
         .unwrap_or(0);
     if rival * 2 >= chosen.len() && rival >= p.min_support {
-        return Err(PipelineError::Config(format!(
+        return Err(PipelineError::Refused(format!(
             "two different transforms are supported ({} and {rival} images of B agree with each): the building repeats itself; merge sessions that share a distinctive part",
             chosen.len()
         )));
@@ -337,7 +337,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
 }
 
 fn too_few(agreeing: usize, tried: usize, verified: usize, p: &MergeParams) -> PipelineError {
-    PipelineError::Config(format!(
+    PipelineError::Refused(format!(
         "too few keyframes agree on a transform: of {tried} images of B tried, {verified} localized in A and at most {agreeing} agree on one transform (at least {} and {:.0}% of those tried must): are the two sessions of the same place, and do they overlap?",
         p.min_support.max(MIN_SUPPORT_FLOOR),
         100.0 * p.min_support_share

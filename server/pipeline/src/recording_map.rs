@@ -193,7 +193,7 @@ pub fn extend(
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<(Map, BuildReport), PipelineError> {
     if base.header.scenes.len() > 1 {
-        return Err(PipelineError::Config(format!(
+        return Err(PipelineError::Refused(format!(
             "map `{}` holds {} scenes, each in its own world frame: extend a map of one scene (build-db --dataset ... --scene NAME)",
             base.header.map_id,
             base.header.scenes.len()
@@ -206,7 +206,7 @@ pub fn extend(
             o.frames == r.frames && o.first_stamp == r.first_stamp && o.last_stamp == r.last_stamp
         };
         if base.header.sessions.iter().any(same) {
-            return Err(PipelineError::Config(format!(
+            return Err(PipelineError::Refused(format!(
                 "{} is already in map `{}` ({} frames from {:.3} s to {:.3} s): it was built or extended with it",
                 s.recording.path.display(),
                 base.header.map_id,
@@ -242,7 +242,7 @@ pub fn extend(
         progress,
     )?;
     if builder.len() == builder.base_len() {
-        return Err(PipelineError::Config(format!(
+        return Err(PipelineError::Refused(format!(
             "no frame was added: the map already covers every usable frame ({} read; left out: {:?})",
             report.frames, report.skipped
         )));

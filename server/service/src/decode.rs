@@ -90,6 +90,7 @@ pub fn prior(req: &proto::LocalizeRequest) -> Result<Option<Region>, Status> {
 pub fn status_of(e: PipelineError) -> Status {
     match e {
         PipelineError::Query(m) => Status::invalid_argument(m),
+        PipelineError::Refused(m) => Status::failed_precondition(m),
         e @ (PipelineError::Config(_)
         | PipelineError::MapFile { .. }
         | PipelineError::Io { .. }
