@@ -159,9 +159,9 @@ pub struct EvalArgs {
     /// Threads for ONNX Runtime.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
-    /// Write the JSON report here.
+    /// Also write the JSON report here (the table goes to stdout either way).
     #[arg(long)]
-    pub json: PathBuf,
+    pub json: Option<PathBuf>,
     /// A dataset of places the map does not cover: its queries are sent too and every LOCALIZED answer
     /// counts as a false positive (`negatives` in the report).
     #[arg(long)]
@@ -624,8 +624,10 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         };
         let report = evaluate_remote(&mut remote, &scenes, &opts)?;
         print!("{}", eval::table(&report));
-        write_json(&args.json, &with_effects(&report, &args.effects)?)?;
-        eprintln!("report written to {}", args.json.display());
+        if let Some(path) = &args.json {
+            write_json(path, &with_effects(&report, &args.effects)?)?;
+            eprintln!("report written to {}", path.display());
+        }
         return extra_outputs(args, &report, &format!("pntr-server at {addr}"));
     }
     let models = models_dir(args.models.as_deref())?;
@@ -688,8 +690,10 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
     };
     let report = evaluate_in_process(&pipeline, &scenes, &opts, fx)?;
     print!("{}", eval::table(&report));
-    write_json(&args.json, &with_effects(&report, &args.effects)?)?;
-    eprintln!("report written to {}", args.json.display());
+    if let Some(path) = &args.json {
+        write_json(path, &with_effects(&report, &args.effects)?)?;
+        eprintln!("report written to {}", path.display());
+    }
     extra_outputs(args, &report, &format!("preset {}", preset.name))
 }
 

@@ -407,6 +407,28 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     );
     let l: serde_json::Value = serde_json::from_slice(&std::fs::read(&legacy).unwrap()).unwrap();
     assert!(l["metric"].as_str().unwrap().starts_with("legacy"), "{l}");
+    // Without --json the table alone, on stdout.
+    let out = pntr(&[
+        "eval",
+        "--dataset",
+        root,
+        "--db",
+        map_s,
+        "--models",
+        models,
+        "--queries",
+        "2",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        table.contains("pipeline") && table.contains("0.25m_2deg"),
+        "{table}"
+    );
 
     // Bad input: a map that is not one, a preset that does not exist, a missing scene.
     std::fs::write(dir.path().join("bad.pntrmap"), b"hello").unwrap();
