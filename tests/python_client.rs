@@ -713,6 +713,31 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
         report["prior_covariance"] = summary(c.localize(rgb, depth, prior=base.as_prior(),
                                                         request_id="prior-covariance"))
 
+    # ROS conventions, per call and per client: the same answer, re-expressed with the package's own
+    # conversion; a ROS answer taken as the next prior is read in ROS conventions.
+    ros = c.localize(rgb, depth, frame_convention="ros", request_id="ros")
+    expect_value_error("frame convention", lambda: c.localize(rgb, depth, frame_convention="enu"), "frame_convention")
+    report["ros"] = {
+        "status": ros.status, "convention": ros.frame_convention, "map_convention": base.frame_convention,
+        "info_convention": info.frame_convention, "up_axis": info.up_axis, "camera_axes": info.camera_axes,
+        "ros_from_map_ok": bool(np.allclose(info.ros_from_map, pc.ros_from_map_world(info.up_axis))),
+    }
+    if ros.localized:
+        expect = pc.map_to_ros(base.pose, info.up_axis, info.camera_axes)
+        back = pc.ros_to_map(ros.pose, info.up_axis, info.camera_axes)
+        report["ros"].update({
+            "position_gap_m": float(np.linalg.norm(ros.pose[:3, 3] - expect[:3, 3])),
+            "rotation_gap": float(np.abs(ros.pose[:3, :3] - expect[:3, :3]).max()),
+            "back_gap_m": float(np.linalg.norm(back[:3, 3] - base.pose[:3, 3])),
+            "w": ros.rotation_wxyz[0],
+        })
+        if ros.covariance is not None and base.covariance is not None:
+            rotated = pc.rotate_covariance(base.covariance, info.ros_from_map)
+            report["ros"]["covariance_gap"] = float(np.abs(ros.covariance - rotated).max() / np.abs(rotated).max())
+        with pc.Client(addr, token=token, timeout_s=120, frame_convention="ros") as rc:
+            p2 = rc.localize(rgb, depth, prior=ros.as_prior(radius_m=1.5), request_id="ros-prior")
+            report["ros"]["prior"] = {"status": p2.status, "mode": p2.mode, "convention": p2.frame_convention}
+
 for t in ("wrong", None):
     with pc.Client(addr, token=t) as bad:
         try:
@@ -832,7 +857,7 @@ fn typed_api_against_a_real_server() {
         assert_eq!(e["unauthenticated"], true, "{e}");
         assert!(!e["message"].as_str().unwrap().contains("api-t0ken"), "{e}");
     }
-    assert_eq!(r["value_errors"].as_object().unwrap().len(), 8);
+    assert_eq!(r["value_errors"].as_object().unwrap().len(), 9);
 
     // Priors: answered through the prior region, and still verified.
     for name in ["prior_position", "prior_answer"] {
@@ -846,5 +871,22 @@ fn typed_api_against_a_real_server() {
     eprintln!("prior_covariance: {} mode {}", a["status"], a["mode"]);
     assert_eq!(a["status"], "LOCALIZED", "{a}");
     assert!(a["mode"] == "PRIOR" || a["mode"] == "GLOBAL", "{a}");
+
+    // ROS conventions from Python.
+    let ros = &r["ros"];
+    eprintln!("ros: {ros}");
+    assert_eq!(ros["status"], "LOCALIZED", "{ros}");
+    assert_eq!(ros["convention"], "ros", "{ros}");
+    assert_eq!(ros["map_convention"], "map", "{ros}");
+    assert_eq!(ros["info_convention"], "map", "{ros}");
+    assert_eq!(ros["ros_from_map_ok"], true, "{ros}");
+    assert!(ros["position_gap_m"].as_f64().unwrap() < 1e-3, "{ros}");
+    assert!(ros["rotation_gap"].as_f64().unwrap() < 1e-3, "{ros}");
+    assert!(ros["back_gap_m"].as_f64().unwrap() < 1e-3, "{ros}");
+    assert!(ros["w"].as_f64().unwrap() >= 0.0, "{ros}");
+    assert!(ros["covariance_gap"].as_f64().unwrap() < 1e-3, "{ros}");
+    assert_eq!(ros["prior"]["status"], "LOCALIZED", "{ros}");
+    assert_eq!(ros["prior"]["mode"], "PRIOR", "{ros}");
+    assert_eq!(ros["prior"]["convention"], "ros", "{ros}");
     v.assert_home_untouched();
 }

@@ -542,10 +542,12 @@ fn localizes_reports_and_refuses_bad_input() {
             "pntr_stage_duration_seconds_bucket{stage=\"extraction\"",
             "pntr_stage_duration_seconds_bucket{stage=\"queue\"",
             "pntr_stage_duration_seconds_bucket{stage=\"verification\"",
-            "pntr_stage_duration_seconds_count{stage=\"total\"}",
-            "pntr_requests_total{status=\"LOCALIZED\",code=\"OK\"}",
-            "pntr_requests_total{status=\"ERROR\",code=\"INVALID_ARGUMENT\"}",
-            "pntr_requests_total{status=\"ERROR\",code=\"NOT_FOUND\"}",
+            "pntr_stage_duration_seconds_count{stage=\"total\",map_id=\"all\"}",
+            "pntr_requests_total{status=\"LOCALIZED\",code=\"OK\",map_id=\"all\"}",
+            "pntr_requests_total{status=\"ERROR\",code=\"INVALID_ARGUMENT\",map_id=",
+            // A map id the server does not hold never becomes a label value.
+            "pntr_requests_total{status=\"ERROR\",code=\"NOT_FOUND\",map_id=\"\"}",
+            "pntr_answers_total{mode=\"GLOBAL\",map_id=\"all\"}",
             "pntr_in_flight_requests",
             "pntr_queue_depth",
             "pntr_map_images{map_id=\"all\"} 24",
@@ -596,6 +598,147 @@ reflection_services!(reflection_services_v1alpha, v1alpha);
 
 fn tokio_stream_one<T: Send + 'static>(x: T) -> impl pntr_service::tokio_stream::Stream<Item = T> {
     pntr_service::tokio_stream::iter([x])
+}
+
+/// A request for `v` in ROS or map conventions (`None`: the server's default), naming the map only
+/// in `x-pntr-map-id` metadata, as a proxy-routed client does.
+fn routed(
+    v: &View,
+    map_id: &str,
+    convention: Option<proto::FrameConvention>,
+) -> Request<proto::LocalizeRequest> {
+    let mut req = Request::new(proto::LocalizeRequest {
+        frame_convention: convention.map_or(0, |c| c as i32),
+        ..wire::raw_request(&v.rgb, &v.depth, None)
+    });
+    req.metadata_mut().insert(
+        pntr_service::service::MAP_ID_HEADER,
+        map_id.parse().unwrap(),
+    );
+    req
+}
+
+#[test]
+fn ros_conventions_and_routing_by_map_id_metadata() {
+    use pntr_core::pose::{map_to_ros, ros_from_map_world, rotate_covariance, UpAxis};
+    let f = fixture();
+    runtime().block_on(async {
+        let mut s = settings(&[&f.map, &f.copy]);
+        s.frame_convention = proto::FrameConvention::Ros;
+        let running = pntr_service::start(s).await.unwrap();
+        wait_serving(running.addr).await;
+        let mut c = client(running.addr).await;
+
+        // GetMapInfo names the map by metadata too, and says how to turn its frame into ROS's.
+        let mut req = Request::new(proto::GetMapInfoRequest::default());
+        req.metadata_mut().insert(
+            pntr_service::service::MAP_ID_HEADER,
+            "copy".parse().unwrap(),
+        );
+        let info = c.get_map_info(req).await.unwrap().into_inner();
+        assert_eq!(info.map_id, "copy");
+        assert_eq!(info.frame_convention, proto::FrameConvention::Ros as i32);
+        let q = info.ros_from_map.and_then(|p| p.rotation).unwrap();
+        let want = ros_from_map_world(UpAxis::Y);
+        assert!(
+            (q.w - want.w).abs() < 1e-12 && (q.x - want.i).abs() < 1e-12,
+            "{q:?}"
+        );
+
+        let mut compared = 0;
+        for v in f.queries.iter().take(6) {
+            // The server's default (ROS here) against an explicit MAP answer of the same frame.
+            let ros = c
+                .localize(routed(v, "copy", None))
+                .await
+                .unwrap()
+                .into_inner();
+            let map = c
+                .localize(routed(v, "copy", Some(proto::FrameConvention::Map)))
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!(ros.map_id, "copy", "the metadata named the map");
+            assert_eq!(ros.frame_convention, proto::FrameConvention::Ros as i32);
+            assert_eq!(map.frame_convention, proto::FrameConvention::Map as i32);
+            let (Some(pr), Some(pm)) =
+                (wire::pose(ros.pose.as_ref()), wire::pose(map.pose.as_ref()))
+            else {
+                continue;
+            };
+            assert!(ros.pose.as_ref().unwrap().rotation.as_ref().unwrap().w >= 0.0);
+            assert!(map.pose.as_ref().unwrap().rotation.as_ref().unwrap().w >= 0.0);
+            // The same answer, re-expressed: z-up world, optical camera.
+            let expect = map_to_ros(&pm, UpAxis::Y, pntr_core::CameraAxes::Habitat);
+            assert!(
+                (pr.translation.vector - expect.translation.vector).norm() < 1e-3,
+                "{pr} vs {expect}"
+            );
+            assert!(pr.rotation.angle_to(&expect.rotation).to_degrees() < 0.05);
+            // The camera's height (the map's y) is ROS's z; the optical z axis is the view direction.
+            let truth = map_to_ros(
+                &v.world_from_camera,
+                UpAxis::Y,
+                pntr_core::CameraAxes::Habitat,
+            );
+            if (pm.translation.vector - v.world_from_camera.translation.vector).norm() < 0.25 {
+                assert!((pr.translation.z - v.world_from_camera.translation.y).abs() < 0.25);
+                let forward = pr.rotation * nalgebra::Vector3::z();
+                let forward_truth = truth.rotation * nalgebra::Vector3::z();
+                assert!(
+                    forward.dot(&forward_truth) > 0.99,
+                    "{forward} vs {forward_truth}"
+                );
+            }
+            let rotated =
+                rotate_covariance(&map.covariance, &ros_from_map_world(UpAxis::Y)).unwrap();
+            for (a, b) in ros.covariance.iter().zip(&rotated) {
+                assert!(
+                    (a - b).abs() <= 1e-3 * b.abs().max(1e-9),
+                    "{:?}\nvs\n{rotated:?}",
+                    ros.covariance
+                );
+            }
+            // A prior given in ROS conventions is read in ROS conventions: a 1.5 m region around
+            // the ROS position answers through the prior.
+            if compared == 0 {
+                let mut req = routed(v, "copy", Some(proto::FrameConvention::Ros));
+                req.get_mut().prior = Some(proto::Prior {
+                    pose: Some(wire::to_proto_pose(&pr)),
+                    covariance: Vec::new(),
+                    radius_m: 1.5,
+                });
+                let r = c.localize(req).await.unwrap().into_inner();
+                assert_eq!(r.status, proto::Status::Localized as i32, "{}", r.reason);
+                assert_eq!(r.mode, proto::Mode::Prior as i32);
+            }
+            compared += 1;
+        }
+        assert!(
+            compared >= 3,
+            "only {compared} of 6 frames localized in both conventions"
+        );
+
+        // A convention this server does not know is the caller's mistake.
+        let mut req = routed(&f.queries[0], "copy", None);
+        req.get_mut().frame_convention = 7;
+        let e = c.localize(req).await.unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument);
+        assert!(e.message().contains("frame_convention"), "{}", e.message());
+        // The message's map_id wins over the metadata; an unknown id never becomes a label.
+        let mut req = routed(&f.queries[0], "nosuch-building", None);
+        req.get_mut().map_id = "all".into();
+        assert_eq!(c.localize(req).await.unwrap().into_inner().map_id, "all");
+        let e = c
+            .localize(routed(&f.queries[0], "nosuch-building", None))
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::NotFound);
+        let text = scrape(running.metrics_addr);
+        assert!(text.contains("map_id=\"copy\""), "{text}");
+        assert!(!text.contains("nosuch-building"), "{text}");
+        stop(running).await;
+    });
 }
 
 #[test]

@@ -44,6 +44,10 @@ pub struct LocalizeArgs {
     /// Query number within the scene (Points in order, their queries in order).
     #[arg(long)]
     pub query: Option<usize>,
+    /// Frame convention of the answer: `map` (the map's own frame and camera axes) or `ros` (z-up
+    /// map frame, optical camera axes x right, y down, z forward) [default: the server's].
+    #[arg(long, value_parser = ["map", "ros"])]
+    pub frame_convention: Option<String>,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -183,10 +187,10 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
             "map_version": r.map_version,
             "reason": r.reason,
             "stage_ms": timings,
+            "frame_convention": wire::convention_name(r.frame_convention),
             "pose": pose.map(|p| {
-                let q = p.rotation.quaternion();
                 json!({"translation": [p.translation.x, p.translation.y, p.translation.z],
-                       "rotation_wxyz": [q.w, q.i, q.j, q.k]})
+                       "rotation_wxyz": pntr_core::pose::canonical_wxyz(&p.rotation)})
             }),
         });
         if let Some((dt, dr, id)) = &truth {
@@ -209,10 +213,15 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         println!("reason: {}", r.reason);
     }
     if let Some(p) = pose {
-        let q = p.rotation.quaternion();
+        let [w, x, y, z] = pntr_core::pose::canonical_wxyz(&p.rotation);
+        let what = if r.frame_convention == proto::FrameConvention::Ros as i32 {
+            "map_from_camera_optical (ROS: z up, optical camera axes)"
+        } else {
+            "world_from_camera (the map's own frame and camera axes)"
+        };
         println!(
-            "world_from_camera: translation [{:.4}, {:.4}, {:.4}] m, rotation (w,x,y,z) [{:.5}, {:.5}, {:.5}, {:.5}]",
-            p.translation.x, p.translation.y, p.translation.z, q.w, q.i, q.j, q.k
+            "{what}: translation [{:.4}, {:.4}, {:.4}] m, rotation (w,x,y,z) [{w:.5}, {x:.5}, {y:.5}, {z:.5}]",
+            p.translation.x, p.translation.y, p.translation.z
         );
     }
     if r.covariance.len() == 36 {
@@ -280,6 +289,9 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
             );
         }
     }
+    if let Some(c) = &args.frame_convention {
+        req.frame_convention = pntr_service::config::parse_frame_convention(c)? as i32;
+    }
     let mut remote = Remote::connect(&args.connect)?;
     let r = remote
         .send(req)
@@ -287,9 +299,14 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
     let truth = match (truth, wire::pose(r.pose.as_ref())) {
         (Some((id, gt)), Some(est)) if r.status == proto::Status::Localized as i32 => {
             // The answer is in the map's camera axes (optical for a map built from a recording),
-            // the dataset's truth in Habitat's.
-            let est =
-                pntr_core::convert_axes(&est, remote.map_axes(), pntr_core::CameraAxes::Habitat);
+            // or in ROS conventions; the dataset's truth in the map frame with Habitat's axes.
+            let frames = remote.map_frames();
+            let est = if r.frame_convention == proto::FrameConvention::Ros as i32 {
+                pntr_core::pose::ros_to_map(&est, frames.up, frames.camera)
+            } else {
+                est
+            };
+            let est = pntr_core::convert_axes(&est, frames.camera, pntr_core::CameraAxes::Habitat);
             let (dt, dr) = pose_error(&est, &gt, false);
             Some((dt, dr, id))
         }

@@ -418,6 +418,9 @@ pub(crate) fn build_preset(args: &BuildArgs) -> Result<Preset> {
 
 /// `pntr build-db`.
 pub fn build_db(args: &BuildArgs) -> Result<()> {
+    if let Some(id) = &args.map_id {
+        pntr_pipeline::map::check_map_id(id).map_err(|e| anyhow::anyhow!("--map-id: {e}"))?;
+    }
     let Some(dataset) = &args.dataset else {
         return crate::build_cmd::build_from_recordings(args);
     };

@@ -89,9 +89,18 @@ pub fn request(
     authorized(c, req)
 }
 
-/// Any request message (a single one or a stream) with the token attached.
+/// Any request message (a single one or a stream) with the token attached, and the map id as
+/// `x-pntr-map-id` metadata when one is given (for proxies that route by map).
 pub fn authorized<T>(c: &ConnectArgs, message: T) -> Result<tonic::Request<T>> {
     let mut r = tonic::Request::new(message);
+    if !c.map_id.is_empty() {
+        r.metadata_mut().insert(
+            pntr_service::service::MAP_ID_HEADER,
+            c.map_id.parse().with_context(|| {
+                format!("--map-id {:?} is not valid in an HTTP header", c.map_id)
+            })?,
+        );
+    }
     if let Some(t) = &c.token {
         r.metadata_mut().insert(
             "authorization",
@@ -115,8 +124,8 @@ pub struct Remote {
     rt: tokio::runtime::Runtime,
     client: LocalizerClient<Channel>,
     connect: ConnectArgs,
-    /// Camera axes of the map's answers (GetMapInfo), asked once.
-    axes: Option<pntr_core::CameraAxes>,
+    /// Frames of the map's answers (GetMapInfo), asked once.
+    frames: Option<wire::MapFrames>,
 }
 
 impl Remote {
@@ -130,7 +139,7 @@ impl Remote {
             rt,
             client: client(ch),
             connect: c.clone(),
-            axes: None,
+            frames: None,
         })
     }
 
@@ -149,6 +158,8 @@ impl Remote {
     ) -> Result<Answer, pntr_pipeline::PipelineError> {
         let req = proto::LocalizeRequest {
             prior: prior.map(wire::prior_message),
+            // Evaluation compares with the dataset's poses, in the map's frame.
+            frame_convention: proto::FrameConvention::Map as i32,
             ..wire::raw_request(&q.rgb, &q.depth, Some(&q.intrinsics))
         };
         let r = self
@@ -165,8 +176,14 @@ impl Remote {
     /// Camera axes of the answers of the map this client asks (GetMapInfo's `camera_axes`; Habitat's
     /// when the server does not say).
     pub fn map_axes(&mut self) -> pntr_core::CameraAxes {
-        if let Some(a) = self.axes {
-            return a;
+        self.map_frames().camera
+    }
+
+    /// The frames of the map this client asks (GetMapInfo's `up_axis` and `camera_axes`; y up and
+    /// Habitat's axes when the server does not say).
+    pub fn map_frames(&mut self) -> wire::MapFrames {
+        if let Some(f) = self.frames {
+            return f;
         }
         let mut client = self.client.clone();
         let req = authorized(
@@ -175,13 +192,17 @@ impl Remote {
                 map_id: self.connect.map_id.clone(),
             },
         );
-        let axes = req
+        let frames = req
             .ok()
             .and_then(|r| self.rt.block_on(client.get_map_info(r)).ok())
-            .and_then(|info| pntr_core::CameraAxes::parse(&info.get_ref().camera_axes))
-            .unwrap_or(pntr_core::CameraAxes::Habitat);
-        self.axes = Some(axes);
-        axes
+            .map(|info| wire::MapFrames {
+                up: pntr_core::pose::UpAxis::parse(&info.get_ref().up_axis),
+                camera: pntr_core::CameraAxes::parse(&info.get_ref().camera_axes)
+                    .unwrap_or(pntr_core::CameraAxes::Habitat),
+            })
+            .unwrap_or_default();
+        self.frames = Some(frames);
+        frames
     }
 }
 
@@ -228,6 +249,8 @@ pub fn print_map_info(c: &ConnectArgs, json: bool) -> Result<()> {
                 "global_descriptor": m.global_descriptor,
                 "camera_axes": m.camera_axes,
                 "up_axis": m.up_axis,
+                "frame_convention": wire::convention_name(m.frame_convention),
+                "ros_from_map_wxyz": m.ros_from_map.as_ref().and_then(|p| p.rotation.as_ref()).map(|q| [q.w, q.x, q.y, q.z]),
                 "intrinsics": {"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy, "distortion": k.distortion},
                 "image_width": m.image_width,
                 "image_height": m.image_height,
@@ -252,6 +275,10 @@ pub fn print_map_info(c: &ConnectArgs, json: bool) -> Result<()> {
     println!(
         "answers in camera axes {} with the world's up axis {}; camera {}x{} fx {:.2} fy {:.2} cx {:.2} cy {:.2}",
         m.camera_axes, m.up_axis, m.image_width, m.image_height, k.fx, k.fy, k.cx, k.cy
+    );
+    println!(
+        "answers by default in the {} convention (ask for `map` or `ros` per request; ROS: z-up map frame, optical camera axes)",
+        wire::convention_name(m.frame_convention)
     );
     println!("the server holds: {}", m.loaded_map_ids.join(", "));
     Ok(())

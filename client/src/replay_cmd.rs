@@ -358,6 +358,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         req.map_id = args.connect.map_id.clone();
         req.request_id = format!("{:.6}", timestamp);
         req.relocalize = args.no_prior;
+        // The recording's ground truth and the prior below are in the map's frame.
+        req.frame_convention = proto::FrameConvention::Map as i32;
         // Only the prior's position is sent, which the camera axes do not change.
         if let (Some(r), Some(p)) = (args.prior_radius, last) {
             req.prior = Some(wire::prior_message(&Region::new(p.translation.vector, r)?));

@@ -154,6 +154,26 @@ fn bad_arguments_and_files_give_clear_errors() {
 }
 
 #[test]
+fn build_db_refuses_a_map_id_that_cannot_travel_in_metadata() {
+    for (id, needle) in [("building a", "' '"), ("", "1 to 128"), ("bâtiment", "'â'")] {
+        let out = pntr(&[
+            "build-db",
+            "--dataset",
+            "/nonexistent",
+            "--out",
+            "/tmp/never.pntrmap",
+            "--map-id",
+            id,
+        ]);
+        let err = fails_cleanly(&out);
+        assert!(
+            err.contains("--map-id") && err.contains(needle),
+            "{id}: {err}"
+        );
+    }
+}
+
+#[test]
 fn build_db_then_eval_write_the_documented_json_keys() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().to_str().unwrap();

@@ -422,10 +422,10 @@ pub struct SequenceFrame {
 /// One line of groundtruth.txt for `pose` at `t` (TUM order: tx ty tz qx qy qz qw).
 pub fn ground_truth_line(t: f64, pose: &Isometry3<f64>) -> String {
     let p = pose.translation.vector;
-    let q = pose.rotation.quaternion();
+    let [w, x, y, z] = pntr_core::pose::canonical_wxyz(&pose.rotation);
     format!(
-        "{t:.6} {:.6} {:.6} {:.6} {:.7} {:.7} {:.7} {:.7}",
-        p.x, p.y, p.z, q.i, q.j, q.k, q.w
+        "{t:.6} {:.6} {:.6} {:.6} {x:.7} {y:.7} {z:.7} {w:.7}",
+        p.x, p.y, p.z
     )
 }
 

@@ -104,6 +104,26 @@ pub struct ModelIdentity {
     pub checksum: Option<String>,
 }
 
+/// Check a map id chosen by a user (`build-db --map-id`): 1 to 128 characters of `A-Z a-z 0-9 . _ -`,
+/// so that it travels unchanged in requests, gRPC metadata (`x-pntr-map-id`), Prometheus labels and
+/// file names. The error says what is wrong.
+pub fn check_map_id(id: &str) -> Result<(), String> {
+    if id.is_empty() || id.len() > 128 {
+        return Err(format!(
+            "map id {id:?}: give 1 to 128 characters (letters, digits, '.', '_', '-')"
+        ));
+    }
+    if let Some(c) = id
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-')))
+    {
+        return Err(format!(
+            "map id {id:?}: {c:?} is not allowed (letters, digits, '.', '_', '-' only: the id travels in gRPC metadata and metric labels)"
+        ));
+    }
+    Ok(())
+}
+
 /// What a map file says about itself (stored as JSON in the header section).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapHeader {

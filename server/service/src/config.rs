@@ -147,6 +147,27 @@ pub struct Args {
     /// fitted for another preset [default: each map's own].
     #[arg(long, env = "PNTR_PRESET")]
     pub preset: Option<String>,
+    /// Frame convention of answers whose request leaves `frame_convention` unset: `map` (the map's
+    /// own world frame and camera axes) or `ros` (REP 103 z-up world, optical camera frame x right,
+    /// y down, z forward) [default: map].
+    #[arg(long, env = "PNTR_FRAME_CONVENTION")]
+    pub frame_convention: Option<String>,
+    /// Stream what the server sees and answers (frames, poses, map cameras) live over the Foxglove
+    /// WebSocket protocol on this address (e.g. 127.0.0.1:8765; open it in Foxglove with "Open
+    /// connection"). No authentication: bind it to a trusted interface [default: off].
+    #[arg(long, env = "PNTR_FOXGLOVE")]
+    pub foxglove: Option<String>,
+}
+
+/// `map` or `ros` (any case).
+pub fn parse_frame_convention(s: &str) -> Result<crate::proto::FrameConvention, ConfigError> {
+    match s.to_ascii_lowercase().as_str() {
+        "map" => Ok(crate::proto::FrameConvention::Map),
+        "ros" => Ok(crate::proto::FrameConvention::Ros),
+        _ => bad(format!(
+            "frame convention `{s}`: use map (the map's own axes) or ros (z-up, optical camera)"
+        )),
+    }
 }
 
 /// `cpu`, `cuda` or `cuda:N`.
@@ -190,6 +211,8 @@ struct FileSettings {
     calibration: Option<PathBuf>,
     min_confidence: Option<f64>,
     preset: Option<String>,
+    frame_convention: Option<String>,
+    foxglove: Option<String>,
 }
 
 impl FileSettings {
@@ -272,6 +295,10 @@ pub struct Settings {
     pub min_confidence: Option<f64>,
     /// Preset every map is served with (`None`: each map's own, from its header).
     pub preset: Option<String>,
+    /// Convention of answers whose request does not choose one (never UNSPECIFIED).
+    pub frame_convention: crate::proto::FrameConvention,
+    /// Address of the live Foxglove WebSocket view (`None`: off).
+    pub foxglove: Option<SocketAddr>,
 }
 
 impl std::fmt::Debug for Settings {
@@ -304,6 +331,8 @@ impl std::fmt::Debug for Settings {
             .field("calibration", &self.calibration)
             .field("min_confidence", &self.min_confidence)
             .field("preset", &self.preset)
+            .field("frame_convention", &self.frame_convention)
+            .field("foxglove", &self.foxglove)
             .finish()
     }
 }
@@ -378,6 +407,8 @@ impl Settings {
             calibration: None,
             min_confidence: None,
             preset: None,
+            frame_convention: crate::proto::FrameConvention::Map,
+            foxglove: None,
         }
     }
 
@@ -485,6 +516,18 @@ impl Settings {
             calibration: args.calibration.or(file.calibration),
             min_confidence: args.min_confidence.or(file.min_confidence),
             preset: args.preset.or(file.preset),
+            frame_convention: match args.frame_convention.or(file.frame_convention) {
+                None => crate::proto::FrameConvention::Map,
+                Some(name) => parse_frame_convention(&name)?,
+            },
+            foxglove: match args.foxglove.or(file.foxglove) {
+                None => None,
+                Some(a) => Some(a.parse().or_else(|e| {
+                    bad(format!(
+                        "--foxglove `{a}`: {e} (give HOST:PORT, e.g. 127.0.0.1:8765)"
+                    ))
+                })?),
+            },
         };
         s.validate()?;
         Ok(s)

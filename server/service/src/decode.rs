@@ -62,6 +62,21 @@ impl Limits {
     }
 }
 
+/// The convention a request asks for: its own, or the server's `default` when it leaves it unset;
+/// INVALID_ARGUMENT for a value this server does not know.
+pub fn frame_convention(
+    requested: i32,
+    default: proto::FrameConvention,
+) -> Result<proto::FrameConvention, Status> {
+    match proto::FrameConvention::try_from(requested) {
+        Ok(proto::FrameConvention::Unspecified) => Ok(default),
+        Ok(c) => Ok(c),
+        Err(_) => invalid(format!(
+            "frame_convention {requested} is not FRAME_CONVENTION_MAP (1) or FRAME_CONVENTION_ROS (2)"
+        )),
+    }
+}
+
 /// The search region of a request's prior (`None` without one), or what is wrong with it.
 pub fn prior(req: &proto::LocalizeRequest) -> Result<Option<Region>, Status> {
     let Some(prior) = &req.prior else {

@@ -267,6 +267,8 @@ pub struct Engine {
     pub queue: usize,
     /// The LOCALIZED threshold on the calibrated confidence.
     pub min_confidence: f64,
+    /// The convention of answers whose request does not choose one.
+    pub frame_convention: crate::proto::FrameConvention,
     runtime: RuntimeOptions,
     models: PathBuf,
     preset_override: Option<String>,
@@ -348,6 +350,7 @@ impl Engine {
             workers: s.workers,
             queue: s.queue,
             min_confidence,
+            frame_convention: s.frame_convention,
             runtime,
             models: s.models.clone(),
             preset_override: s.preset.clone(),
@@ -521,6 +524,7 @@ impl Engine {
         let old = match (replacing, at) {
             (None, Some(_)) => return Err(InstallError::Exists(map.id)),
             (None, None) => {
+                telemetry::register_map(&map.id);
                 next.push(Arc::new(map));
                 None
             }
@@ -710,7 +714,7 @@ fn worker(
             queued,
         }) = &outcome
         {
-            record_stages(loc, *queued);
+            record_stages(loc, *queued, &map.id);
         }
         // The worker counts as free before the caller hears back.
         drop(guard);
@@ -737,9 +741,10 @@ pub fn stage_seconds(loc: &Localization, queued: Duration) -> [(&'static str, f6
     ]
 }
 
-fn record_stages(loc: &Localization, queued: Duration) {
+fn record_stages(loc: &Localization, queued: Duration, map_id: &str) {
     for (stage, s) in stage_seconds(loc, queued) {
-        metrics::histogram!(telemetry::STAGE_DURATION, "stage" => stage).record(s);
+        metrics::histogram!(telemetry::STAGE_DURATION, "stage" => stage, "map_id" => map_id.to_string())
+            .record(s);
     }
 }
 

@@ -111,7 +111,7 @@ impl Interceptor for Gate {
                 .map(|v| v.as_bytes())
                 .unwrap_or_default();
             if !same(got, want) {
-                count("ERROR", Code::Unauthenticated);
+                count("ERROR", Code::Unauthenticated, "");
                 return Err(Status::unauthenticated(
                     "missing or invalid bearer token (send `authorization: Bearer <token>` metadata)",
                 ));
@@ -174,9 +174,26 @@ fn request_id(field: &str, meta: &MetadataMap) -> Result<String, Status> {
     Ok(given.to_string())
 }
 
-fn count(status: &'static str, code: Code) {
-    metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => code_name(code)).increment(1);
+/// Count a finished request; `map_id` is the map that answered ("" when none was resolved).
+fn count(status: &'static str, code: Code, map_id: &str) {
+    metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => code_name(code), "map_id" => map_id.to_string())
+        .increment(1);
 }
+
+/// The map id a call names: the message's field, else the `x-pntr-map-id` metadata (set by clients
+/// for proxies that route by map), else empty (the server's only map).
+fn map_id_of(field: &str, meta: &MetadataMap) -> String {
+    if !field.is_empty() {
+        return field.to_string();
+    }
+    meta.get(MAP_ID_HEADER)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string()
+}
+
+/// The metadata key that names the map when a message leaves `map_id` empty.
+pub const MAP_ID_HEADER: &str = "x-pntr-map-id";
 
 /// gRPC's upper-case code names (as in the spec), for labels.
 pub fn code_name(code: Code) -> &'static str {
@@ -205,16 +222,21 @@ pub fn code_name(code: Code) -> &'static str {
 /// away before the answer (tonic drops the handler's future) as `ERROR`/`CANCELLED`.
 struct InFlight {
     counted: bool,
+    /// The map the request resolved ("" until then).
+    map_id: String,
 }
 
 impl InFlight {
     fn new() -> Self {
         metrics::gauge!(IN_FLIGHT).increment(1.0);
-        Self { counted: false }
+        Self {
+            counted: false,
+            map_id: String::new(),
+        }
     }
 
     fn count(&mut self, status: &'static str, code: Code) {
-        count(status, code);
+        count(status, code, &self.map_id);
         self.counted = true;
     }
 }
@@ -223,7 +245,7 @@ impl Drop for InFlight {
     fn drop(&mut self) {
         metrics::gauge!(IN_FLIGHT).decrement(1.0);
         if !self.counted {
-            count("ERROR", Code::Cancelled);
+            count("ERROR", Code::Cancelled, &self.map_id);
             tracing::info!("the caller went away before the answer");
         }
     }
@@ -295,6 +317,9 @@ struct Challenger {
 /// pose came from the keyframe rather than the map.
 #[derive(Debug, Default)]
 struct Followup {
+    /// The convention the caller wants the answer in, and the answering map's own frames.
+    convention: proto::FrameConvention,
+    frames: wire::MapFrames,
     keyframe: Option<Arc<Keyframe>>,
     odometry: bool,
     /// The map's answer refused for lying outside the track's bounds: pose (map frame) and confidence.
@@ -476,7 +501,7 @@ impl LocalizerService {
         let mut in_flight = InFlight::new();
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
         let result = self
-            .run(msg, map, deadline, tracking, span.clone())
+            .run(msg, map, deadline, tracking, span.clone(), &mut in_flight)
             .instrument(span.clone())
             .await;
         let _entered = span.enter();
@@ -499,11 +524,12 @@ impl LocalizerService {
 
     async fn run(
         &self,
-        msg: proto::LocalizeRequest,
+        mut msg: proto::LocalizeRequest,
         map: Option<Arc<LoadedMap>>,
         deadline: Option<Instant>,
         tracking: Tracking,
         span: tracing::Span,
+        in_flight: &mut InFlight,
     ) -> Result<(proto::LocalizeResponse, Followup), Status> {
         let engine = self.state.loaded()?.clone();
         // Resolved once: the whole request runs on this map, whatever MapAdmin swaps meanwhile.
@@ -511,6 +537,12 @@ impl LocalizerService {
             Some(m) => m,
             None => engine.resolve(&msg.map_id)?,
         };
+        in_flight.map_id = lm.id.clone();
+        let convention = decode::frame_convention(msg.frame_convention, engine.frame_convention)?;
+        let frames = wire::MapFrames::of(&lm.map.header);
+        if let Some(prior) = msg.prior.as_mut() {
+            wire::prior_to_map(prior, convention, frames);
+        }
         // The caller's prior wins over the stream's own state (its region and its keyframe); a
         // stream's LOCALIZED answer still leaves a keyframe for the next frame.
         let options = match (decode::prior(&msg)?, tracking.region) {
@@ -587,7 +619,7 @@ impl LocalizerService {
         let (loc, queued) = match outcome {
             Outcome::Done { result, queued } => (result.map_err(decode::status_of)?, queued),
             Outcome::Expired { queued } => {
-                metrics::histogram!(STAGE_DURATION, "stage" => "queue")
+                metrics::histogram!(STAGE_DURATION, "stage" => "queue", "map_id" => lm.id.clone())
                     .record(queued.as_secs_f64());
                 return Err(Status::deadline_exceeded(format!(
                     "the deadline passed after {:.0} ms in the queue; the frame was not processed",
@@ -599,7 +631,8 @@ impl LocalizerService {
             }
         };
         let t = &loc.times;
-        metrics::counter!(ANSWERS_BY_MODE, "mode" => loc.mode.name()).increment(1);
+        metrics::counter!(ANSWERS_BY_MODE, "mode" => loc.mode.name(), "map_id" => lm.id.clone())
+            .increment(1);
         let stages = crate::engine::stage_seconds(&loc, queued);
         let m = &lm.map;
         let localized = loc.status == pntr_pipeline::pipeline::Status::Localized;
@@ -649,8 +682,12 @@ impl LocalizerService {
             min_confidence: engine.min_confidence,
             mode: wire::mode_message(loc.mode) as i32,
             map_version: lm.version.label.clone(),
+            // Set at the edge, once the stream's state has taken the map-frame pose.
+            frame_convention: proto::FrameConvention::Map as i32,
         };
         let followup = Followup {
+            convention,
+            frames,
             keyframe: loc.keyframe.clone().filter(|_| localized),
             odometry: loc.odometry,
             off_track: loc.off_track,
@@ -687,18 +724,22 @@ impl proto::localizer_server::Localizer for LocalizerService {
     ) -> Result<Response<proto::LocalizeResponse>, Status> {
         let deadline = deadline(&request);
         let meta = request.metadata().clone();
-        let msg = request.into_inner();
+        let mut msg = request.into_inner();
+        msg.map_id = map_id_of(&msg.map_id, &meta);
         let id = match request_id(&msg.request_id, &meta) {
             Ok(id) => id,
             Err(e) => {
-                count("ERROR", e.code());
+                count("ERROR", e.code(), "");
                 return Err(e);
             }
         };
         let mut out = self
             .one(msg, None, id.clone(), deadline, Tracking::default())
             .await
-            .map(|(r, _)| r)
+            .map(|(mut r, f)| {
+                wire::answer_in(&mut r, f.convention, f.frames);
+                r
+            })
             .map_err(|mut e| {
                 if let Ok(v) = MetadataValue::try_from(id.as_str()) {
                     e.metadata_mut().insert("x-request-id", v);
@@ -737,14 +778,14 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     let next = tokio::select! {
                         m = input.message() => m,
                         _ = crate::server::stopped(&mut stop) => {
-                            count("ERROR", Code::Unavailable);
+                            count("ERROR", Code::Unavailable, "");
                             let _ = tx.send(Err(Status::unavailable(
                                 "the server is shutting down: reconnect (to another replica when there is one)",
                             ))).await;
                             break;
                         }
                     };
-                    let msg = match next {
+                    let mut msg = match next {
                         Ok(Some(m)) => m,
                         Ok(None) => break,
                         Err(e) => {
@@ -753,6 +794,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         }
                     };
                     n += 1;
+                    msg.map_id = map_id_of(&msg.map_id, &meta);
                     let id = if msg.request_id.is_empty() {
                         Ok(format!("{stream_id}-{n}"))
                     } else {
@@ -764,7 +806,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     let map = match this.state.loaded().and_then(|e| e.resolve(&msg.map_id)) {
                         Ok(m) => m,
                         Err(e) => {
-                            count("ERROR", e.code());
+                            count("ERROR", e.code(), "");
                             let _ = tx.send(Err(e)).await;
                             break;
                         }
@@ -805,12 +847,13 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 },
                             ),
                             Err(e) => {
-                                count("ERROR", e.code());
+                                count("ERROR", e.code(), &map.id);
                                 Err(e)
                             }
                         };
-                    let result = result.map(|(r, f)| {
+                    let result = result.map(|(mut r, f)| {
                         let off_track = f.off_track;
+                        let (convention, frames) = (f.convention, f.frames);
                         if let Some(t) = Track::after(track.as_ref(), &r, f) {
                             track = Some(t);
                         }
@@ -824,6 +867,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 track = Some(moved);
                             }
                         }
+                        // The track keeps map-frame poses; the caller gets its convention.
+                        wire::answer_in(&mut r, convention, frames);
                         r
                     });
                     let failed = result.is_err();
@@ -845,7 +890,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
         request: Request<proto::GetMapInfoRequest>,
     ) -> Result<Response<proto::MapInfo>, Status> {
         let engine = self.state.loaded()?;
-        let lm = engine.resolve(&request.get_ref().map_id)?;
+        let lm = engine.resolve(&map_id_of(&request.get_ref().map_id, request.metadata()))?;
         let h = &lm.map.header;
         Ok(Response::new(proto::MapInfo {
             map_id: lm.id.clone(),
@@ -867,6 +912,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
             loaded_map_ids: engine.maps().iter().map(|m| m.id.clone()).collect(),
             version: lm.version.label.clone(),
             built_at: lm.version.built_at.clone(),
+            ros_from_map: Some(wire::MapFrames::of(h).ros_from_map()),
+            frame_convention: engine.frame_convention as i32,
         }))
     }
 }

@@ -17,9 +17,11 @@ use pntr_pipeline::prior::Mode;
 use tokio::net::TcpListener;
 
 /// Histogram of seconds per stage (`stage` = queue, extraction, retrieval, matching, registration, verification,
-/// total).
+/// total; `map_id` = the map that answered).
 pub const STAGE_DURATION: &str = "pntr_stage_duration_seconds";
-/// Counter of finished requests (`status` = LOCALIZED, NOT_LOCALIZED or ERROR; `code` = gRPC code).
+/// Counter of finished requests (`status` = LOCALIZED, NOT_LOCALIZED or ERROR; `code` = gRPC code;
+/// `map_id` = the map that answered, empty when the request was refused before a map was resolved,
+/// so the label takes only the ids of maps the server has held).
 pub const REQUESTS_TOTAL: &str = "pntr_requests_total";
 /// Gauge of requests being handled (queued or running).
 pub const IN_FLIGHT: &str = "pntr_in_flight_requests";
@@ -34,7 +36,8 @@ pub const MAP_IMAGES: &str = "pntr_map_images";
 pub const MAP_INFO: &str = "pntr_map_info";
 /// Gauge: open `LocalizeStream` calls (each holds its tracking state until it ends).
 pub const STREAMS_ACTIVE: &str = "pntr_streams_active";
-/// Counter: answers by the path that produced them, labelled `mode` (GLOBAL, PRIOR, TRACKING).
+/// Counter: answers by the path that produced them, labelled `mode` (GLOBAL, PRIOR, TRACKING) and
+/// `map_id`.
 pub const ANSWERS_BY_MODE: &str = "pntr_answers_total";
 
 /// Bucket bounds of the stage histogram, seconds.
@@ -79,15 +82,22 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
             metrics::gauge!(QUEUE_DEPTH).set(0.0);
             metrics::gauge!(BUSY_WORKERS).set(0.0);
             metrics::gauge!(STREAMS_ACTIVE).set(0.0);
-            for status in ["LOCALIZED", "NOT_LOCALIZED"] {
-                metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => "OK").absolute(0);
-            }
-            for mode in [Mode::Global, Mode::Prior, Mode::Tracking] {
-                metrics::counter!(ANSWERS_BY_MODE, "mode" => mode.name()).absolute(0);
-            }
             Ok(handle)
         })
         .clone()
+}
+
+/// Register a map's answer series at 0 (so rates and alerts see them before its first request),
+/// leaving counts already made under that id as they are (a replaced map keeps its id's series).
+pub fn register_map(map_id: &str) {
+    for status in ["LOCALIZED", "NOT_LOCALIZED"] {
+        metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => "OK", "map_id" => map_id.to_string())
+            .increment(0);
+    }
+    for mode in [Mode::Global, Mode::Prior, Mode::Tracking] {
+        metrics::counter!(ANSWERS_BY_MODE, "mode" => mode.name(), "map_id" => map_id.to_string())
+            .increment(0);
+    }
 }
 
 /// The per-map series, in Prometheus text: [`MAP_INFO`] and [`MAP_IMAGES`] for each `(map_id,

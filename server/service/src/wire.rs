@@ -4,7 +4,10 @@
 //! frames exactly as the server decodes them, from one definition.
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
-use pntr_core::{DepthMap, Intrinsics, RgbImage};
+use pntr_core::pose::{
+    canonical_wxyz, map_to_ros, ros_from_map_world, ros_to_map, rotate_covariance, UpAxis,
+};
+use pntr_core::{CameraAxes, DepthMap, Intrinsics, RgbImage};
 use pntr_pipeline::prior::{Mode, Region};
 
 use crate::proto;
@@ -151,21 +154,113 @@ pub fn pose(p: Option<&proto::Pose>) -> Option<Isometry3<f64>> {
     ))
 }
 
-/// The wire form of a pose.
+/// The wire form of a pose (its quaternion with w >= 0).
 pub fn to_proto_pose(p: &Isometry3<f64>) -> proto::Pose {
     let t = p.translation.vector;
-    let q = p.rotation.quaternion();
+    let [w, x, y, z] = canonical_wxyz(&p.rotation);
     proto::Pose {
         translation: Some(proto::Vector3 {
             x: t.x,
             y: t.y,
             z: t.z,
         }),
-        rotation: Some(proto::Quaternion {
-            w: q.w,
-            x: q.i,
-            y: q.j,
-            z: q.k,
-        }),
+        rotation: Some(proto::Quaternion { w, x, y, z }),
+    }
+}
+
+/// The axes a map's poses are in: its world's up axis and its camera axes (from its header).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MapFrames {
+    /// The world's up axis.
+    pub up: UpAxis,
+    /// The camera axes of the map's poses.
+    pub camera: CameraAxes,
+}
+
+impl Default for MapFrames {
+    /// HPointLoc's: y up, Habitat camera axes.
+    fn default() -> Self {
+        Self {
+            up: UpAxis::Y,
+            camera: CameraAxes::Habitat,
+        }
+    }
+}
+
+impl MapFrames {
+    /// The frames of a map header's `up_axis` and `camera_axes`.
+    pub fn of(header: &pntr_pipeline::map::MapHeader) -> Self {
+        Self {
+            up: UpAxis::parse(&header.up_axis),
+            camera: header.axes(),
+        }
+    }
+
+    /// `ros_world_from_map_world` as a wire pose (rotation only).
+    pub fn ros_from_map(&self) -> proto::Pose {
+        to_proto_pose(&Isometry3::from_parts(
+            Translation3::identity(),
+            ros_from_map_world(self.up),
+        ))
+    }
+}
+
+/// `map` or `ros` for a FrameConvention value (as answers and MapInfo carry it); `unspecified`
+/// otherwise.
+pub fn convention_name(value: i32) -> &'static str {
+    match proto::FrameConvention::try_from(value) {
+        Ok(proto::FrameConvention::Map) => "map",
+        Ok(proto::FrameConvention::Ros) => "ros",
+        _ => "unspecified",
+    }
+}
+
+/// Re-express an answer given in the map's own convention in `convention`: under ROS the pose
+/// becomes `ros_map_from_camera_optical` and the covariance is rotated into the ROS map frame
+/// ([`pntr_core::pose::map_to_ros`], [`pntr_core::pose::rotate_covariance`]). Sets
+/// `frame_convention`. `convention` must not be UNSPECIFIED (it is then treated as MAP).
+pub fn answer_in(
+    r: &mut proto::LocalizeResponse,
+    convention: proto::FrameConvention,
+    frames: MapFrames,
+) {
+    if convention == proto::FrameConvention::Ros {
+        if let Some(p) = pose(r.pose.as_ref()) {
+            r.pose = Some(to_proto_pose(&map_to_ros(&p, frames.up, frames.camera)));
+        }
+        if let Some(c) = rotate_covariance(&r.covariance, &ros_from_map_world(frames.up)) {
+            r.covariance = c;
+        }
+        r.frame_convention = proto::FrameConvention::Ros as i32;
+    } else {
+        r.frame_convention = proto::FrameConvention::Map as i32;
+    }
+}
+
+/// Bring a request's prior, given in `convention`, into the map's own convention (its pose and
+/// covariance); a MAP prior is left as it is. A pose without rotation is read as the identity.
+pub fn prior_to_map(
+    prior: &mut proto::Prior,
+    convention: proto::FrameConvention,
+    frames: MapFrames,
+) {
+    if convention != proto::FrameConvention::Ros {
+        return;
+    }
+    if let Some(p) = prior.pose.as_mut() {
+        // Only the position is used today; a missing or degenerate rotation is read as none.
+        let q = p
+            .rotation
+            .map(|r| Quaternion::new(r.w, r.x, r.y, r.z))
+            .filter(|q| q.norm().is_finite() && q.norm() > 1e-9)
+            .map_or_else(UnitQuaternion::identity, UnitQuaternion::from_quaternion);
+        if let Some(t) = p.translation {
+            let ros = Isometry3::from_parts(Translation3::new(t.x, t.y, t.z), q);
+            *p = to_proto_pose(&ros_to_map(&ros, frames.up, frames.camera));
+        }
+    }
+    let back = ros_from_map_world(frames.up).inverse();
+    if let Some(c) = rotate_covariance(&prior.covariance, &back) {
+        prior.covariance = c;
     }
 }

@@ -7,6 +7,8 @@
         if a.localized:
             world_from_camera = a.pose                            # 4x4 float64, metres
 
+`Client(addr, frame_convention="ros")` answers in ROS conventions (z-up map frame, optical camera
+axes: the pose is map_from_camera_optical); `map_to_ros` / `ros_to_map` convert a pose yourself.
 `Client.localize_stream(frames)` sends a stream of frames over one call, `Client.map_info()`
 describes the map. A `Prior` (or `answer.as_prior(radius_m)`) restricts the search to where the
 camera roughly is. gRPC failures raise `PntrError` subclasses (see `pntr_client.errors`); malformed
@@ -16,6 +18,7 @@ the `hpointloc` extra) and `pntr-client` / `python -m pntr_client` is the comman
 
 from importlib import metadata as _metadata
 
+from pntr_client._geometry import map_to_ros, ros_from_map_world, ros_to_map, rotate_covariance
 from pntr_client._messages import make_request
 from pntr_client._values import Answer, Frame, MapInfo, Prior
 from pntr_client.client import Client
@@ -53,4 +56,8 @@ __all__ = [
     "UnavailableError",
     "__version__",
     "make_request",
+    "map_to_ros",
+    "ros_from_map_world",
+    "ros_to_map",
+    "rotate_covariance",
 ]

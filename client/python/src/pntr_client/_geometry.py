@@ -1,4 +1,5 @@
-"""Rigid-transform helpers: quaternions (w, x, y, z) <-> 3x3 rotation matrices, 4x4 poses."""
+"""Rigid-transform helpers: quaternions (w, x, y, z) <-> 3x3 rotation matrices, 4x4 poses, and the
+conversion between a map's own frame conventions and ROS's (REP 103 z-up world, optical camera)."""
 
 from __future__ import annotations
 
@@ -90,3 +91,63 @@ def check_pose(pose: npt.ArrayLike, what: str) -> npt.NDArray[np.float64]:
     if not (np.allclose(r.T @ r, np.eye(3), atol=1e-3) and np.linalg.det(r) > 0.0):
         raise ValueError(f"{what}: the upper-left 3x3 is not a rotation matrix (orthonormal, determinant +1)")
     return a
+
+
+# Habitat / OpenGL camera axes (x right, y up, looking along -z) <-> optical (x right, y down, z forward).
+_FLIP_YZ = np.diag([1.0, -1.0, -1.0])
+
+
+def _camera_flip(camera_axes: str) -> npt.NDArray[np.float64]:
+    a = camera_axes.lower()
+    if a == "habitat":
+        return _FLIP_YZ
+    if a in ("opencv", "optical"):
+        return np.eye(3)
+    raise ValueError(f"camera_axes must be 'habitat' or 'opencv', got {camera_axes!r}")
+
+
+def ros_from_map_world(up_axis: str = "y") -> npt.NDArray[np.float64]:
+    """The 3x3 rotation taking points of a map's world frame into the ROS (REP 103, z-up) frame: the
+    identity for a z-up map, +90 degrees about x for a y-up map ((x, y, z) -> (x, -z, y)). The server
+    reports it as `MapInfo.ros_from_map`.
+    """
+    if up_axis.lower() == "z":
+        return np.eye(3)
+    if up_axis.lower() != "y":
+        raise ValueError(f"up_axis must be 'y' or 'z', got {up_axis!r}")
+    return np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def map_to_ros(pose: npt.ArrayLike, up_axis: str = "y", camera_axes: str = "habitat") -> npt.NDArray[np.float64]:
+    """A 4x4 world_from_camera in a map's own conventions (`MapInfo.up_axis`, `MapInfo.camera_axes`)
+    as ROS expects it: map_from_camera_optical with z up (what the server answers under
+    frame_convention="ros"). The inverse is `ros_to_map`.
+    """
+    p = check_pose(pose, "pose")
+    out = np.eye(4)
+    r = ros_from_map_world(up_axis)
+    out[:3, :3] = r @ p[:3, :3] @ _camera_flip(camera_axes)
+    out[:3, 3] = r @ p[:3, 3]
+    return out
+
+
+def ros_to_map(pose: npt.ArrayLike, up_axis: str = "y", camera_axes: str = "habitat") -> npt.NDArray[np.float64]:
+    """The inverse of `map_to_ros`: a ROS-convention 4x4 pose back in the map's frame and camera axes."""
+    p = check_pose(pose, "pose")
+    out = np.eye(4)
+    r = ros_from_map_world(up_axis).T
+    out[:3, :3] = r @ p[:3, :3] @ _camera_flip(camera_axes)
+    out[:3, 3] = r @ p[:3, 3]
+    return out
+
+
+def rotate_covariance(covariance: npt.ArrayLike, rotation: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    """A 6x6 pose covariance (ROS order: x, y, z, rotation about x, y, z, in the world frame)
+    re-expressed after the world frame is rotated by the 3x3 `rotation`: J C J^T, J = diag(R, R).
+    """
+    c = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
+    r = np.asarray(rotation, dtype=np.float64)
+    j = np.zeros((6, 6))
+    j[:3, :3] = r
+    j[3:, 3:] = r
+    return j @ c @ j.T

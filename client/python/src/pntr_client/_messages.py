@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pntr_client._geometry import matrix_to_quaternion, pose_matrix
+from pntr_client._geometry import matrix_to_quaternion, pose_matrix, quaternion_to_matrix, ros_from_map_world
 from pntr_client._proto import localizer_pb2 as pb2
 from pntr_client._values import Answer, Frame, MapInfo, Prior
 
@@ -137,6 +137,7 @@ def make_request(
     prior: Prior | None = None,
     request_id: str = "",
     *,
+    frame_convention: str | None = None,
     where: str = "",
 ) -> pb2.LocalizeRequest:
     """A LocalizeRequest (RAW_RGB8 colour, FLOAT32_METERS depth) after checking every input.
@@ -148,6 +149,8 @@ def make_request(
         map_id: the map to localize in; "" = the server's only map.
         prior: optional `Prior`.
         request_id: optional id echoed in the answer.
+        frame_convention: "map" or "ros" for the answer's pose, covariance and the prior; None = the
+            server's default.
         where: prefix of error messages (e.g. "frame 3: ").
 
     Raises ValueError naming the first mistake found.
@@ -169,11 +172,28 @@ def make_request(
         rgb=pb2.Image(width=w, height=h, encoding=pb2.RAW_RGB8, data=rgb_a.tobytes()),
         depth=pb2.Depth(width=w, height=h, encoding=pb2.FLOAT32_METERS, data=depth_a.tobytes()),
     )
+    if frame_convention is not None:
+        req.frame_convention = frame_convention_value(frame_convention, where)
     if k is not None:
         req.intrinsics.CopyFrom(k)
     if prior is not None:
         req.prior.CopyFrom(prior_message(prior))
     return req
+
+
+def frame_convention_value(name: str, where: str = "") -> int:
+    """The FrameConvention enum value of "map" or "ros" (any case); ValueError otherwise."""
+    values = {"map": pb2.FRAME_CONVENTION_MAP, "ros": pb2.FRAME_CONVENTION_ROS}
+    if not isinstance(name, str) or name.lower() not in values:
+        raise ValueError(
+            f"{where}frame_convention must be 'map' (the map's own axes) or 'ros' (z-up, optical camera), got {name!r}"
+        )
+    return int(values[name.lower()])
+
+
+def frame_convention_name(value: int) -> str:
+    """'map', 'ros' or 'unspecified' for a FrameConvention value."""
+    return {int(pb2.FRAME_CONVENTION_MAP): "map", int(pb2.FRAME_CONVENTION_ROS): "ros"}.get(value, "unspecified")
 
 
 def as_frame(frame: Any, index: int) -> Frame:
@@ -223,6 +243,7 @@ def answer_from_response(resp: pb2.LocalizeResponse) -> Answer:
         mode=_enum_name(pb2.Mode, resp.mode),
         matched_point=resp.matched_point,
         retrieved_image_ids=tuple(resp.retrieved_image_ids),
+        frame_convention=frame_convention_name(resp.frame_convention),
     )
 
 
@@ -247,4 +268,12 @@ def map_info_from_message(m: pb2.MapInfo) -> MapInfo:
         image_height=m.image_height,
         build_seconds=m.build_seconds,
         loaded_map_ids=tuple(m.loaded_map_ids),
+        up_axis=m.up_axis or "y",
+        version=m.version,
+        frame_convention=frame_convention_name(m.frame_convention),
+        ros_from_map=quaternion_to_matrix(
+            m.ros_from_map.rotation.w, m.ros_from_map.rotation.x, m.ros_from_map.rotation.y, m.ros_from_map.rotation.z
+        )
+        if m.HasField("ros_from_map")
+        else ros_from_map_world(m.up_axis or "y"),
     )

@@ -134,6 +134,8 @@ class Answer:
             that does not report it).
         matched_point: HPointLoc Point index of `matched_image_id` (LOCALIZED only).
         retrieved_image_ids: retrieval candidates, best first.
+        frame_convention: "map" (pose and covariance in the map's own frame and camera axes) or
+            "ros" (z-up map frame, optical camera axes: map_from_camera_optical), as the server says.
     """
 
     status: str
@@ -150,6 +152,7 @@ class Answer:
     mode: str = "MODE_UNSPECIFIED"
     matched_point: int = 0
     retrieved_image_ids: tuple[str, ...] = field(default_factory=tuple)
+    frame_convention: str = "map"
 
     def __post_init__(self) -> None:
         if self.pose is not None:
@@ -202,6 +205,10 @@ class MapInfo:
         image_width, image_height: the database images' size, pixels.
         build_seconds: how long building the map took, seconds.
         loaded_map_ids: every map id the server holds.
+        up_axis: the map world's up axis, "y" (HPointLoc, `pntr synth`) or "z".
+        version: the map's version (build time and content checksum).
+        frame_convention: the server's default answer convention, "map" or "ros".
+        ros_from_map: 3x3 rotation from the map's world frame to the ROS z-up frame.
     """
 
     map_id: str
@@ -218,3 +225,7 @@ class MapInfo:
     image_height: int
     build_seconds: float
     loaded_map_ids: tuple[str, ...]
+    up_axis: str = "y"
+    version: str = ""
+    frame_convention: str = "map"
+    ros_from_map: npt.NDArray[np.float64] | None = None

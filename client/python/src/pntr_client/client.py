@@ -12,7 +12,13 @@ import grpc
 import numpy as np
 import numpy.typing as npt
 
-from pntr_client._messages import answer_from_response, as_frame, make_request, map_info_from_message
+from pntr_client._messages import (
+    answer_from_response,
+    as_frame,
+    frame_convention_value,
+    make_request,
+    map_info_from_message,
+)
 from pntr_client._proto import localizer_pb2 as pb2
 from pntr_client._proto import localizer_pb2_grpc as pb2_grpc
 from pntr_client._values import Answer, Frame, MapInfo, Prior
@@ -37,6 +43,10 @@ class Client:
         tls_server_name: the name to check in the server certificate when it differs from the host
             in `addr` (e.g. connecting by IP address).
         timeout_s: default deadline of `localize` and `map_info` calls, seconds; None for none.
+        frame_convention: the convention of answers (and priors) for every call that does not name
+            one: "map" (the map's own frame and camera axes), "ros" (REP 103 z-up map frame, optical
+            camera axes x right, y down, z forward: `Answer.pose` is map_from_camera_optical), or None
+            for the server's default (`MapInfo.frame_convention`).
 
     Connecting is lazy: constructing a Client never fails for an unreachable server; the first call
     does (`UnavailableError`). Use `map_info(wait_s=...)` to wait for a server that is starting.
@@ -53,6 +63,7 @@ class Client:
         *,
         tls_server_name: str | None = None,
         timeout_s: float | None = 60.0,
+        frame_convention: str | None = None,
     ) -> None:
         if not isinstance(addr, str) or not addr:
             raise ValueError(f"addr must be 'HOST:PORT', got {addr!r}")
@@ -60,6 +71,9 @@ class Client:
             raise ValueError("token must be a string without line breaks (strip the one read from a file)")
         if timeout_s is not None and not timeout_s > 0:
             raise ValueError(f"timeout_s must be > 0 seconds or None, got {timeout_s}")
+        if frame_convention is not None:
+            frame_convention_value(frame_convention)  # ValueError now rather than at the first call
+        self._frame_convention = frame_convention
         self._addr = addr
         self._timeout_s = timeout_s
         self._metadata: tuple[tuple[str, str], ...] | None = (("authorization", f"Bearer {token}"),) if token else None
@@ -99,6 +113,11 @@ class Client:
     def _timeout(self, timeout_s: float | None) -> float | None:
         return self._timeout_s if timeout_s is None else timeout_s
 
+    def _call_metadata(self, map_id: str) -> tuple[tuple[str, str], ...] | None:
+        # The map id also travels as metadata, so a proxy can route by map without reading the body.
+        extra = (("x-pntr-map-id", map_id),) if map_id else ()
+        return (self._metadata or ()) + extra or None
+
     def localize(
         self,
         rgb: npt.NDArray[np.uint8],
@@ -109,6 +128,7 @@ class Client:
         *,
         request_id: str = "",
         timeout_s: float | None = None,
+        frame_convention: str | None = None,
     ) -> Answer:
         """Localize one RGB-D frame.
 
@@ -124,6 +144,7 @@ class Client:
             prior: where the camera roughly is (`Prior`), or None for a global search.
             request_id: optional id echoed in the answer and logged by the server.
             timeout_s: deadline of this call, seconds [the client's `timeout_s`].
+            frame_convention: "map" or "ros" for this call's answer and prior [the client's].
 
         Returns:
             The `Answer` (LOCALIZED with a pose, or NOT_LOCALIZED with a reason).
@@ -132,9 +153,11 @@ class Client:
             ValueError: an input is malformed (the message names it) - nothing was sent.
             PntrError: the call failed (e.g. `UnauthenticatedError`, `InvalidArgumentError`).
         """
-        req = make_request(rgb, depth, intrinsics, map_id, prior, request_id)
+        req = make_request(
+            rgb, depth, intrinsics, map_id, prior, request_id, frame_convention=frame_convention or self._frame_convention
+        )
         try:
-            resp = self._stub.Localize(req, metadata=self._metadata, timeout=self._timeout(timeout_s))
+            resp = self._stub.Localize(req, metadata=self._call_metadata(map_id), timeout=self._timeout(timeout_s))
         except grpc.RpcError as e:
             raise error_from_rpc(e, "Localize") from e
         return answer_from_response(resp)
@@ -145,6 +168,7 @@ class Client:
         map_id: str = "",
         *,
         timeout_s: float | None = None,
+        frame_convention: str | None = None,
     ) -> Iterator[Answer]:
         """Localize a stream of frames over one LocalizeStream call; yields one `Answer` per frame, in
         the order sent (the server may use the stream's last verified pose: `Answer.mode` TRACKING).
@@ -155,6 +179,7 @@ class Client:
                 works.
             map_id: the map to localize every frame in; "" means the server's only map.
             timeout_s: deadline of the whole stream, seconds; None (default) for none.
+            frame_convention: "map" or "ros" for every frame's answer and prior [the client's].
 
         Raises:
             ValueError: a frame is malformed (the message names the frame's index); raised after the
@@ -162,6 +187,9 @@ class Client:
             PntrError: the stream failed (the error ends it, as the server documents).
         """
         failure: list[BaseException] = []
+        convention = frame_convention or self._frame_convention
+        if convention is not None:
+            frame_convention_value(convention)
 
         def requests() -> Iterator[pb2.LocalizeRequest]:
             # Runs in gRPC's sending thread: an exception here would only cancel the call, so keep it
@@ -170,12 +198,19 @@ class Client:
                 for i, item in enumerate(frames):
                     f = as_frame(item, i)
                     yield make_request(
-                        f.rgb, f.depth, f.intrinsics, map_id, f.prior, f.request_id, where=f"frame {i}: "
+                        f.rgb,
+                        f.depth,
+                        f.intrinsics,
+                        map_id,
+                        f.prior,
+                        f.request_id,
+                        frame_convention=convention,
+                        where=f"frame {i}: ",
                     )
             except Exception as e:  # noqa: BLE001 - re-raised in the caller's thread below
                 failure.append(e)
 
-        call = self._stub.LocalizeStream(requests(), metadata=self._metadata, timeout=timeout_s)
+        call = self._stub.LocalizeStream(requests(), metadata=self._call_metadata(map_id), timeout=timeout_s)
         try:
             for resp in call:
                 yield answer_from_response(resp)
@@ -205,7 +240,7 @@ class Client:
         while True:
             timeout = max(0.5, end - time.monotonic()) if wait_s > 0 else self._timeout_s
             try:
-                msg = self._stub.GetMapInfo(req, metadata=self._metadata, timeout=timeout)
+                msg = self._stub.GetMapInfo(req, metadata=self._call_metadata(map_id), timeout=timeout)
                 return map_info_from_message(msg)
             except grpc.RpcError as e:
                 if wait_s <= 0 or e.code() not in _RETRYABLE or time.monotonic() + 0.25 >= end:
