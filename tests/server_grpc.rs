@@ -9,6 +9,7 @@
 //! DEADLINE_EXCEEDED; a token-protected server refuses calls without the token; a /metrics scrape shows
 //! the metrics; shutdown drains an in-flight request.
 
+use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -737,6 +738,105 @@ fn ros_conventions_and_routing_by_map_id_metadata() {
         let text = scrape(running.metrics_addr);
         assert!(text.contains("map_id=\"copy\""), "{text}");
         assert!(!text.contains("nosuch-building"), "{text}");
+        stop(running).await;
+    });
+}
+
+/// `--foxglove`: a plain WebSocket client speaking the Foxglove protocol (subprotocol
+/// `foxglove.sdk.v1`) sees the channels advertised with their schemas, subscribes to the answers and
+/// the poses, and receives the pose of a frame another client localizes over gRPC.
+#[test]
+fn foxglove_live_view_streams_answers_to_a_websocket_client() {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::{client::IntoClientRequest, Message};
+    let f = fixture();
+    runtime().block_on(async {
+        let mut s = settings(&[&f.map]);
+        s.foxglove = Some("127.0.0.1:0".parse().unwrap());
+        let running = pntr_service::start(s).await.unwrap();
+        running.ready().await.unwrap();
+        let ws_addr = running.foxglove_addr.expect("the live view is on");
+        let mut req = format!("ws://{ws_addr}").into_client_request().unwrap();
+        req.headers_mut()
+            .insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().unwrap());
+        let (mut ws, _) = tokio_tungstenite::connect_async(req).await.unwrap();
+        // serverInfo, then the advertisements.
+        let mut channels: BTreeMap<String, (u64, String)> = BTreeMap::new();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while channels.len() < 7 {
+            assert!(Instant::now() < deadline, "advertised only {channels:?}");
+            let Some(Ok(Message::Text(t))) = ws.next().await else {
+                continue;
+            };
+            let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+            if v["op"] == "advertise" {
+                for c in v["channels"].as_array().unwrap() {
+                    channels.insert(
+                        c["topic"].as_str().unwrap().into(),
+                        (
+                            c["id"].as_u64().unwrap(),
+                            c["schemaName"].as_str().unwrap_or("").into(),
+                        ),
+                    );
+                }
+            }
+        }
+        assert_eq!(
+            channels["/pntr/pose"].1, "foxglove.PoseInFrame",
+            "{channels:?}"
+        );
+        assert_eq!(channels["/pntr/camera/image"].1, "foxglove.CompressedImage");
+        assert_eq!(channels["/pntr/answer"].1, "pntr.Answer");
+        let subscribe = serde_json::json!({"op": "subscribe", "subscriptions": [
+            {"id": 1, "channelId": channels["/pntr/answer"].0},
+            {"id": 2, "channelId": channels["/pntr/pose"].0},
+            {"id": 3, "channelId": channels["/pntr/camera/image"].0},
+            {"id": 4, "channelId": channels["/pntr/map/cameras"].0},
+        ]});
+        ws.send(Message::Text(subscribe.to_string().into()))
+            .await
+            .unwrap();
+        // Localize over gRPC until the view shows a LOCALIZED answer with its pose and image.
+        let mut c = client(running.addr).await;
+        let (mut answers, mut poses, mut images, mut map_cameras) = (Vec::new(), 0, 0, 0);
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let mut sent = 0;
+        while !(answers
+            .iter()
+            .any(|a: &serde_json::Value| a["status"] == "LOCALIZED")
+            && poses > 0
+            && images > 0
+            && map_cameras > 0)
+        {
+            assert!(
+                Instant::now() < deadline,
+                "{answers:?} {poses} {images} {map_cameras}"
+            );
+            if sent < f.queries.len() && answers.len() == sent {
+                c.localize(request(&f.queries[sent], "")).await.unwrap();
+                sent += 1;
+            }
+            let next = tokio::time::timeout(Duration::from_millis(500), ws.next()).await;
+            let Ok(Some(Ok(Message::Binary(b)))) = next else {
+                continue;
+            };
+            // Opcode 1 (message data), subscription id, log time, payload.
+            assert_eq!(b[0], 1);
+            let sub = u32::from_le_bytes(b[1..5].try_into().unwrap());
+            let payload = &b[13..];
+            match sub {
+                1 => answers.push(serde_json::from_slice(payload).unwrap()),
+                2 => poses += 1,
+                3 => images += 1,
+                4 => map_cameras += 1,
+                other => panic!("subscription {other}"),
+            }
+        }
+        let a = answers.iter().find(|a| a["status"] == "LOCALIZED").unwrap();
+        assert_eq!(a["map_id"], "all");
+        // ROS conventions: the y-up scene's camera height is the pose's z.
+        let z = a["pose"]["position"][2].as_f64().unwrap();
+        assert!((0.5..2.0).contains(&z), "{a}");
         stop(running).await;
     });
 }

@@ -162,6 +162,11 @@ pub struct EvalArgs {
     /// Also write the JSON report here (the table goes to stdout either way).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Also write every query to this MCAP file with Foxglove's schemas (open it in Foxglove): its
+    /// image and camera, the answer (pose with covariance, status, reason), the ground truth and the
+    /// map's cameras (in process), in ROS conventions (z-up `map`, optical `camera_optical`).
+    #[arg(long, value_name = "OUT.mcap")]
+    pub record: Option<PathBuf>,
     /// A dataset of places the map does not cover: its queries are sent too and every LOCALIZED answer
     /// counts as a false positive (`negatives` in the report).
     #[arg(long)]
@@ -464,18 +469,103 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
     Ok(())
 }
 
+/// Start an MCAP recording (`--record`) at `out`; with `db`, the map's cameras go in first, stamped
+/// `time_s`.
+pub fn start_recording(
+    out: &Path,
+    db: Option<&Path>,
+    time_s: f64,
+) -> Result<pntr_service::visual::Recording> {
+    let rec = pntr_service::visual::Recording::create(out)
+        .map_err(|e| anyhow::anyhow!("--record {e}"))?;
+    if let Some(path) = db {
+        let map = load_map(path, 1).with_context(|| format!("--db {}", path.display()))?;
+        show_map_cameras(&rec, &map, time_s);
+    }
+    Ok(rec)
+}
+
+/// Write a map's image poses into a recording, in ROS conventions.
+fn show_map_cameras(rec: &pntr_service::visual::Recording, map: &Map, time_s: f64) {
+    let (up, axes) = (
+        pntr_core::pose::UpAxis::parse(&map.header.up_axis),
+        map.header.axes(),
+    );
+    rec.view().map_cameras(
+        time_s,
+        map.images
+            .iter()
+            .map(|im| pntr_core::pose::map_to_ros(&im.world_from_camera, up, axes)),
+    );
+}
+
+/// Show one evaluated query in a recording: its image and camera, the answer and the ground truth,
+/// in ROS conventions (the dataset's frame is y-up with Habitat camera axes). Queries are stamped
+/// 0.1 s apart from the Unix epoch (datasets carry no time).
+fn record_query(
+    rec: &pntr_service::visual::Recording,
+    n: &mut usize,
+    q: &pntr_pipeline::pipeline::Query,
+    truth: Option<&nalgebra::Isometry3<f64>>,
+    a: &Answer,
+) {
+    use pntr_core::pose::{map_to_ros, ros_from_map_world, rotate_covariance, UpAxis};
+    let to_ros =
+        |p: &nalgebra::Isometry3<f64>| map_to_ros(p, UpAxis::Y, pntr_core::CameraAxes::Habitat);
+    let covariance = a
+        .covariance
+        .and_then(|c| rotate_covariance(&c, &ros_from_map_world(UpAxis::Y)))
+        .unwrap_or_default();
+    let id = format!("query-{n}");
+    let status = match a.status {
+        Some(pntr_pipeline::pipeline::Status::Localized) => "LOCALIZED",
+        Some(_) => "NOT_LOCALIZED",
+        None => "ERROR",
+    };
+    rec.view().observe(&pntr_service::visual::Observation {
+        time_s: *n as f64 * 0.1,
+        picture: Some((pntr_service::visual::Picture::Raw(&q.rgb), &q.intrinsics)),
+        request_id: &id,
+        map_id: "",
+        status,
+        reason: a.reason.as_deref().unwrap_or(""),
+        confidence: a.confidence,
+        inliers: 0,
+        mode: a.mode.map_or("UNKNOWN", |m| m.name()),
+        matched_image_id: a.matched.as_deref().unwrap_or(""),
+        pose: a.pose.as_ref().map(to_ros),
+        covariance: &covariance,
+        truth: truth.map(to_ros),
+    });
+    *n += 1;
+}
+
+/// Close a recording under its name and say where it is.
+fn finish_recording(record: Option<pntr_service::visual::Recording>) -> Result<()> {
+    if let Some(rec) = record {
+        let path = rec.finish().map_err(|e| anyhow::anyhow!("--record {e}"))?;
+        eprintln!("recording written to {}", path.display());
+    }
+    Ok(())
+}
+
 /// Run the in-process pipeline over the queries of `scenes`.
 pub fn evaluate_in_process(
     pipeline: &Pipeline,
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
     effects: Option<pntr_synth::effects::RobotEffects>,
+    record: Option<&pntr_service::visual::Recording>,
 ) -> Result<EvalReport> {
     let map = pipeline.map.clone();
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total, "localizing queries");
     let mut seed = 0u64;
-    let report = eval::run(
+    if let Some(rec) = record {
+        show_map_cameras(rec, &map, 0.0);
+    }
+    let mut n = 0usize;
+    let report = eval::run_observed(
         scenes,
         opts,
         &mut |q, prior| {
@@ -496,6 +586,11 @@ pub fn evaluate_in_process(
         &mut |done, total| {
             pb.set_length(total as u64);
             pb.set_position(done as u64);
+        },
+        &mut |q, truth, a| {
+            if let Some(rec) = record {
+                record_query(rec, &mut n, q, truth, a);
+            }
         },
     )?;
     pb.finish_and_clear();
@@ -519,16 +614,23 @@ pub fn evaluate_remote(
     remote: &mut crate::remote::Remote,
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
+    record: Option<&pntr_service::visual::Recording>,
 ) -> Result<EvalReport> {
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total, "localizing queries through the server");
-    let report = eval::run(
+    let mut n = 0usize;
+    let report = eval::run_observed(
         scenes,
         opts,
         &mut |q, prior| remote.answer(q, prior),
         &mut |done, total| {
             pb.set_length(total as u64);
             pb.set_position(done as u64);
+        },
+        &mut |q, truth, a| {
+            if let Some(rec) = record {
+                record_query(rec, &mut n, q, truth, a);
+            }
         },
     )?;
     pb.finish_and_clear();
@@ -571,7 +673,7 @@ pub fn serve_and_evaluate(
         preset: header.preset.name.clone(),
         ..EvalOptions::default()
     };
-    let report = evaluate_remote(&mut remote, scenes, &opts);
+    let report = evaluate_remote(&mut remote, scenes, &opts, None);
     drop(remote);
     running.shutdown();
     rt.block_on(running.wait())?;
@@ -625,7 +727,12 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             prior_radius_m: args.prior_radius,
             map_images: Vec::new(),
         };
-        let report = evaluate_remote(&mut remote, &scenes, &opts)?;
+        let record = match &args.record {
+            Some(p) => Some(start_recording(p, None, 0.0)?),
+            None => None,
+        };
+        let report = evaluate_remote(&mut remote, &scenes, &opts, record.as_ref())?;
+        finish_recording(record)?;
         print!("{}", eval::table(&report));
         if let Some(path) = &args.json {
             write_json(path, &with_effects(&report, &args.effects)?)?;
@@ -691,7 +798,12 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         prior_radius_m: args.prior_radius,
         map_images,
     };
-    let report = evaluate_in_process(&pipeline, &scenes, &opts, fx)?;
+    let record = match &args.record {
+        Some(p) => Some(start_recording(p, None, 0.0)?),
+        None => None,
+    };
+    let report = evaluate_in_process(&pipeline, &scenes, &opts, fx, record.as_ref())?;
+    finish_recording(record)?;
     print!("{}", eval::table(&report));
     if let Some(path) = &args.json {
         write_json(path, &with_effects(&report, &args.effects)?)?;

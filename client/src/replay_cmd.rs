@@ -80,6 +80,15 @@ pub struct ReplayArgs {
     /// answered each frame, and why a frame was not localized.
     #[arg(long, value_name = "OUT.jsonl")]
     pub frames_log: Option<PathBuf>,
+    /// Also write what happened to this MCAP file, with Foxglove's schemas (open it in Foxglove):
+    /// every frame's image and camera, the answered poses with their covariance, status and reason,
+    /// the ground truth, and with --db the map's cameras; poses in ROS conventions (z-up `map`,
+    /// optical `camera_optical`).
+    #[arg(long, value_name = "OUT.mcap")]
+    pub record: Option<PathBuf>,
+    /// The map file the server serves, read here for its cameras' poses (--record).
+    #[arg(long, value_name = "MAP.pntrmap")]
+    pub db: Option<PathBuf>,
 }
 
 /// Largest gap between two frames' stamps that replay waits through, seconds (a camera runs at 1 Hz
@@ -273,7 +282,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     )?;
     request.set_timeout(Duration::from_secs(3600 * 24));
     // Answers come in the map's camera axes; recordings (TUM, ROS) hold optical axes.
-    let map_axes = rt
+    let info = rt
         .block_on(c.get_map_info(authorized(
             &args.connect,
             proto::GetMapInfoRequest {
@@ -281,8 +290,22 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             },
         )?))
         .ok()
-        .and_then(|i| pntr_core::CameraAxes::parse(&i.get_ref().camera_axes))
+        .map(|i| i.into_inner());
+    let map_axes = info
+        .as_ref()
+        .and_then(|i| pntr_core::CameraAxes::parse(&i.camera_axes))
         .unwrap_or(pntr_core::CameraAxes::Habitat);
+    let up = pntr_core::pose::UpAxis::parse(info.as_ref().map_or("y", |i| i.up_axis.as_str()));
+    let to_ros =
+        |p: &Isometry3<f64>| pntr_core::pose::map_to_ros(p, up, pntr_core::CameraAxes::OpenCv);
+    let recording = match &args.record {
+        Some(path) => Some(crate::map_cmd::start_recording(
+            path,
+            args.db.as_deref(),
+            seq.timestamp(0),
+        )?),
+        None => None,
+    };
     let mut answers = rt
         .block_on(c.localize_stream(request))
         .context("opening LocalizeStream")?
@@ -380,6 +403,30 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             localized += 1;
             last = estimate;
         }
+        if let Some(rec) = &recording {
+            let k = pntr_service::decode::intrinsics(Some(&camera), rgb.width, rgb.height)
+                .map_err(|s| anyhow::anyhow!("the camera: {}", s.message()))?;
+            let covariance = pntr_core::pose::rotate_covariance(
+                &r.covariance,
+                &pntr_core::pose::ros_from_map_world(up),
+            )
+            .unwrap_or_default();
+            rec.view().observe(&pntr_service::visual::Observation {
+                time_s: timestamp,
+                picture: Some((pntr_service::visual::Picture::Raw(&rgb), &k)),
+                request_id: &r.request_id,
+                map_id: &r.map_id,
+                status: proto::Status::try_from(r.status).map_or("UNKNOWN", |s| s.as_str_name()),
+                reason: &r.reason,
+                confidence: r.confidence,
+                inliers: r.inliers,
+                mode: proto::Mode::try_from(r.mode).map_or("UNKNOWN", |m| m.as_str_name()),
+                matched_image_id: &r.matched_image_id,
+                pose: estimate.as_ref().map(to_ros),
+                covariance: &covariance,
+                truth: seq.world_from_camera(i).as_ref().map(to_ros),
+            });
+        }
         out.push(Answered {
             timestamp,
             estimate,
@@ -417,6 +464,10 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         }
     }
     crate::map_cmd::write_text(&args.trajectory, &traj)?;
+    if let Some(rec) = recording {
+        let path = rec.finish().map_err(|e| anyhow::anyhow!("--record {e}"))?;
+        eprintln!("recording written to {}", path.display());
+    }
     if let Some(path) = &args.frames_log {
         crate::map_cmd::write_text(path, &frames_log(&out))?;
     }

@@ -4,30 +4,12 @@
 //! from a ROS 2 bag (MCAP) the test writes from the same frames.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
 mod support;
 
 use pntr_service::config::Settings;
 use pntr_service::tokio;
-
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .env_remove("PNTR_TOKEN")
-        .output()
-        .expect("pntr runs")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use support::{ok, pntr};
 
 fn lines(path: &Path) -> Vec<Vec<f64>> {
     std::fs::read_to_string(path)
@@ -36,6 +18,51 @@ fn lines(path: &Path) -> Vec<Vec<f64>> {
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
         .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
         .collect()
+}
+
+/// `replay --record` of 50 frames, read back with the `mcap` Python reader: every channel with its
+/// Foxglove schema and the expected count, and answers that agree with the replay's report.
+fn check_recording(path: &Path, report: &serde_json::Value) {
+    assert!(!path.with_extension("mcap.partial").exists());
+    let m = support::read_mcap(path, "/pntr/answer");
+    let topics = &m["topics"];
+    let localized = (report["localized_share"].as_f64().unwrap() * 50.0).round() as u64;
+    for (topic, schema, count) in [
+        ("/pntr/camera/image", "foxglove.CompressedImage", 50),
+        ("/pntr/camera/calibration", "foxglove.CameraCalibration", 50),
+        ("/pntr/ground_truth", "foxglove.PoseInFrame", 50),
+        ("/pntr/answer", "pntr.Answer", 50),
+        ("/pntr/pose", "foxglove.PoseInFrame", localized),
+        ("/tf", "foxglove.FrameTransforms", localized),
+        ("/pntr/map/cameras", "foxglove.PosesInFrame", 1),
+    ] {
+        let t = &topics[topic];
+        assert_eq!(t["schema"], schema, "{topic}: {m:#}");
+        assert_eq!(t["count"], count, "{topic}: {t}");
+        let encoding = if schema.starts_with("foxglove.") {
+            "protobuf"
+        } else {
+            "json"
+        };
+        assert_eq!(t["message_encoding"], encoding, "{topic}: {t}");
+    }
+    // The answers: status as the report counts it, poses in ROS conventions (z up: the y-up scene's
+    // camera height, about 1.25 m, is the ROS z) and near the ground truth.
+    let answers = m["json"].as_array().unwrap();
+    let mut errors = Vec::new();
+    for a in answers {
+        if a["status"] == "LOCALIZED" {
+            let z = a["pose"]["position"][2].as_f64().unwrap();
+            assert!((0.5..2.0).contains(&z), "camera height on ROS z: {a}");
+            assert_eq!(a["covariance"].as_array().map(Vec::len), Some(36), "{a}");
+            errors.push(a["truth_error_m"].as_f64().unwrap());
+        } else {
+            assert!(!a["reason"].as_str().unwrap().is_empty(), "{a}");
+        }
+    }
+    assert_eq!(errors.len() as u64, localized);
+    errors.sort_by(f64::total_cmp);
+    assert!(errors[errors.len() / 2] < 0.25, "median error {errors:?}");
 }
 
 #[test]
@@ -102,7 +129,7 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         .enable_all()
         .build()
         .unwrap();
-    let settings = Settings::local(vec![map], models.into());
+    let settings = Settings::local(vec![map.clone()], models.into());
     let mut server = rt.block_on(async {
         let s = pntr_service::start(settings).await.unwrap();
         s.ready().await.unwrap();
@@ -114,6 +141,7 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         let traj = dir.path().join(format!("{name}.txt"));
         let report = dir.path().join(format!("{name}.json"));
         let plots = dir.path().join(format!("{name}-plots"));
+        let recording = dir.path().join(format!("{name}.mcap"));
         let mut args = vec![
             "replay",
             "--addr",
@@ -130,6 +158,14 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
             plots.to_str().unwrap(),
         ];
         args.extend(extra);
+        if name == "tracking" {
+            args.extend([
+                "--record",
+                recording.to_str().unwrap(),
+                "--db",
+                map.to_str().unwrap(),
+            ]);
+        }
         let printed = ok(&pntr(&args));
         assert!(
             printed.contains("50 frames") && printed.contains("ATE"),
@@ -174,6 +210,9 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         }
         assert_eq!(r["frames_over_1m"].as_u64().unwrap(), over_1m, "{r}");
         assert!(r["ate_rmse_m"].as_f64().unwrap() < 1.0, "{name}: {r}");
+        if name == "tracking" {
+            check_recording(&recording, &r);
+        }
         support::assert_picture(
             &plots,
             "trajectory",

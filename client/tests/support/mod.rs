@@ -26,6 +26,49 @@ pub fn ok(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// The Python interpreter with the test packages: `$PNTR_PYTHON`, else set-up's venv.
+pub fn python() -> std::path::PathBuf {
+    std::env::var_os("PNTR_PYTHON")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../.deps/venv/bin/python"))
+}
+
+/// An MCAP file read back with the format's own Python reader (`mcap`, not pntr's code): for each
+/// topic its schema name and encoding, message encoding and message count, and every JSON message
+/// of `json_topic` decoded.
+pub fn read_mcap(path: &Path, json_topic: &str) -> serde_json::Value {
+    const SCRIPT: &str = r#"
+import json, sys
+from mcap.reader import make_reader
+topics, decoded = {}, []
+with open(sys.argv[1], "rb") as f:
+    reader = make_reader(f)
+    summary = reader.get_summary()
+    for schema, channel, message in reader.iter_messages():
+        t = topics.setdefault(channel.topic, {"schema": schema.name if schema else "",
+                                              "schema_encoding": schema.encoding if schema else "",
+                                              "message_encoding": channel.message_encoding, "count": 0})
+        t["count"] += 1
+        if channel.topic == sys.argv[2]:
+            decoded.append(json.loads(message.data))
+print(json.dumps({"topics": topics, "json": decoded,
+                  "statistics_messages": summary.statistics.message_count if summary and summary.statistics else None}))
+"#;
+    let out = Command::new(python())
+        .args(["-c", SCRIPT])
+        .arg(path)
+        .arg(json_topic)
+        .output()
+        .expect("python runs (bash scripts/setup.sh makes .deps/venv, or set PNTR_PYTHON)");
+    assert!(
+        out.status.success(),
+        "the mcap reader failed on {}:\n{}",
+        path.display(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("JSON from the reader")
+}
+
 /// Its stderr, asserting it failed.
 pub fn err(out: &Output) -> String {
     assert!(!out.status.success(), "expected a failure");

@@ -390,12 +390,28 @@ pub fn prior_around(
 /// answer.
 pub type Localizer<'a> = dyn FnMut(&Query, Option<&Region>) -> Result<Answer, PipelineError> + 'a;
 
+/// What [`run_observed`] shows each answered query to: the query, its ground truth
+/// (`world_from_camera`, dataset frame and Habitat axes; `None` for an out-of-map query) and the
+/// answer (a failed request as a default answer).
+pub type Observer<'a> = dyn FnMut(&Query, Option<&Isometry3<f64>>, &Answer) + 'a;
+
 /// Localise every query of `scenes` with `localize` and score the answers.
 pub fn run(
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
     localize: &mut Localizer<'_>,
     progress: &mut dyn FnMut(usize, usize),
+) -> Result<EvalReport, PipelineError> {
+    run_observed(scenes, opts, localize, progress, &mut |_, _, _| {})
+}
+
+/// [`run`], showing every query and its answer to `observe` as it goes (a recording).
+pub fn run_observed(
+    scenes: &[&SceneEntry],
+    opts: &EvalOptions,
+    localize: &mut Localizer<'_>,
+    progress: &mut dyn FnMut(usize, usize),
+    observe: &mut Observer<'_>,
 ) -> Result<EvalReport, PipelineError> {
     // Every database pose by id, for the retrieval-only row.
     let mut db_pose: BTreeMap<String, (Isometry3<f64>, String, u32)> = BTreeMap::new();
@@ -484,6 +500,7 @@ pub fn run(
                 Answer::default()
             }
         };
+        observe(&q, Some(&gt), &a);
         if a.status == Some(Status::Localized) {
             localized += 1;
         }
@@ -559,7 +576,10 @@ pub fn run(
                 intrinsics: v.intrinsics,
             };
             match localize(&q, None) {
-                Ok(a) => negatives.push((a.confidence, a.status == Some(Status::Localized))),
+                Ok(a) => {
+                    observe(&q, None, &a);
+                    negatives.push((a.confidence, a.status == Some(Status::Localized)))
+                }
                 Err(e) => {
                     tracing::warn!("negative query {}: {e}", p.query_id(*qi));
                     negatives.push((0.0, false));

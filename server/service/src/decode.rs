@@ -199,7 +199,9 @@ fn check_depth_unit(depth: &DepthMap, encoding: i32) -> Result<(), Status> {
     Ok(())
 }
 
-fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsics, Status> {
+/// The camera of a request: its intrinsics message (or the HPointLoc camera for 256x256 frames when absent),
+/// checked, for a frame of `w` x `h` pixels.
+pub fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intrinsics, Status> {
     let Some(k) = k else {
         if (w, h) == (256, 256) {
             return Ok(Intrinsics::hpointloc());

@@ -33,6 +33,7 @@ pub mod engine;
 pub mod server;
 pub mod service;
 pub mod telemetry;
+pub mod visual;
 pub mod wire;
 
 pub use server::{start, LoadState, Running, ServerError, ADMIN_SERVICE_NAME, SERVICE_NAME};

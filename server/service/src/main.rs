@@ -113,9 +113,33 @@ fn main() -> ExitCode {
                 return ExitCode::FAILURE;
             }
         };
-        // The one line on stdout: scripts and tests read the bound ports from it.
+        // The one line on stdout, printed once the maps and models are loaded (so a wrapper that
+        // waits for it never sees a server that then fails to load): scripts and tests read the
+        // bound ports from it.
+        tokio::select! {
+            r = running.ready() => if let Err(e) = r {
+                eprintln!("pntr-server: {e}");
+                let _ = running.wait().await;
+                return ExitCode::FAILURE;
+            },
+            _ = signal() => {
+                tracing::info!("signal received while loading; shutting down");
+                running.shutdown();
+                return match running.wait().await {
+                    Ok(()) => ExitCode::SUCCESS,
+                    Err(e) => {
+                        eprintln!("pntr-server: {e}");
+                        ExitCode::FAILURE
+                    }
+                };
+            }
+        }
+        let foxglove = running
+            .foxglove_addr
+            .map(|a| format!(" foxglove on ws://{a}"))
+            .unwrap_or_default();
         println!(
-            "pntr-server listening on {} metrics on {}",
+            "pntr-server listening on {} metrics on {}{foxglove}",
             running.addr, running.metrics_addr
         );
         let _ = std::io::stdout().flush();

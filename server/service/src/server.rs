@@ -78,6 +78,8 @@ pub struct Running {
     pub addr: SocketAddr,
     /// The bound `/metrics` address.
     pub metrics_addr: SocketAddr,
+    /// The bound address of the live Foxglove view (`--foxglove`), when on.
+    pub foxglove_addr: Option<SocketAddr>,
     /// Shared state (the engine once loaded).
     pub state: Arc<State>,
     shutdown: watch::Sender<bool>,
@@ -178,6 +180,23 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
         settings.workers.max(2),
         shutdown_rx.clone(),
     ));
+    let foxglove_addr = match settings.foxglove {
+        Some(a) => {
+            let live =
+                crate::visual::Live::start(a)
+                    .await
+                    .map_err(|message| ServerError::Bind {
+                        what: "Foxglove",
+                        addr: a,
+                        message,
+                    })?;
+            let bound = live.addr();
+            state.set_live(live);
+            tokio::spawn(show_map_cameras(state.clone(), shutdown_rx.clone()));
+            Some(bound)
+        }
+        None => None,
+    };
     let gate = Gate::new(settings.token.as_deref());
     let admin = proto::map_admin_server::MapAdminServer::new(MapAdminService::new(state.clone()));
     let localizer =
@@ -254,11 +273,42 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
     Ok(Running {
         addr,
         metrics_addr,
+        foxglove_addr,
         state,
         shutdown,
         load: load_rx,
         task: Some(task),
     })
+}
+
+/// Every 2 s while a live Foxglove client listens, the poses of the loaded maps' images (a client
+/// that connects later sees them within 2 s; the WebSocket protocol does not replay old messages).
+async fn show_map_cameras(state: Arc<State>, mut stop: watch::Receiver<bool>) {
+    use pntr_core::pose::{map_to_ros, UpAxis};
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(std::time::Duration::from_secs(2)) => {}
+            _ = stopped(&mut stop) => return,
+        }
+        let (Some(live), Some(engine)) = (state.live(), state.engine()) else {
+            continue;
+        };
+        if !live.view().wanted() {
+            continue;
+        }
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        let maps = engine.maps();
+        let poses = maps.iter().flat_map(|m| {
+            let (up, axes) = (UpAxis::parse(&m.map.header.up_axis), m.map.header.axes());
+            m.map
+                .images
+                .iter()
+                .map(move |im| map_to_ros(&im.world_from_camera, up, axes))
+        });
+        live.view().map_cameras(now, poses);
+    }
 }
 
 struct Supervised {

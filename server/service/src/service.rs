@@ -9,6 +9,7 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
+use pntr_core::pose::{map_to_ros, ros_from_map_world, rotate_covariance};
 use pntr_pipeline::odometry::Keyframe;
 use pntr_pipeline::prior::{tracking_heading, tracking_region, Heading, LocalizeOptions, Region};
 use tokio::sync::oneshot;
@@ -38,6 +39,8 @@ pub struct State {
     stop: tokio::sync::watch::Receiver<bool>,
     /// Held by each map change (MapAdmin, SIGHUP), so changes apply one at a time.
     pub(crate) admin: tokio::sync::Mutex<()>,
+    /// The live Foxglove view (`--foxglove`), when on.
+    live: OnceLock<crate::visual::Live>,
 }
 
 impl State {
@@ -53,7 +56,18 @@ impl State {
             decoders: Arc::new(tokio::sync::Semaphore::new(decoders.max(1))),
             stop,
             admin: tokio::sync::Mutex::new(()),
+            live: OnceLock::new(),
         }
+    }
+
+    /// Attach the live Foxglove view (once; a second is ignored).
+    pub fn set_live(&self, live: crate::visual::Live) {
+        let _ = self.live.set(live);
+    }
+
+    /// The live Foxglove view, when the server has one.
+    pub fn live(&self) -> Option<&crate::visual::Live> {
+        self.live.get()
     }
 
     /// Install the loaded engine (once).
@@ -572,6 +586,7 @@ impl LocalizerService {
             .await
             .map_err(|_| Status::unavailable("the server is shutting down"))?;
         let limits = self.state.limits;
+        let request_id = msg.request_id.clone();
         // The permit travels with the decoding, which finishes even if the caller leaves meanwhile.
         let query = tokio::task::spawn_blocking(move || {
             let _permit = permit;
@@ -582,6 +597,12 @@ impl LocalizerService {
             tracing::error!(error = %e, "decoding the frame failed");
             Status::internal("internal error while decoding the frame (logged)")
         })??;
+        // The frame as the live view shows it, kept only while someone watches.
+        let watched = self
+            .state
+            .live()
+            .filter(|l| l.view().wanted())
+            .map(|l| (l, query.rgb.clone(), query.intrinsics));
         let (tx, rx) = oneshot::channel();
         let job = Job {
             map: lm.clone(),
@@ -685,6 +706,33 @@ impl LocalizerService {
             // Set at the edge, once the stream's state has taken the map-frame pose.
             frame_convention: proto::FrameConvention::Map as i32,
         };
+        if let Some((live, rgb, k)) = &watched {
+            let to_ros = |p: &Isometry3<f64>| map_to_ros(p, frames.up, frames.camera);
+            let covariance =
+                rotate_covariance(&response.covariance, &ros_from_map_world(frames.up))
+                    .unwrap_or_default();
+            live.view().observe(&crate::visual::Observation {
+                time_s: std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0.0, |d| d.as_secs_f64()),
+                picture: Some((crate::visual::Picture::Raw(rgb), k)),
+                request_id: &request_id,
+                map_id: &response.map_id,
+                status: if localized {
+                    "LOCALIZED"
+                } else {
+                    "NOT_LOCALIZED"
+                },
+                reason: &response.reason,
+                confidence: response.confidence,
+                inliers: response.inliers,
+                mode: loc.mode.name(),
+                matched_image_id: &response.matched_image_id,
+                pose: loc.pose.as_ref().filter(|_| localized).map(to_ros),
+                covariance: &covariance,
+                truth: None,
+            });
+        }
         let followup = Followup {
             convention,
             frames,

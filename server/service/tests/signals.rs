@@ -163,3 +163,80 @@ fn sighup_reloads_and_sigterm_ends_streams() {
     };
     assert!(status.success(), "{status:?}");
 }
+
+/// The line `pntr-server listening on ...` means "serving": it comes once the maps and models are
+/// loaded, so a wrapper that waits for it is never fooled by a server whose map then fails to load
+/// (here: a file whose header reads but whose body is cut short), and after it GetMapInfo answers
+/// at once.
+#[test]
+fn the_ready_line_comes_only_after_loading() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = pntr_synth::SynthConfig {
+        points_per_scene: 2,
+        queries_per_point: 1,
+        seed: 13,
+        ..Default::default()
+    };
+    pntr_synth::synthesize(&cfg, dir.path(), pntr_synth::plan_all(&cfg), &|| {}).unwrap();
+    let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
+    let preset = Preset::named("fast").unwrap();
+    let stage = preset.map_feature_config(models()).build().unwrap();
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    let built = map::build("site", &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+    let good = dir.path().join("good.pntrmap");
+    mapfile::save(&built, &good).unwrap();
+    let bytes = std::fs::read(&good).unwrap();
+    let cut = dir.path().join("cut.pntrmap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    mapfile::read_header(&cut).expect("the header still reads");
+
+    let run = |db: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_pntr-server"))
+            .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
+            .arg("--db")
+            .arg(db)
+            .arg("--models")
+            .arg(models())
+            .args(["--workers", "1"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let out = run(&cut).wait_with_output().unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(!out.status.success(), "{stdout}{stderr}");
+    assert!(
+        !stdout.contains("listening"),
+        "ready line before a failed load: {stdout}"
+    );
+    assert!(
+        stderr.contains("cut.pntrmap"),
+        "the error names the file: {stderr}"
+    );
+
+    let mut child = run(&good);
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let server = Server(child);
+    let addr = line.split_whitespace().nth(3).unwrap().to_string();
+    let rt = pntr_service::tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let ch = Endpoint::from_shared(format!("http://{addr}"))
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let info = LocalizerClient::new(ch)
+            .get_map_info(proto::GetMapInfoRequest::default())
+            .await
+            .expect("serving once the line is printed");
+        assert_eq!(info.into_inner().map_id, "site");
+    });
+    drop(server);
+}
