@@ -726,6 +726,51 @@ fn ros_conventions_and_routing_by_map_id_metadata() {
         let e = c.localize(req).await.unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument);
         assert!(e.message().contains("frame_convention"), "{}", e.message());
+        // Frames and cameras no sensor makes are the caller's mistake, named, before any work.
+        let strip = |w: u32, h: u32| {
+            let rgb = pntr_core::RgbImage {
+                width: w,
+                height: h,
+                data: vec![128; (w * h * 3) as usize],
+            };
+            let depth = pntr_core::DepthMap {
+                width: w,
+                height: h,
+                data: vec![2.0; (w * h) as usize],
+            };
+            (rgb, depth)
+        };
+        let (rgb, depth) = strip(4096, 2);
+        let k = pntr_core::Intrinsics {
+            fx: 2000.0,
+            fy: 2000.0,
+            cx: 2047.5,
+            cy: 0.5,
+            width: 4096,
+            height: 2,
+            distortion: [0.0; 5],
+        };
+        let (rgb256, depth256) = strip(256, 256);
+        let camera = |fx: f64, fy: f64| pntr_core::Intrinsics {
+            fx,
+            fy,
+            ..pntr_core::Intrinsics::hpointloc()
+        };
+        for (req, needle) in [
+            (wire::raw_request(&rgb, &depth, Some(&k)), "aspect ratio"),
+            (
+                wire::raw_request(&rgb256, &depth256, Some(&camera(1.0, 1e6))),
+                "differ by a factor",
+            ),
+            (
+                wire::raw_request(&rgb256, &depth256, Some(&camera(1.0, 1.0))),
+                "field of view",
+            ),
+        ] {
+            let (code, message) = code_of(&mut c, in_all(req)).await;
+            assert_eq!(code, Code::InvalidArgument, "{needle}: {message}");
+            assert!(message.contains(needle), "{message}");
+        }
         // The message's map_id wins over the metadata; an unknown id never becomes a label.
         let mut req = routed(&f.queries[0], "nosuch-building", None);
         req.get_mut().map_id = "all".into();
@@ -1138,7 +1183,7 @@ fn priors_fall_back_and_streams_track() {
         let text = scrape(running.metrics_addr);
         for mode in ["GLOBAL", "PRIOR", "TRACKING"] {
             assert!(
-                text.contains(&format!("pntr_answers_total{{mode=\"{mode}\"}}")),
+                text.contains(&format!("pntr_answers_total{{mode=\"{mode}\",map_id=")),
                 "{text}"
             );
         }

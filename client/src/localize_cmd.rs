@@ -21,10 +21,14 @@ pub struct LocalizeArgs {
     /// Colour image: PNG or JPEG.
     #[arg(long, requires = "depth", conflicts_with = "dataset")]
     pub rgb: Option<PathBuf>,
-    /// Depth image: 16-bit PNG in millimetres (0 = missing), or raw little-endian float32 metres
-    /// (`.f32`, the size of the colour image).
+    /// Depth image: 16-bit PNG in millimetres (0 = missing; see --depth-scale), or raw
+    /// little-endian float32 metres (`.f32`, the size of the colour image).
     #[arg(long, requires = "rgb")]
     pub depth: Option<PathBuf>,
+    /// Units per metre of a 16-bit depth PNG [default: 1000 (millimetres), or 5000 for a PNG in a
+    /// TUM RGB-D folder (beside depth.txt)].
+    #[arg(long, value_name = "UNITS_PER_M", requires = "depth")]
+    pub depth_scale: Option<f64>,
     /// Camera intrinsics `fx,fy,cx,cy` in pixels, optionally followed by lens distortion
     /// `k1,k2,p1,p2[,k3]` (OpenCV / ROS plumb_bob). Default: the HPointLoc camera (256x256 frames
     /// only), or the dataset's camera with `--dataset`. Spaces work as separators too.
@@ -99,8 +103,35 @@ fn read(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).with_context(|| format!("reading {}", path.display()))
 }
 
+/// The units per metre of a 16-bit depth PNG: the caller's, else TUM's 5000 for a PNG in a TUM
+/// folder (`<seq>/depth/<stamp>.png` beside `<seq>/depth.txt`), else millimetres.
+fn depth_units(depth: &Path, given: Option<f64>) -> Result<f64> {
+    if let Some(u) = given {
+        if !(u.is_finite() && u > 0.0) {
+            bail!("--depth-scale {u}: give the depth PNG's units per metre (1000 for millimetres, 5000 for TUM)");
+        }
+        return Ok(u);
+    }
+    let tum = depth
+        .parent()
+        .and_then(Path::parent)
+        .is_some_and(|seq| seq.join("depth.txt").is_file());
+    if tum {
+        eprintln!(
+            "note: {} is in a TUM RGB-D folder: read at TUM's 5000 units per metre (--depth-scale overrides)",
+            depth.display()
+        );
+        return Ok(5000.0);
+    }
+    Ok(1000.0)
+}
+
 /// A request from image files, checked here so that a bad file is named before anything is sent.
-fn request_from_files(rgb: &Path, depth: &Path) -> Result<proto::LocalizeRequest> {
+fn request_from_files(
+    rgb: &Path,
+    depth: &Path,
+    depth_scale: Option<f64>,
+) -> Result<proto::LocalizeRequest> {
     let bytes = read(rgb)?;
     let ext = |p: &Path| {
         p.extension()
@@ -125,12 +156,28 @@ fn request_from_files(rgb: &Path, depth: &Path) -> Result<proto::LocalizeRequest
             rgb.display()
         ),
     };
-    let dbytes = read(depth)?;
+    let mut dbytes = read(depth)?;
     let (dw, dh, dencoding) = match ext(depth).as_str() {
         "png" => {
-            let (dw, dh, _) = decode_png16(&dbytes, &LIMITS)
+            let (dw, dh, mm) = decode_png16(&dbytes, &LIMITS)
                 .map_err(|s| anyhow::anyhow!("{}: {}", depth.display(), s.message()))?;
-            (dw, dh, proto::DepthEncoding::Png16Millimeters)
+            let units = depth_units(depth, depth_scale)?;
+            // Metres at those units; the likely unit mistakes are named before anything is sent.
+            let metres: Vec<f32> = mm.iter().map(|v| v * (1000.0 / units) as f32).collect();
+            let map = pntr_core::DepthMap {
+                width: dw,
+                height: dh,
+                data: metres.clone(),
+            };
+            if let Some(hint) = pntr_dataset::recording::depth_unit_hint(&map, Some(units)) {
+                bail!("{}: {hint}", depth.display());
+            }
+            if units == 1000.0 {
+                (dw, dh, proto::DepthEncoding::Png16Millimeters)
+            } else {
+                dbytes = metres.iter().flat_map(|m| m.to_le_bytes()).collect();
+                (dw, dh, proto::DepthEncoding::Float32Meters)
+            }
         }
         "f32" => {
             if dbytes.len() != (w * h * 4) as usize {
@@ -246,7 +293,7 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
 /// `pntr localize`.
 pub fn run(args: &LocalizeArgs) -> Result<()> {
     let (mut req, truth) = match (&args.rgb, &args.depth, &args.dataset) {
-        (Some(rgb), Some(depth), None) => (request_from_files(rgb, depth)?, None),
+        (Some(rgb), Some(depth), None) => (request_from_files(rgb, depth, args.depth_scale)?, None),
         (None, None, Some(root)) => {
             let index = DatasetIndex::open(root)?;
             let scene = index.scene(args.scene.as_deref().unwrap_or_default())?;
@@ -295,7 +342,7 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
     let mut remote = Remote::connect(&args.connect)?;
     let r = remote
         .send(req)
-        .map_err(|s| anyhow::anyhow!("the server answered {:?}: {}", s.code(), s.message()))?;
+        .map_err(|s| crate::remote::call_error(&args.connect, &s))?;
     let truth = match (truth, wire::pose(r.pose.as_ref())) {
         (Some((id, gt)), Some(est)) if r.status == proto::Status::Localized as i32 => {
             // The answer is in the map's camera axes (optical for a map built from a recording),

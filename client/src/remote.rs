@@ -62,9 +62,12 @@ pub async fn channel(c: &ConnectArgs) -> Result<Channel> {
         0 => anyhow::bail!("no server address given"),
         1 => {
             let (url, ep) = endpoints.remove(0);
-            ep.connect()
-                .await
-                .with_context(|| format!("cannot reach pntr-server at {url}"))
+            ep.connect().await.with_context(|| {
+                format!(
+                    "cannot reach pntr-server at {url}{}",
+                    tls_hint(c).unwrap_or_default()
+                )
+            })
         }
         _ => {
             // Fail early and clearly when a replica is down, rather than on some later request.
@@ -78,6 +81,46 @@ pub async fn channel(c: &ConnectArgs) -> Result<Channel> {
             ))
         }
     }
+}
+
+/// When a plaintext connection fails because the server speaks TLS, say so: the server at `c.addr`
+/// is probed with an HTTP/2 preface and a TLS server answers it with a TLS record (an alert, first
+/// byte 0x15) rather than HTTP/2 frames. `None` with `--tls-ca` given or when the probe is not
+/// conclusive.
+pub fn tls_hint(c: &ConnectArgs) -> Option<String> {
+    use std::io::{Read, Write};
+    if c.tls_ca.is_some() {
+        return None;
+    }
+    let addr = c.addr.split(',').next()?.trim();
+    let addr = addr.split("://").last()?;
+    let sock = std::net::ToSocketAddrs::to_socket_addrs(addr)
+        .ok()?
+        .next()?;
+    let mut s = std::net::TcpStream::connect_timeout(&sock, Duration::from_secs(2)).ok()?;
+    s.set_read_timeout(Some(Duration::from_secs(2))).ok()?;
+    s.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n").ok()?;
+    let mut first = [0u8; 1];
+    s.read_exact(&mut first).ok()?;
+    (first[0] == 0x15 || first[0] == 0x16).then(|| {
+        ": the server expects TLS (it answered with a TLS record): connect with --tls-ca <the CA's PEM>".to_string()
+    })
+}
+
+/// The error of a failed call, with the TLS hint when a plaintext call met a TLS server.
+pub fn call_error(c: &ConnectArgs, s: &tonic::Status) -> anyhow::Error {
+    let hint = matches!(
+        s.code(),
+        tonic::Code::Unavailable | tonic::Code::Unknown | tonic::Code::Internal
+    )
+    .then(|| tls_hint(c))
+    .flatten()
+    .unwrap_or_default();
+    anyhow::anyhow!(
+        "the server answered {}: {}{hint}",
+        pntr_service::service::code_name(s.code()),
+        s.message()
+    )
 }
 
 /// A request with the map id and the token attached.

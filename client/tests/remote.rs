@@ -348,7 +348,7 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        err.contains("Unauthenticated") && !err.contains("panicked"),
+        err.contains("UNAUTHENTICATED") && !err.contains("panicked"),
         "{err}"
     );
     ok(&pntr(&[
@@ -399,7 +399,13 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         "--query",
         "1",
     ]);
-    assert!(!out.status.success() && !String::from_utf8_lossy(&out.stderr).contains("panicked"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && !err.contains("panicked"));
+    // The plaintext client is told the server expects TLS (not only "transport error").
+    assert!(
+        err.contains("expects TLS") && err.contains("--tls-ca"),
+        "{err}"
+    );
     // A closed port is a clear error.
     let out = pntr(&[
         "localize",

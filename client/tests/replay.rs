@@ -136,6 +136,28 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         s
     });
     let addr = server.addr.to_string();
+    // `pntr localize` with a frame of the TUM folder: its 16-bit depth is 5000 per metre, not
+    // millimetres, and is read so (said on stderr); the frames localize.
+    let mut localized_frames = 0;
+    for stamp in ["0.100000", "0.200000", "0.300000"] {
+        let out = pntr(&[
+            "localize",
+            "--addr",
+            &server.addr.to_string(),
+            "--rgb",
+            seq.join(format!("rgb/{stamp}.png")).to_str().unwrap(),
+            "--depth",
+            seq.join(format!("depth/{stamp}.png")).to_str().unwrap(),
+            "--json",
+        ]);
+        let v: serde_json::Value = serde_json::from_str(&ok(&out)).unwrap();
+        assert!(String::from_utf8_lossy(&out.stderr).contains("5000 units per metre"));
+        localized_frames += (v["status"] == "LOCALIZED") as usize;
+    }
+    assert!(
+        localized_frames >= 2,
+        "{localized_frames} of 3 TUM frames localized"
+    );
     let mut reports = Vec::new();
     for (name, extra) in [("tracking", None), ("global", Some("--no-prior"))] {
         let traj = dir.path().join(format!("{name}.txt"));

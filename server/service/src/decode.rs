@@ -261,6 +261,29 @@ pub fn intrinsics(k: Option<&proto::Intrinsics>, w: u32, h: u32) -> Result<Intri
         };
         return invalid(format!("intrinsics: {}{hint}", e.0));
     }
+    // Frames and cameras no RGB-D sensor makes, refused before they cost a resampling: a strip of
+    // pixels, pixels far from square (fx and fy of different cameras, or a typo), a field of view a
+    // pinhole camera cannot have (focal length in another unit).
+    if w.min(h) < 16 || w.max(h) > 8 * w.min(h) {
+        return invalid(format!(
+            "a {w}x{h} frame is not a camera image pntr can use: each side needs at least 16 pixels and the aspect ratio at most 8:1"
+        ));
+    }
+    let ratio = k.fx / k.fy;
+    if !(1.0 / 3.0..=3.0).contains(&ratio) {
+        return invalid(format!(
+            "intrinsics fx = {} and fy = {} differ by a factor of {:.3}: camera pixels are close to square (are they swapped with cx, cy, or from two cameras?)",
+            k.fx, k.fy, ratio.max(1.0 / ratio)
+        ));
+    }
+    let fov = |side: u32, f: f64| 2.0 * (side as f64 / (2.0 * f)).atan().to_degrees();
+    let (hfov, vfov) = (fov(w, k.fx), fov(h, k.fy));
+    if hfov.max(vfov) > 170.0 || hfov.min(vfov) < 1.0 {
+        return invalid(format!(
+            "intrinsics fx = {} and fy = {} give a {hfov:.1} x {vfov:.1} degree field of view for a {w}x{h} frame: a pinhole camera sees 1 to 170 degrees (focal lengths are in pixels of this frame: scaled with the image?)",
+            k.fx, k.fy
+        ));
+    }
     // A quarter-turned image sent with the camera of the upright one: the principal point sits at
     // the centre of the image with its axes swapped and far from this one's centre.
     let (wf, hf) = (w as f64 - 1.0, h as f64 - 1.0);

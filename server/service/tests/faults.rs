@@ -134,13 +134,14 @@ fn corrupted_maps_and_missing_models_stop_the_server_before_it_serves() {
     assert!(err.contains("xfeat_backbone.onnx"), "{err}");
 }
 
-/// Pipeline runs that finished with an answer recorded (the `total` stage histogram's count).
+/// Pipeline runs that finished with an answer recorded (the `total` stage histogram's count, summed
+/// over maps).
 fn total_runs(text: &str) -> f64 {
     text.lines()
-        .find(|l| l.starts_with("pntr_stage_duration_seconds_count{stage=\"total\"}"))
-        .and_then(|l| l.split_whitespace().last())
-        .and_then(|v| v.parse::<f64>().ok())
-        .unwrap_or(0.0)
+        .filter(|l| l.starts_with("pntr_stage_duration_seconds_count{stage=\"total\""))
+        .filter_map(|l| l.split_whitespace().last())
+        .filter_map(|v| v.parse::<f64>().ok())
+        .sum()
 }
 
 #[test]
@@ -235,12 +236,13 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
         // mid-frame, so the worker finishes the frame and drops the answer; the gauges return to
         // zero and the request is counted once, as CANCELLED.
         let counter = |text: &str, code: &str| {
-            let key = format!("pntr_requests_total{{status=\"ERROR\",code=\"{code}\"}}");
+            // Summed over the map_id label.
+            let key = format!("pntr_requests_total{{status=\"ERROR\",code=\"{code}\",");
             text.lines()
-                .find(|l| l.starts_with(&key))
-                .and_then(|l| l.split_whitespace().last())
-                .and_then(|v| v.parse::<f64>().ok())
-                .unwrap_or(0.0)
+                .filter(|l| l.starts_with(&key))
+                .filter_map(|l| l.split_whitespace().last())
+                .filter_map(|v| v.parse::<f64>().ok())
+                .sum::<f64>()
         };
         wait_busy(0.0).await;
         let cancelled_before = counter(&scrape(metrics), "CANCELLED");
