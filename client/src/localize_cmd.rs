@@ -287,6 +287,10 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         .map(|t| format!("{} {:.1}", t.stage, 1e3 * t.seconds))
         .collect();
     println!("ms: {}", t.join(", "));
+    let matching = r.timings.iter().find(|t| t.stage == "matching");
+    if matching.is_some_and(|t| t.seconds * 1e3 < 0.05) {
+        println!("{}", pntr_pipeline::eval::MATCHING_NOTE);
+    }
     Ok(())
 }
 

@@ -626,3 +626,71 @@ fn models_are_found_from_any_directory() {
     ));
     assert!(err.contains("--models elsewhere: no such folder"), "{err}");
 }
+
+/// `--help` of a binary and its subcommands, recursively, as Markdown sections.
+fn help_sections(bin: &std::path::Path, name: &str, path: &[&str], out: &mut String) {
+    let help = Command::new(bin)
+        .args(path)
+        .arg("--help")
+        // No PNTR_* variable of this machine may show up as an `[env: ...=value]`.
+        .env_clear()
+        .output()
+        .unwrap();
+    assert!(help.status.success(), "{name} {path:?} --help");
+    let text = String::from_utf8(help.stdout).unwrap();
+    let title = std::iter::once(name)
+        .chain(path.iter().copied())
+        .collect::<Vec<_>>()
+        .join(" ");
+    out.push_str(&format!(
+        "## `{title}`\n\n```text\n{}\n```\n\n",
+        text.trim_end()
+    ));
+    let subcommands: Vec<String> = text
+        .lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| l.starts_with("  "))
+        .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+        .filter(|c| c != "help")
+        .collect();
+    for c in subcommands {
+        let mut p: Vec<&str> = path.to_vec();
+        p.push(&c);
+        help_sections(bin, name, &p, out);
+    }
+}
+
+/// docs/reference/cli.md is generated from the clap definitions (every command's `--help`), so it
+/// cannot drift: regenerate it with `PNTR_UPDATE_DOCS=1 cargo test -p pntr-cli --test cli cli_reference`.
+#[test]
+fn cli_reference_matches_the_clap_definitions() {
+    let pntr_bin = std::path::PathBuf::from(env!("CARGO_BIN_EXE_pntr"));
+    let server = pntr_bin.with_file_name("pntr-server");
+    assert!(
+        server.is_file(),
+        "{} is missing: build the workspace (cargo build --workspace) before this test",
+        server.display()
+    );
+    let mut doc = String::from(
+        "# Command-line reference\n\n<!-- Generated from the clap definitions by client/tests/cli.rs \
+         (cli_reference_matches_the_clap_definitions); do not edit by hand: run \
+         `PNTR_UPDATE_DOCS=1 cargo test -p pntr-cli --test cli cli_reference`. -->\n\n\
+         Every flag of `pntr` and `pntr-server`, as `--help` prints it. Most server flags can also be \
+         set by a `PNTR_*` environment variable (shown as `[env: ...]`) or a key of the `--config` \
+         file.\n\n",
+    );
+    help_sections(&server, "pntr-server", &[], &mut doc);
+    help_sections(&pntr_bin, "pntr", &[], &mut doc);
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/reference/cli.md");
+    if std::env::var_os("PNTR_UPDATE_DOCS").is_some() {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(&path, &doc).unwrap();
+    }
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        committed == doc,
+        "docs/reference/cli.md differs from the binaries' --help: regenerate it with \
+         `PNTR_UPDATE_DOCS=1 cargo test -p pntr-cli --test cli cli_reference`"
+    );
+}

@@ -854,8 +854,15 @@ pub fn table(report: &EvalReport) -> String {
         }
     }
     s += &format!("; {:.2} queries/s\n", report.fps);
+    if report.stage_ms.get("matching").is_some_and(|&m| m < 0.05) {
+        s += MATCHING_NOTE;
+        s.push('\n');
+    }
     s
 }
+
+/// Why `matching` reads 0.0 ms for MNN presets, printed wherever that figure is.
+pub const MATCHING_NOTE: &str = "(matching 0.0 ms: with an MNN matcher the candidates are matched inside retrieval's keypoint vote, so their time is in retrieval)";
 
 #[cfg(test)]
 mod tests {
