@@ -1180,6 +1180,47 @@ fn priors_fall_back_and_streams_track() {
             );
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
+        // A client that stops reading its answers, keeps sending, then cancels the call: the
+        // stream's state and its count in pntr_streams_active go with it.
+        let mut c2 = client(running.addr).await;
+        let (tx, rx) = tokio::sync::mpsc::channel(16);
+        let call = tokio::spawn(async move {
+            let mut out = c2
+                .localize_stream(pntr_service::tokio_stream::wrappers::ReceiverStream::new(
+                    rx,
+                ))
+                .await
+                .unwrap()
+                .into_inner();
+            // One answer read, then none.
+            let _ = out.message().await;
+            std::future::pending::<()>().await;
+        });
+        for _ in 0..12 {
+            if tx.send(request(still, "")).await.is_err() {
+                break;
+            }
+        }
+        let t = Instant::now();
+        while gauge(&scrape(running.metrics_addr)) < 1.0 {
+            assert!(
+                t.elapsed() < Duration::from_secs(20),
+                "the stream never opened"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        call.abort();
+        let _ = call.await;
+        drop(tx);
+        let t = Instant::now();
+        while gauge(&scrape(running.metrics_addr)) != 0.0 {
+            assert!(
+                t.elapsed() < Duration::from_secs(20),
+                "a cancelled stream whose client had stopped reading is still counted"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
         let text = scrape(running.metrics_addr);
         for mode in ["GLOBAL", "PRIOR", "TRACKING"] {
             assert!(
