@@ -85,6 +85,10 @@ enum Command {
         /// With `--addr`: PEM file of the CA that signed the server's certificate (TLS).
         #[arg(long, requires = "addr")]
         tls_ca: Option<PathBuf>,
+        /// With `--tls-ca`: the name to verify in the server's certificate (default: the host of
+        /// --addr).
+        #[arg(long, requires = "tls_ca")]
+        tls_domain: Option<String>,
     },
     /// Administer the maps of a running pntr-server without a restart: list, load, replace, unload,
     /// extend, reload (needs the server's admin token); and merge two map files offline.
@@ -136,6 +140,7 @@ fn main() {
             map_id,
             token,
             tls_ca,
+            tls_domain,
         } => match (dataset, db, addr) {
             (_, _, Some(addr)) => remote::print_map_info(
                 &remote::ConnectArgs {
@@ -143,7 +148,7 @@ fn main() {
                     map_id,
                     token,
                     tls_ca,
-                    tls_domain: None,
+                    tls_domain,
                 },
                 json,
             ),

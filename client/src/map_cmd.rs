@@ -895,8 +895,15 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
         header.scenes.join(", "),
         header.up_axis
     );
-    if let Some(at) = header.built_at_unix_s {
-        println!("built (or last extended) at {at:.0} s since the Unix epoch");
+    if let Some(at) = header.built_at_unix_s.filter(|s| s.is_finite()) {
+        let when = time::OffsetDateTime::from_unix_timestamp(at.floor() as i64)
+            .ok()
+            .and_then(|t| {
+                t.format(&time::format_description::well_known::Rfc3339)
+                    .ok()
+            })
+            .unwrap_or_else(|| format!("{at:.0} s since the Unix epoch"));
+        println!("built (or last extended) at {when}");
     }
     for r in &header.sessions {
         println!(

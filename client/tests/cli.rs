@@ -264,6 +264,12 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+    // An MNN preset's matching time is 0.0 ms, and the table says why.
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        table.contains("matching 0.0") && table.contains("inside retrieval's keypoint vote"),
+        "{table}"
+    );
     // The bf16 preset's engine named wrongly: a clear error naming the variable and the file it
     // should name, no panic (ONNX Runtime's library given for OpenVINO's, a path that is not there).
     let ort_lib = concat!(
