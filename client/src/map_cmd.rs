@@ -162,6 +162,11 @@ pub struct EvalArgs {
     /// Also write the JSON report here (the table goes to stdout either way).
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Also localize two perturbed copies of every query (JPEG at quality 90; colour and depth
+    /// shifted by one pixel) and report how often the answer changes: status, pose, and answers that
+    /// become LOCALIZED and wrong (in process only; three localizations a query).
+    #[arg(long)]
+    pub stability: bool,
     /// Also write every query to this MCAP file with Foxglove's schemas (open it in Foxglove): its
     /// image and camera, the answer (pose with covariance, status, reason), the ground truth and the
     /// map's cameras (in process), in ROS conventions (z-up `map`, optical `camera_optical`).
@@ -556,8 +561,14 @@ pub fn evaluate_in_process(
     opts: &EvalOptions,
     effects: Option<pntr_synth::effects::RobotEffects>,
     record: Option<&pntr_service::visual::Recording>,
-) -> Result<EvalReport> {
+    stability: bool,
+) -> Result<(EvalReport, Stability)> {
+    use pntr_synth::effects::Perturbation;
     let map = pipeline.map.clone();
+    // With --stability, the answers to each query's perturbed copies (made in the localizer, which
+    // sees the frame as localized), counted in the observer (which knows the truth).
+    let pending: std::cell::RefCell<Vec<(&'static str, Answer)>> = Default::default();
+    let mut counts = Stability::new();
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total, "localizing queries");
     let mut seed = 0u64;
@@ -574,14 +585,23 @@ pub fn evaluate_in_process(
                 .copied()
                 .map(LocalizeOptions::prior)
                 .unwrap_or_default();
-            match &effects {
-                None => Ok(Answer::of(&pipeline.localize_with(q, &opts)?, &map)),
-                Some(fx) => {
-                    let mut q = q.clone();
-                    fx.apply(&mut q.rgb, &mut q.depth, seed);
-                    Ok(Answer::of(&pipeline.localize_with(&q, &opts)?, &map))
+            let mut q = q.clone();
+            if let Some(fx) = &effects {
+                fx.apply(&mut q.rgb, &mut q.depth, seed);
+            }
+            if stability {
+                for kind in Perturbation::ALL {
+                    let mut p = q.clone();
+                    kind.apply(&mut p.rgb, &mut p.depth);
+                    let a = pipeline
+                        .localize_with(&p, &opts)
+                        .map(|l| Answer::of(&l, &map));
+                    pending
+                        .borrow_mut()
+                        .push((kind.name(), a.unwrap_or_default()));
                 }
             }
+            Ok(Answer::of(&pipeline.localize_with(&q, &opts)?, &map))
         },
         &mut |done, total| {
             pb.set_length(total as u64);
@@ -591,10 +611,38 @@ pub fn evaluate_in_process(
             if let Some(rec) = record {
                 record_query(rec, &mut n, q, truth, a);
             }
+            for (kind, perturbed) in pending.borrow_mut().drain(..) {
+                let side = if truth.is_some() {
+                    "in_map"
+                } else {
+                    "out_of_map"
+                };
+                counts
+                    .entry(format!("{kind}/{side}"))
+                    .or_default()
+                    .add(a, &perturbed, truth);
+            }
         },
     )?;
     pb.finish_and_clear();
-    Ok(report)
+    Ok((report, counts))
+}
+
+/// `--stability` counts by `perturbation/in_map` or `perturbation/out_of_map`.
+pub type Stability = std::collections::BTreeMap<String, eval::StabilityCounts>;
+
+/// The stability lines of the eval table.
+fn stability_table(s: &Stability) -> String {
+    let mut out = String::from(
+        "stability (answers to perturbed copies of each query: changed status, pose moved > 0.25 m / 2 deg, became LOCALIZED and wrong, confident (> 0.9) and > 5 m / 20 deg off):\n",
+    );
+    for (k, c) in s {
+        out += &format!(
+            "  {k:<22} {:>5} queries: status changed {}, pose moved {}, became wrong {}, confident wrong {}\n",
+            c.queries, c.status_changed, c.pose_moved, c.became_wrong, c.confident_wrong
+        );
+    }
+    out
 }
 
 /// Write `value` as pretty JSON to `path` atomically.
@@ -705,9 +753,12 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         }
     }
     if args.remote.is_some()
-        && (args.effects != "none" || args.calibration.is_some() || args.min_confidence.is_some())
+        && (args.effects != "none"
+            || args.calibration.is_some()
+            || args.min_confidence.is_some()
+            || args.stability)
     {
-        anyhow::bail!("--effects, --calibration and --min-confidence work in process only (the server applies its own calibration and threshold)");
+        anyhow::bail!("--effects, --calibration, --min-confidence and --stability work in process only (the server applies its own calibration and threshold)");
     }
     if let Some(addr) = &args.remote {
         let mut remote = crate::remote::Remote::connect(&crate::remote::ConnectArgs {
@@ -802,11 +853,25 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         Some(p) => Some(start_recording(p, None, 0.0)?),
         None => None,
     };
-    let report = evaluate_in_process(&pipeline, &scenes, &opts, fx, record.as_ref())?;
+    let (report, stability) = evaluate_in_process(
+        &pipeline,
+        &scenes,
+        &opts,
+        fx,
+        record.as_ref(),
+        args.stability,
+    )?;
     finish_recording(record)?;
     print!("{}", eval::table(&report));
+    if args.stability {
+        print!("{}", stability_table(&stability));
+    }
     if let Some(path) = &args.json {
-        write_json(path, &with_effects(&report, &args.effects)?)?;
+        let mut json = with_effects(&report, &args.effects)?;
+        if args.stability {
+            json["stability"] = serde_json::to_value(&stability)?;
+        }
+        write_json(path, &json)?;
         eprintln!("report written to {}", path.display());
     }
     extra_outputs(args, &report, &format!("preset {}", preset.name))

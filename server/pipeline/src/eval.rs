@@ -244,6 +244,54 @@ pub fn covariance_report(answers: &[(nalgebra::Vector3<f64>, [f64; 36])]) -> Cov
     }
 }
 
+/// How often an answer changes under a small perturbation of its query (issue 41, `pntr eval
+/// --stability`), per perturbation. Errors are against the ground truth; an out-of-map query has
+/// none, and every LOCALIZED answer to it is wrong.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct StabilityCounts {
+    /// Query pairs compared (the query as rendered and perturbed).
+    pub queries: usize,
+    /// The status changed (LOCALIZED <-> NOT_LOCALIZED).
+    pub status_changed: usize,
+    /// Both LOCALIZED, and the poses differ by more than 0.25 m or 2 degrees.
+    pub pose_moved: usize,
+    /// The query was NOT_LOCALIZED or right (within 1 m and 10 degrees), its perturbed copy
+    /// LOCALIZED and wrong: the failure a robot must never see.
+    pub became_wrong: usize,
+    /// Perturbed answers LOCALIZED more than 5 m or 20 degrees off with confidence above 0.9.
+    pub confident_wrong: usize,
+}
+
+impl StabilityCounts {
+    /// Count one pair: `base` the answer to the query, `perturbed` to its perturbed copy, `truth`
+    /// the query's world_from_camera (dataset frame and axes, as the answers' poses), `None` for an
+    /// out-of-map query.
+    pub fn add(&mut self, base: &Answer, perturbed: &Answer, truth: Option<&Isometry3<f64>>) {
+        let localized = |a: &Answer| a.status == Some(Status::Localized) && a.pose.is_some();
+        let error = |a: &Answer| match (truth, a.pose) {
+            (Some(g), Some(p)) => Some(pose_error(&p, g, false)),
+            _ => None,
+        };
+        let wrong = |a: &Answer| localized(a) && error(a).is_none_or(|(m, d)| m > 1.0 || d > 10.0);
+        self.queries += 1;
+        self.status_changed += (localized(base) != localized(perturbed)) as usize;
+        if let (true, true, Some(p), Some(q)) = (
+            localized(base),
+            localized(perturbed),
+            base.pose,
+            perturbed.pose,
+        ) {
+            let (m, d) = pose_error(&p, &q, false);
+            self.pose_moved += (m > 0.25 || d > 2.0) as usize;
+        }
+        self.became_wrong += (!wrong(base) && wrong(perturbed)) as usize;
+        self.confident_wrong += (localized(perturbed)
+            && perturbed.confidence > 0.9
+            && error(perturbed).is_none_or(|(m, d)| m > 5.0 || d > 20.0))
+            as usize;
+    }
+}
+
 /// One in-map query's outcome.
 #[derive(Debug, Clone, Serialize)]
 pub struct QueryOutcome {
@@ -868,6 +916,52 @@ pub const MATCHING_NOTE: &str = "(matching 0.0 ms: with an MNN matcher the candi
 mod tests {
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    #[test]
+    fn stability_counts_flips_moves_and_confident_wrong_answers() {
+        let truth = Isometry3::identity();
+        let at = |x: f64, deg: f64, localized: bool, confidence: f64| Answer {
+            status: Some(if localized {
+                Status::Localized
+            } else {
+                Status::NotLocalized
+            }),
+            pose: localized.then(|| {
+                Isometry3::from_parts(
+                    Translation3::new(x, 0.0, 0.0),
+                    UnitQuaternion::from_axis_angle(&Vector3::y_axis(), deg.to_radians()),
+                )
+            }),
+            confidence,
+            ..Answer::default()
+        };
+        let mut c = StabilityCounts::default();
+        // Right and steady: nothing counted but the pair.
+        c.add(
+            &at(0.01, 0.2, true, 0.99),
+            &at(0.02, 0.3, true, 0.99),
+            Some(&truth),
+        );
+        // Right, then moved 0.3 m but still right.
+        c.add(
+            &at(0.01, 0.2, true, 0.99),
+            &at(0.31, 0.2, true, 0.99),
+            Some(&truth),
+        );
+        // Refused, then LOCALIZED 8 m off with confidence 0.97: the worst flip.
+        c.add(
+            &at(0.0, 0.0, false, 0.2),
+            &at(8.0, 0.0, true, 0.97),
+            Some(&truth),
+        );
+        // Out of the map: any LOCALIZED answer is wrong.
+        c.add(&at(0.0, 0.0, false, 0.1), &at(0.0, 0.0, true, 0.95), None);
+        assert_eq!(c.queries, 4);
+        assert_eq!(c.status_changed, 2);
+        assert_eq!(c.pose_moved, 1);
+        assert_eq!(c.became_wrong, 2);
+        assert_eq!(c.confident_wrong, 2);
+    }
 
     #[test]
     fn failures_stay_in_the_denominator_and_the_angle_is_geodesic() {

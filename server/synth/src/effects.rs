@@ -352,6 +352,52 @@ fn convolve(
     }
 }
 
+/// The small perturbations of a frame an answer must survive (issue 41, `pntr eval --stability`):
+/// each leaves the scene and the camera as they are and changes only what any capture changes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Perturbation {
+    /// The colour image through JPEG at quality 90 (one step of a camera's compression setting).
+    Jpeg90,
+    /// Colour and depth moved one pixel to the right (the edge column repeated), as a camera
+    /// nudged by a fraction of a degree.
+    ShiftOnePixel,
+}
+
+impl Perturbation {
+    /// Every perturbation, in report order.
+    pub const ALL: [Perturbation; 2] = [Perturbation::Jpeg90, Perturbation::ShiftOnePixel];
+
+    /// The name reports use: `jpeg90`, `shift1px`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Perturbation::Jpeg90 => "jpeg90",
+            Perturbation::ShiftOnePixel => "shift1px",
+        }
+    }
+
+    /// Apply to a frame in place.
+    pub fn apply(self, rgb: &mut RgbImage, depth: &mut DepthMap) {
+        match self {
+            Perturbation::Jpeg90 => jpeg_round_trip(rgb, 90),
+            Perturbation::ShiftOnePixel => {
+                shift_right(&mut rgb.data, rgb.width as usize, 3);
+                shift_right(&mut depth.data, depth.width as usize, 1);
+            }
+        }
+    }
+}
+
+/// Move every row of a `width`-pixel image (`channels` values a pixel) one pixel right, repeating
+/// the first column.
+fn shift_right<T: Copy>(data: &mut [T], width: usize, channels: usize) {
+    if width < 2 {
+        return;
+    }
+    for row in data.chunks_exact_mut(width * channels) {
+        row.copy_within(0..(width - 1) * channels, channels);
+    }
+}
+
 fn jpeg_round_trip(rgb: &mut RgbImage, quality: u8) {
     let mut bytes = Vec::new();
     let enc = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, quality.clamp(1, 100));
@@ -376,6 +422,42 @@ fn jpeg_round_trip(rgb: &mut RgbImage, quality: u8) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn perturbations_change_only_what_they_say() {
+        let (w, h) = (8u32, 4u32);
+        let rgb0 = RgbImage {
+            width: w,
+            height: h,
+            data: (0..w * h * 3).map(|i| (i * 7 % 251) as u8).collect(),
+        };
+        let depth0 = DepthMap {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| 1.0 + i as f32 * 0.01).collect(),
+        };
+        let (mut rgb, mut depth) = (rgb0.clone(), depth0.clone());
+        Perturbation::ShiftOnePixel.apply(&mut rgb, &mut depth);
+        for y in 0..h as usize {
+            for x in 1..w as usize {
+                let (to, from) = (y * w as usize + x, y * w as usize + x - 1);
+                assert_eq!(depth.data[to], depth0.data[from]);
+                assert_eq!(
+                    rgb.data[to * 3..to * 3 + 3],
+                    rgb0.data[from * 3..from * 3 + 3]
+                );
+            }
+            assert_eq!(depth.data[y * w as usize], depth0.data[y * w as usize]);
+        }
+        let (mut rgb, mut depth) = (rgb0.clone(), depth0.clone());
+        Perturbation::Jpeg90.apply(&mut rgb, &mut depth);
+        assert_eq!(depth.data, depth0.data, "JPEG leaves depth alone");
+        assert_eq!(rgb.data.len(), rgb0.data.len());
+        assert_eq!(
+            Perturbation::ALL.map(Perturbation::name),
+            ["jpeg90", "shift1px"]
+        );
+    }
 
     /// A 32x32 frame of varied colour, all of it 2 m away.
     fn textured_wall() -> (RgbImage, DepthMap) {
