@@ -110,8 +110,22 @@ enum Command {
     },
 }
 
+/// Exit quietly, as other command-line tools do, when the reader of stdout goes away (`pntr ... |
+/// head -1`): Rust ignores SIGPIPE, so a write to a closed pipe would otherwise panic in `println!`.
+#[cfg(unix)]
+#[allow(unsafe_code)]
+fn default_sigpipe() {
+    // SAFETY: restores the default disposition of one signal at start, before any thread exists;
+    // signal() has no other effect on memory.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() {
     use std::io::IsTerminal;
+    #[cfg(unix)]
+    default_sigpipe();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_ansi(std::io::stderr().is_terminal())

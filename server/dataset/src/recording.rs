@@ -203,19 +203,28 @@ pub fn depth_unit_hint(depth: &DepthMap, units_per_m: Option<f64>) -> Option<Str
     if v.len() < 16 {
         return None;
     }
-    let mid = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(mid, f32::total_cmp);
-    let m = *m as f64;
+    v.sort_unstable_by(f32::total_cmp);
+    let m = v[v.len() / 2] as f64;
+    let p95 = v[v.len() * 95 / 100] as f64;
     let said = units_per_m.map_or("the format's".to_string(), |u| {
         format!("{u} (your --depth-scale)")
     });
-    if m > 15.0 {
+    // The units that would put the median at a typical indoor 2.5 m, rounded to a common one.
+    let now = units_per_m.unwrap_or(1000.0);
+    let guess = [1.0, 10.0, 100.0, 1000.0, 4000.0, 5000.0, 10000.0]
+        .into_iter()
+        .min_by(|a, b| {
+            let want = now * m / 2.5;
+            (a / want).ln().abs().total_cmp(&(b / want).ln().abs())
+        })
+        .unwrap_or(1000.0);
+    if m > 15.0 || p95 > 25.0 {
         Some(format!(
-            "the median depth is {m:.1} m at {said} units per metre: too far for an indoor RGB-D camera; the depth is likely in finer units (give --depth-scale with the sensor's units per metre, e.g. 1000 for millimetres, 4000 for 0.25 mm, 5000 for TUM's)"
+            "the median depth is {m:.1} m and 5% of pixels are beyond {p95:.1} m at {said} units per metre: farther than an indoor RGB-D camera measures; the depth is likely in finer units (give --depth-scale with the sensor's units per metre: {guess} fits this frame; 1000 for millimetres, 4000 for 0.25 mm, 5000 for TUM's)"
         ))
     } else if m < 0.15 {
         Some(format!(
-            "the median depth is {m:.3} m at {said} units per metre: too near for an indoor RGB-D camera; the depth is likely in coarser units (give --depth-scale with the sensor's units per metre, e.g. 1000 for millimetres, 5000 for TUM's)"
+            "the median depth is {m:.3} m at {said} units per metre: too near for an indoor RGB-D camera; the depth is likely in coarser units (give --depth-scale with the sensor's units per metre: {guess} fits this frame; 1 for metres, 100 for centimetres)"
         ))
     } else {
         None
@@ -241,5 +250,18 @@ mod tests {
         );
         let near = depth_unit_hint(&at(0.05), None).unwrap();
         assert!(near.contains("coarser units"), "{near}");
+        // Metres in a 16-bit PNG read as millimetres: 2 m reads 0.002 m; the fix is 1 unit a metre.
+        let metres = depth_unit_hint(&at(0.002), Some(1000.0)).unwrap();
+        assert!(metres.contains("1 fits this frame"), "{metres}");
+        // TUM's 5000 a metre read as millimetres: a median of 7 m passes, the far tail does not.
+        let mut tum = at(1.4 * 5.0);
+        for d in tum.data.iter_mut().take(4) {
+            *d = 6.0 * 5.0;
+        }
+        let far_tail = depth_unit_hint(&tum, Some(1000.0)).unwrap();
+        assert!(
+            far_tail.contains("finer units") && far_tail.contains("5000 for TUM"),
+            "{far_tail}"
+        );
     }
 }

@@ -3,8 +3,9 @@
 use std::path::{Path, PathBuf};
 
 /// The places a library is looked for, in order: `explicit`, the file the environment variable `env`
-/// names, then `.deps/<dir>/<file>` in every folder above the executable and above the current
-/// directory (so binaries of a checkout, tests and installs next to a checkout find set-up's copy).
+/// names, then `.deps/<dir>/<file>` in every folder above the executable, above the checkout the
+/// binary was built from (a `CARGO_TARGET_DIR` elsewhere) and above the current directory (so
+/// binaries of a checkout, tests and installs next to a checkout find set-up's copy).
 /// Errors: `env` names something that is not a file (a typo there is not passed over for another
 /// copy); an empty `env` counts as unset.
 pub fn candidates(
@@ -28,6 +29,11 @@ pub fn candidates(
     if let Ok(exe) = std::env::current_exe() {
         out.extend(exe.ancestors().skip(1).map(|d| d.join(&rel)));
     }
+    out.extend(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .ancestors()
+            .map(|d| d.join(&rel)),
+    );
     if let Ok(cwd) = std::env::current_dir() {
         out.extend(cwd.ancestors().map(|d| d.join(&rel)));
     }
