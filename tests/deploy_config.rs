@@ -6,11 +6,13 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
-use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
-use pntr_pipeline::{map, mapfile};
+use pntr_pipeline::mapfile;
+use pntr_pipeline::preset::DEFAULT_PRESET;
 use pntr_service::config::Settings;
 use pntr_service::{tokio, wire};
+use pntr_tests::{runtime, scrape, serve, stop_on};
 use serde_yaml::Value;
 
 fn root() -> PathBuf {
@@ -19,14 +21,6 @@ fn root() -> PathBuf {
 
 fn deploy(p: &str) -> PathBuf {
     root().join("deploy").join(p)
-}
-
-fn scrape(addr: std::net::SocketAddr) -> String {
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.write_all(b"GET /metrics HTTP/1.0\r\n\r\n").unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out
 }
 
 /// Metric names (`pntr_...`) in a PromQL expression.
@@ -55,19 +49,8 @@ fn small_map(dir: &Path) -> (PathBuf, PathBuf, pntr_dataset::View) {
 /// A small synthetic scene in `dir`, one map of it saved under each id (`ID.pntrmap`, the same
 /// images), and one query view of it.
 fn small_maps(dir: &Path, ids: &[&str]) -> (Vec<PathBuf>, PathBuf, pntr_dataset::View) {
-    let cfg = pntr_synth::SynthConfig {
-        points_per_scene: 2,
-        queries_per_point: 2,
-        seed: 9,
-        ..Default::default()
-    };
-    pntr_synth::synthesize(&cfg, dir, pntr_synth::plan_all(&cfg), &|| {}).unwrap();
-    let index = pntr_dataset::DatasetIndex::open(dir).unwrap();
-    let models = root().join("models");
-    let preset = Preset::named(DEFAULT_PRESET).unwrap();
-    let stage = preset.feature_config(models.clone()).build().unwrap();
-    let scenes: Vec<_> = index.scenes.iter().collect();
-    let mut m = map::build(ids[0], &scenes, &preset, &stage, &models, &mut |_, _| {}).unwrap();
+    let index = pntr_tests::synthetic_dataset(dir, 2, 2, 9);
+    let mut m = pntr_tests::build_map(&index, DEFAULT_PRESET, ids[0]);
     let paths = ids
         .iter()
         .map(|id| {
@@ -77,12 +60,7 @@ fn small_maps(dir: &Path, ids: &[&str]) -> (Vec<PathBuf>, PathBuf, pntr_dataset:
             path
         })
         .collect();
-    let view = index.scenes[0].points[0]
-        .open()
-        .unwrap()
-        .view(pntr_dataset::Role::Query, 0)
-        .unwrap();
-    (paths, models, view)
+    (paths, pntr_tests::models(), pntr_tests::first_query(&index))
 }
 
 /// The PromQL expressions of the Grafana dashboard, panel by panel.
@@ -103,12 +81,11 @@ fn dashboard_expressions() -> Vec<String> {
 fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
     let dir = tempfile::tempdir().unwrap();
     let (path, models, view) = small_map(dir.path());
-    let rt = tokio::runtime::Runtime::new().unwrap();
+    let rt = runtime();
     let mut settings = Settings::local(vec![path], models);
     settings.workers = 1;
     let scraped = rt.block_on(async {
-        let mut s = pntr_service::start(settings).await.unwrap();
-        s.ready().await.unwrap();
+        let s = pntr_tests::start(settings).await;
         let mut c = pntr_service::proto::localizer_client::LocalizerClient::connect(format!(
             "http://{}",
             s.addr
@@ -119,8 +96,7 @@ fn every_metric_the_dashboard_queries_is_exported_by_a_live_server() {
             .await
             .unwrap();
         let text = scrape(s.metrics_addr);
-        s.shutdown();
-        s.wait().await.unwrap();
+        pntr_tests::stop(s).await;
         text
     });
 
@@ -241,6 +217,15 @@ fn prometheus_compose_kubernetes_and_docker_files_agree_with_the_code() {
     assert!(dash.contains("\"uid\": \"prometheus\""));
 }
 
+/// What a finished program printed: its stdout, then its stderr.
+fn output_text(out: &std::process::Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
 /// Run kubernetes-validate (Kubernetes OpenAPI schemas bundled in the PyPI package; no network).
 fn kubernetes_validate(files: &[PathBuf]) -> std::process::Output {
     std::process::Command::new(pntr_tests::python())
@@ -339,11 +324,7 @@ fn kubernetes_manifests_pass_the_openapi_schemas_and_a_broken_one_does_not() {
         })
         .collect();
     let out = kubernetes_validate(&files);
-    let log = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let log = output_text(&out);
     assert!(out.status.success(), "{log}");
     // Every object of every rendering was checked (kubernetes-validate reports each one).
     let objects: usize = files.iter().map(|f| yaml_docs(f).len()).sum::<usize>();
@@ -878,11 +859,7 @@ fn envoy_routes_calls_by_map_id_header_to_each_buildings_servers() {
         .arg(deploy("envoy/envoy.yaml"))
         .output()
         .unwrap();
-    let log = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let log = output_text(&out);
     assert!(out.status.success(), "envoy --mode validate:\n{log}");
     assert!(
         !log.contains("eprecated"),
@@ -894,17 +871,12 @@ fn envoy_routes_calls_by_map_id_header_to_each_buildings_servers() {
     let dir = tempfile::tempdir().unwrap();
     let ids = ["building-a", "building-b"];
     let (paths, models, view) = small_maps(dir.path(), &ids);
-    let rt = tokio::runtime::Runtime::new().unwrap();
+    let rt = runtime();
     let mut servers = BTreeMap::new();
     for (id, p) in ids.iter().zip(&paths) {
         let mut settings = Settings::local(vec![p.clone()], models.clone());
         settings.workers = 1;
-        let s = rt.block_on(async {
-            let s = pntr_service::start(settings).await.unwrap();
-            s.ready().await.unwrap();
-            s
-        });
-        servers.insert(*id, s);
+        servers.insert(*id, serve(&rt, settings));
     }
 
     // The shipped file; only the listener, the admin port and the clusters' addresses changed.
@@ -953,23 +925,27 @@ fn envoy_routes_calls_by_map_id_header_to_each_buildings_servers() {
     );
     let log_text = || std::fs::read_to_string(&log_path).unwrap_or_default();
     // Wait until Envoy's gRPC health checks find both servers healthy.
-    let start = std::time::Instant::now();
-    loop {
-        let clusters = http11_get(admin, "/clusters").unwrap_or_default();
-        let healthy = clusters
-            .lines()
-            .filter(|l| l.ends_with("::health_flags::healthy"))
-            .count();
-        if healthy == 2 {
-            break;
-        }
-        assert!(
-            start.elapsed().as_secs() < 60,
-            "Envoy never found both servers healthy:\n{clusters}\n{}",
-            log_text()
-        );
-        std::thread::sleep(std::time::Duration::from_millis(200));
-    }
+    pntr_tests::retry(
+        (Duration::from_secs(60), Duration::from_millis(200)),
+        || {
+            let clusters = http11_get(admin, "/clusters").unwrap_or_default();
+            let healthy = clusters
+                .lines()
+                .filter(|l| l.ends_with("::health_flags::healthy"))
+                .count();
+            if healthy == 2 {
+                Ok(())
+            } else {
+                Err(clusters)
+            }
+        },
+        |clusters| {
+            format!(
+                "Envoy never found both servers healthy:\n{clusters}\n{}",
+                log_text()
+            )
+        },
+    );
 
     let frame = wire::raw_request(&view.rgb, &view.depth, None);
     let with_map = |id: Option<&str>, msg: pntr_service::proto::LocalizeRequest| {
@@ -1030,9 +1006,8 @@ fn envoy_routes_calls_by_map_id_header_to_each_buildings_servers() {
             .unwrap_err();
         assert_eq!(e.code(), Code::Unimplemented, "{e:?}");
     });
-    for (_, mut s) in servers {
-        s.shutdown();
-        rt.block_on(s.wait()).unwrap();
+    for (_, s) in servers {
+        stop_on(&rt, s);
     }
 }
 
@@ -1064,11 +1039,7 @@ fn alert_rules_pass_promtool_and_their_unit_tests() {
             .current_dir(deploy("prometheus"))
             .output()
             .unwrap();
-        let text = format!(
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let text = output_text(&out);
         assert!(out.status.success(), "promtool {}:\n{text}", args.join(" "));
         assert!(
             text.contains("SUCCESS"),
@@ -1107,16 +1078,23 @@ fn program(name: &str) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
-/// GET `path_and_query` from an HTTP server on 127.0.0.1:`port`: (status line, body).
-fn http_get(port: u16, path_and_query: &str) -> std::io::Result<(String, String)> {
+/// Send `request` to an HTTP server on 127.0.0.1:`port` and read the whole answer (10 s at most
+/// between reads).
+fn http_exchange(port: u16, request: &str) -> std::io::Result<String> {
     let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
-    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
-    write!(
-        s,
-        "GET {path_and_query} HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n"
-    )?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    s.write_all(request.as_bytes())?;
     let mut out = String::new();
     s.read_to_string(&mut out)?;
+    Ok(out)
+}
+
+/// GET `path_and_query` from an HTTP server on 127.0.0.1:`port`: (status line, body).
+fn http_get(port: u16, path_and_query: &str) -> std::io::Result<(String, String)> {
+    let out = http_exchange(
+        port,
+        &format!("GET {path_and_query} HTTP/1.0\r\nHost: 127.0.0.1:{port}\r\n\r\n"),
+    )?;
     let status = out.lines().next().unwrap_or_default().to_string();
     let body = out.split_once("\r\n\r\n").map(|x| x.1).unwrap_or_default();
     Ok((status, body.to_string()))
@@ -1124,14 +1102,10 @@ fn http_get(port: u16, path_and_query: &str) -> std::io::Result<(String, String)
 
 /// GET over HTTP/1.1 (Envoy's admin interface refuses HTTP/1.0): the body, de-chunked.
 fn http11_get(port: u16, path: &str) -> std::io::Result<String> {
-    let mut s = std::net::TcpStream::connect(("127.0.0.1", port))?;
-    s.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
-    write!(
-        s,
-        "GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"
+    let out = http_exchange(
+        port,
+        &format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n"),
     )?;
-    let mut out = String::new();
-    s.read_to_string(&mut out)?;
     let (head, mut body) = out.split_once("\r\n\r\n").unwrap_or_default();
     if !head
         .to_ascii_lowercase()
@@ -1171,11 +1145,7 @@ fn prom_query(port: u16, expr: &str) -> Vec<(serde_json::Value, f64)> {
 
 /// A free TCP port on 127.0.0.1 (bound and released; Prometheus takes its port as a flag).
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
+    pntr_tests::free_addr().port()
 }
 
 /// Stops the child when dropped, so a failing assertion does not leave Prometheus running.
@@ -1210,20 +1180,15 @@ fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
         .unwrap();
     assert!(
         out.status.success(),
-        "promtool check config deploy/prometheus/prometheus.yml:\n{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
+        "promtool check config deploy/prometheus/prometheus.yml:\n{}",
+        output_text(&out)
     );
 
     let (path, models, view) = small_map(dir.path());
-    let rt = tokio::runtime::Runtime::new().unwrap();
+    let rt = runtime();
     let mut settings = Settings::local(vec![path], models);
     settings.workers = 1;
-    let mut server = rt.block_on(async {
-        let s = pntr_service::start(settings).await.unwrap();
-        s.ready().await.unwrap();
-        s
-    });
+    let server = serve(&rt, settings);
 
     // The shipped scrape configuration, pointed at this server and scraping every second.
     let mut cfg = yaml_docs(&deploy("prometheus/prometheus.yml")).remove(0);
@@ -1270,26 +1235,29 @@ fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
     let log_text =
         || std::fs::read_to_string(dir.path().join("prometheus.log")).unwrap_or_default();
     // Wait until Prometheus has scraped the server at least once.
-    let start = std::time::Instant::now();
-    loop {
-        let up = http_get(port, "/api/v1/query?query=up")
-            .ok()
-            .and_then(|(_, b)| serde_json::from_str::<serde_json::Value>(&b).ok())
-            .and_then(|v| {
-                v["data"]["result"][0]["value"][1]
-                    .as_str()
-                    .map(String::from)
-            });
-        if up.as_deref() == Some("1") {
-            break;
-        }
-        assert!(
-            start.elapsed().as_secs() < 60,
-            "Prometheus never scraped the server (up = {up:?}):\n{}",
-            log_text()
-        );
-        std::thread::sleep(std::time::Duration::from_millis(250));
-    }
+    pntr_tests::retry(
+        (Duration::from_secs(60), Duration::from_millis(250)),
+        || {
+            let up = http_get(port, "/api/v1/query?query=up")
+                .ok()
+                .and_then(|(_, b)| serde_json::from_str::<serde_json::Value>(&b).ok())
+                .and_then(|v| {
+                    v["data"]["result"][0]["value"][1]
+                        .as_str()
+                        .map(String::from)
+                });
+            match up.as_deref() {
+                Some("1") => Ok(()),
+                _ => Err(up),
+            }
+        },
+        |up| {
+            format!(
+                "Prometheus never scraped the server (up = {up:?}):\n{}",
+                log_text()
+            )
+        },
+    );
 
     // Traffic across several scrapes: LOCALIZED frames, and refused ones for the errors panel.
     let frame = wire::raw_request(&view.rgb, &view.depth, None);
@@ -1309,12 +1277,12 @@ fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
             let e = c.localize(bad).await.unwrap_err();
             assert_eq!(e.code(), pntr_service::tonic::Code::InvalidArgument);
             if round < 2 {
-                tokio::time::sleep(std::time::Duration::from_millis(1500)).await;
+                tokio::time::sleep(Duration::from_millis(1500)).await;
             }
         }
     });
     // Two more scrapes after the last frame.
-    std::thread::sleep(std::time::Duration::from_millis(2500));
+    std::thread::sleep(Duration::from_millis(2500));
 
     let exprs = dashboard_expressions();
     assert!(exprs.len() >= 10, "{exprs:?}");
@@ -1374,6 +1342,5 @@ fn the_dashboard_expressions_evaluate_in_a_real_prometheus() {
             assert_eq!(r["state"], "inactive", "{r}");
         }
     }
-    server.shutdown();
-    rt.block_on(server.wait()).unwrap();
+    stop_on(&rt, server);
 }

@@ -196,24 +196,13 @@ fn fix_checksums(b: &mut [u8]) {
 }
 
 fn small_map(dir: &Path) -> Vec<u8> {
-    let cfg = pntr_synth::SynthConfig {
-        points_per_scene: 2,
-        queries_per_point: 1,
-        seed: 4,
-        ..Default::default()
-    };
-    pntr_synth::synthesize(&cfg, dir, pntr_synth::plan_all(&cfg), &|| {}).unwrap();
-    let index = pntr_dataset::DatasetIndex::open(dir).unwrap();
-    let models = pntr_tests::workspace_root().join("models");
+    let index = pntr_tests::synthetic_dataset(dir, 2, 1, 4);
     let preset = pntr_pipeline::preset::Preset {
         keypoints: 32,
         vlad_words: 4,
         ..pntr_pipeline::preset::Preset::named("xfeat-mnn").unwrap()
     };
-    let stage = preset.feature_config(models.clone()).build().unwrap();
-    let scenes: Vec<_> = index.scenes.iter().collect();
-    let m =
-        pntr_pipeline::map::build("f", &scenes, &preset, &stage, &models, &mut |_, _| {}).unwrap();
+    let m = pntr_tests::build_map_with(&index, &preset, "f");
     let p = dir.join("m.pntrmap");
     pntr_pipeline::mapfile::save(&m, &p).unwrap();
     std::fs::read(&p).unwrap()

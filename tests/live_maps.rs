@@ -9,51 +9,24 @@
 //! once drained; reload of changed files only; shutdown ending an open stream with UNAVAILABLE at
 //! once rather than at the drain's end.
 
-use std::io::{Read, Write};
-use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
-use pntr_dataset::{Role, View};
+use pntr_dataset::View;
 use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
 use pntr_service::proto;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::map_admin_client::MapAdminClient;
 use pntr_service::tokio;
-use pntr_service::tonic::transport::{Channel, Endpoint};
 use pntr_service::tonic::{Code, Request};
-use pntr_service::wire;
+use pntr_tests::{authed, channel, runtime, scrape, wait_until};
 
 const ADMIN: &str = "admin-s3cret";
 const CLIENT: &str = "client-s3cret";
-
-fn authed<T>(m: T, token: &str) -> Request<T> {
-    let mut r = Request::new(m);
-    r.metadata_mut()
-        .insert("authorization", format!("Bearer {token}").parse().unwrap());
-    r
-}
-
-async fn channel(addr: SocketAddr) -> Channel {
-    Endpoint::from_shared(format!("http://{addr}"))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap()
-}
-
-fn scrape(addr: SocketAddr) -> String {
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.write_all(b"GET /metrics HTTP/1.0\r\nHost: test\r\n\r\n")
-        .unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    out
-}
 
 /// `map` with every pose moved by `t` (as a second SLAM session starting elsewhere would record it),
 /// saved to `path`.
@@ -67,16 +40,20 @@ fn save_moved(map: &mut pntr_pipeline::map::Map, t: &Isometry3<f64>, path: &Path
     }
 }
 
-fn request(v: &View) -> proto::LocalizeRequest {
-    proto::LocalizeRequest {
-        map_id: "all".into(),
-        ..wire::raw_request(&v.rgb, &v.depth, None)
+/// A ReplaceMap request: map `map_id` by the map in `file`.
+fn replacement(map_id: &str, file: &Path) -> proto::ReplaceMapRequest {
+    proto::ReplaceMapRequest {
+        map_id: map_id.into(),
+        file: file.display().to_string(),
     }
 }
 
+fn request(v: &View) -> proto::LocalizeRequest {
+    pntr_tests::request(v, "all")
+}
+
 fn error_m(r: &proto::LocalizeResponse, truth: &Isometry3<f64>) -> f64 {
-    let pose = wire::pose(r.pose.as_ref()).expect("a pose");
-    (pose.translation.vector - truth.translation.vector).norm()
+    pntr_tests::translation_error(r, truth).expect("a pose")
 }
 
 #[test]
@@ -112,20 +89,10 @@ fn maps_change_under_load_and_streams() {
     let bytes = std::fs::read(&v2_path).unwrap();
     std::fs::write(&damaged, &bytes[..bytes.len() / 2]).unwrap();
 
-    let mut queries = Vec::new();
-    for p in &index.scenes[0].points {
-        let r = p.open().unwrap();
-        for i in 0..r.count(Role::Query) {
-            queries.push(r.view(Role::Query, i).unwrap());
-        }
-    }
+    let queries = pntr_tests::query_views(&index);
     let still = queries[0].clone();
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     rt.block_on(async {
         let mut s = Settings::local(vec![v1_path.clone()], pntr_tests::models());
         s.workers = 2;
@@ -238,19 +205,16 @@ fn maps_change_under_load_and_streams() {
             proto::Mode::Tracking as i32
         );
 
+        // Map `all` replaced by the map in `file` with the admin token: the change.
+        let replacer = admin.clone();
+        let replace_all = move |file: &Path| {
+            let (mut admin, req) = (replacer.clone(), authed(replacement("all", file), ADMIN));
+            async move { admin.replace_map(req).await.unwrap().into_inner() }
+        };
+
         // Replaced by a rebuild in the same frame: later answers carry the new version and the
         // stream keeps tracking.
-        let c = admin
-            .replace_map(authed(
-                proto::ReplaceMapRequest {
-                    map_id: "all".into(),
-                    file: v2_path.display().to_string(),
-                },
-                ADMIN,
-            ))
-            .await
-            .unwrap()
-            .into_inner();
+        let c = replace_all(&v2_path).await;
         let v2 = c.map.as_ref().unwrap().version.clone();
         assert_ne!(v2, v1);
         assert_eq!(c.previous_version, v1);
@@ -269,17 +233,7 @@ fn maps_change_under_load_and_streams() {
 
         // Replaced by a session in another frame: the track starts afresh and answers come in the
         // new frame.
-        let c = admin
-            .replace_map(authed(
-                proto::ReplaceMapRequest {
-                    map_id: "all".into(),
-                    file: moved_path.display().to_string(),
-                },
-                ADMIN,
-            ))
-            .await
-            .unwrap()
-            .into_inner();
+        let c = replace_all(&moved_path).await;
         let v3 = c.map.as_ref().unwrap().version.clone();
         assert!(
             !c.same_frame,
@@ -296,67 +250,29 @@ fn maps_change_under_load_and_streams() {
             let mut admin = admin.clone();
             async move { admin.replace_map(authed(m, ADMIN)).await.unwrap_err() }
         };
-        let e = refuse(proto::ReplaceMapRequest {
-            map_id: "all".into(),
-            file: damaged.display().to_string(),
-        })
-        .await;
+        let e = refuse(replacement("all", &damaged)).await;
         assert_eq!(e.code(), Code::FailedPrecondition, "{}", e.message());
         assert!(e.message().contains("damaged.pntrmap"), "{}", e.message());
-        let e = refuse(proto::ReplaceMapRequest {
-            map_id: "all".into(),
-            file: copy_path.display().to_string(),
-        })
-        .await;
+        let e = refuse(replacement("all", &copy_path)).await;
         assert_eq!(e.code(), Code::FailedPrecondition, "{}", e.message());
         assert!(e.message().contains("`copy`"), "{}", e.message());
-        let e = refuse(proto::ReplaceMapRequest {
-            map_id: "all".into(),
-            file: dir.path().join("nope.pntrmap").display().to_string(),
-        })
-        .await;
+        let e = refuse(replacement("all", &dir.path().join("nope.pntrmap"))).await;
         assert_eq!(e.code(), Code::NotFound, "{}", e.message());
-        let e = refuse(proto::ReplaceMapRequest {
-            map_id: "elsewhere".into(),
-            file: copy_path.display().to_string(),
-        })
-        .await;
+        let e = refuse(replacement("elsewhere", &copy_path)).await;
         assert_eq!(e.code(), Code::NotFound, "{}", e.message());
         assert_eq!(frame(&truth_moved).await.map_version, v3);
 
         // A second map loaded and unloaded; loading an id already served is refused.
-        let c = admin
-            .load_map(authed(
-                proto::LoadMapRequest {
-                    file: copy_path.display().to_string(),
-                },
-                ADMIN,
-            ))
-            .await
-            .unwrap()
-            .into_inner();
+        let load_copy = || {
+            let file = copy_path.display().to_string();
+            authed(proto::LoadMapRequest { file }, ADMIN)
+        };
+        let c = admin.load_map(load_copy()).await.unwrap().into_inner();
         assert_eq!(c.map.unwrap().map_id, "copy");
-        let r = client
-            .localize(authed(
-                proto::LocalizeRequest {
-                    map_id: "copy".into(),
-                    ..request(&still)
-                },
-                CLIENT,
-            ))
-            .await
-            .unwrap()
-            .into_inner();
+        let in_copy = || authed(pntr_tests::request(&still, "copy"), CLIENT);
+        let r = client.localize(in_copy()).await.unwrap().into_inner();
         assert_eq!(r.status, proto::Status::Localized as i32);
-        let e = admin
-            .load_map(authed(
-                proto::LoadMapRequest {
-                    file: copy_path.display().to_string(),
-                },
-                ADMIN,
-            ))
-            .await
-            .unwrap_err();
+        let e = admin.load_map(load_copy()).await.unwrap_err();
         assert_eq!(e.code(), Code::AlreadyExists, "{}", e.message());
         admin
             .unload_map(authed(
@@ -367,30 +283,11 @@ fn maps_change_under_load_and_streams() {
             ))
             .await
             .unwrap();
-        let e = client
-            .localize(authed(
-                proto::LocalizeRequest {
-                    map_id: "copy".into(),
-                    ..request(&still)
-                },
-                CLIENT,
-            ))
-            .await
-            .unwrap_err();
+        let e = client.localize(in_copy()).await.unwrap_err();
         assert_eq!(e.code(), Code::NotFound);
 
         // A replacement may bring another preset: its models are loaded beside the served ones.
-        let c = admin
-            .replace_map(authed(
-                proto::ReplaceMapRequest {
-                    map_id: "all".into(),
-                    file: mnn_path.display().to_string(),
-                },
-                ADMIN,
-            ))
-            .await
-            .unwrap()
-            .into_inner();
+        let c = replace_all(&mnn_path).await;
         assert_eq!(c.map.as_ref().unwrap().preset, "xfeat-mnn");
         let info = client
             .get_map_info(authed(proto::GetMapInfoRequest::default(), CLIENT))
@@ -405,16 +302,7 @@ fn maps_change_under_load_and_streams() {
         let r = frame(&still.world_from_camera).await;
         assert_eq!(r.map_version, v_mnn);
         // Back to the moved map for the reload below.
-        admin
-            .replace_map(authed(
-                proto::ReplaceMapRequest {
-                    map_id: "all".into(),
-                    file: moved_path.display().to_string(),
-                },
-                ADMIN,
-            ))
-            .await
-            .unwrap();
+        replace_all(&moved_path).await;
 
         // Reload: only a changed file is read again (here the moved map's file now holds v1).
         let r = running.reload().await.unwrap();
@@ -440,14 +328,13 @@ fn maps_change_under_load_and_streams() {
         }
 
         // The replaced maps are freed once their requests are done.
-        let t = Instant::now();
-        while old_maps.iter().any(|w| w.upgrade().is_some()) {
-            assert!(
-                t.elapsed() < Duration::from_secs(30),
-                "a replaced map is still held"
-            );
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        wait_until(
+            || old_maps.iter().all(|w| w.upgrade().is_none()),
+            Duration::from_secs(30),
+            Duration::from_millis(50),
+            "a replaced map is still held",
+        )
+        .await;
 
         // /metrics shows the served version only.
         let text = scrape(running.metrics_addr);

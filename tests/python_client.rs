@@ -26,7 +26,6 @@
 //! `Prior` (also from `Answer.as_prior`) is answered through the prior region (mode PRIOR).
 
 use std::collections::BTreeMap;
-use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
@@ -35,7 +34,8 @@ use nalgebra::{Isometry3, Matrix4};
 use pntr_dataset::{Role, View};
 use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
-use pntr_service::{tokio, wire, Running};
+use pntr_service::wire;
+use pntr_tests::{free_addr, runtime, serve, stop_on};
 use serde_json::Value;
 
 const SCENE: &str = "synth000";
@@ -247,30 +247,6 @@ print(json.dumps({
     v.assert_home_untouched();
 }
 
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
-}
-
-/// Start a server on `rt` and wait until it has loaded its map.
-fn serve(rt: &tokio::runtime::Runtime, s: Settings) -> Running {
-    rt.block_on(async {
-        let running = pntr_service::start(s).await.unwrap();
-        running.ready().await.unwrap();
-        running
-    })
-}
-
-fn stop(rt: &tokio::runtime::Runtime, mut running: Running) {
-    rt.block_on(async {
-        running.shutdown();
-        running.wait().await.unwrap();
-    })
-}
-
 /// Run the `pntr-client` console script with `args`.
 fn client(args: &[&str]) -> Output {
     venv()
@@ -409,15 +385,8 @@ fn localizes_against_a_real_server() {
     let addr = running.addr.to_string();
     let dataset = f.dir.path().to_str().unwrap();
 
-    let doc = run_json(&[
-        "--addr",
-        &addr,
-        "--dataset",
-        dataset,
-        "--scene",
-        SCENE,
-        "--json",
-    ]);
+    let scene = ["--addr", &addr, "--dataset", dataset, "--scene", SCENE];
+    let doc = run_json(&[&scene[..], &["--json"]].concat());
     assert_eq!(doc["server"]["map_id"], "all");
     let queries = doc["queries"].as_array().unwrap();
     assert_eq!(queries.len(), f.queries);
@@ -458,18 +427,7 @@ fn localizes_against_a_real_server() {
     assert!(s["recall"]["0.25m_2deg"].as_f64().is_some(), "{s}");
 
     // One Point, one query, human-readable output.
-    let out = client(&[
-        "--addr",
-        &addr,
-        "--dataset",
-        dataset,
-        "--scene",
-        SCENE,
-        "--point",
-        "1",
-        "--queries",
-        "1",
-    ]);
+    let out = client(&[&scene[..], &["--point", "1", "--queries", "1"]].concat());
     assert!(out.status.success(), "{}", text(&out.stderr));
     let lines = text(&out.stdout);
     eprint!("{lines}");
@@ -488,21 +446,12 @@ fn localizes_against_a_real_server() {
         .output()
         .unwrap();
     assert_clean_failure(&out, 2, "scene folder not found");
-    let out = client(&[
-        "--addr",
-        &addr,
-        "--dataset",
-        dataset,
-        "--scene",
-        SCENE,
-        "--point",
-        "99",
-    ]);
+    let out = client(&[&scene[..], &["--point", "99"]].concat());
     assert_clean_failure(&out, 2, "Point file not found");
-    stop(&rt, running);
+    stop_on(&rt, running);
 
     // Nothing listens there any more.
-    let closed = free_port();
+    let closed = free_addr();
     let out = client(&[
         "--addr",
         &closed.to_string(),
@@ -517,12 +466,6 @@ fn localizes_against_a_real_server() {
     assert_clean_failure(&out, 1, &format!("cannot reach pntr-server at {closed}"));
     assert!(out.stdout.is_empty(), "{}", text(&out.stdout));
     v.assert_home_untouched();
-}
-
-/// A loopback address where nothing listens (bound, then closed).
-fn free_port() -> SocketAddr {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap()
 }
 
 /// A self-signed certificate for localhost and 127.0.0.1 (cert, key), made with the openssl CLI.
@@ -565,21 +508,9 @@ fn token_and_tls() {
     let addr = running.addr.to_string();
     let dataset = f.dir.path().to_str().unwrap();
     let ca = cert.to_str().unwrap();
-    let base = [
-        "--addr",
-        &addr,
-        "--dataset",
-        dataset,
-        "--scene",
-        SCENE,
-        "--point",
-        "0",
-        "--queries",
-        "1",
-        "--tls-ca",
-        ca,
-        "--json",
-    ];
+    let scene = ["--addr", &addr, "--dataset", dataset, "--scene", SCENE];
+    let one = ["--point", "0", "--queries", "1", "--tls-ca", ca, "--json"];
+    let base = [&scene[..], &one].concat();
 
     let out = client(&base);
     assert_clean_failure(&out, 1, "UNAUTHENTICATED");
@@ -594,20 +525,10 @@ fn token_and_tls() {
     assert_eq!(doc["server"]["map_id"], "all");
 
     // The same server without TLS on the client's side gets no answer.
-    let out = client(&[
-        "--addr",
-        &addr,
-        "--dataset",
-        dataset,
-        "--scene",
-        SCENE,
-        "--token",
-        "py-t0ken",
-        "--connect-timeout",
-        "1",
-    ]);
+    let plain = ["--token", "py-t0ken", "--connect-timeout", "1"];
+    let out = client(&[&scene[..], &plain].concat());
     assert_clean_failure(&out, 1, "cannot reach pntr-server");
-    stop(&rt, running);
+    stop_on(&rt, running);
     v.assert_home_untouched();
 }
 
@@ -783,7 +704,7 @@ fn typed_api_against_a_real_server() {
         .args(&points)
         .output()
         .unwrap();
-    stop(&rt, running);
+    stop_on(&rt, running);
     assert!(
         out.status.success(),
         "the API script failed:\n{}",

@@ -10,25 +10,26 @@
 //! the metrics; shutdown drains an in-flight request.
 
 use std::collections::BTreeMap;
-use std::io::{Read, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
-use pntr_dataset::{Role, View};
+use pntr_dataset::View;
 use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self, DepthEncoding, ImageEncoding};
 use pntr_service::tokio;
+use pntr_service::tokio_stream::wrappers::ReceiverStream;
 use pntr_service::tonic::transport::{Channel, Endpoint};
 use pntr_service::tonic::{Code, Request};
 use pntr_service::tonic_health::pb::health_check_response::ServingStatus;
 use pntr_service::tonic_health::pb::health_client::HealthClient;
 use pntr_service::tonic_health::pb::HealthCheckRequest;
 use pntr_service::{wire, Running};
+use pntr_tests::{authed, channel, client, request, runtime, scrape, stop, wait_until};
 
 /// The dataset and map, made once for all tests of this file.
 struct Fixture {
@@ -52,13 +53,7 @@ fn fixture() -> &'static Fixture {
         built.header.map_id = "copy".into();
         let copy = dir.path().join("copy.pntrmap");
         mapfile::save(&built, &copy).unwrap();
-        let mut queries = Vec::new();
-        for p in &index.scenes[0].points {
-            let r = p.open().unwrap();
-            for i in 0..r.count(Role::Query) {
-                queries.push(r.view(Role::Query, i).unwrap());
-            }
-        }
+        let queries = pntr_tests::query_views(&index);
         assert!(queries.len() >= 8, "{} queries", queries.len());
         Fixture {
             _dir: dir,
@@ -67,26 +62,6 @@ fn fixture() -> &'static Fixture {
             queries,
         }
     })
-}
-
-fn runtime() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap()
-}
-
-async fn channel(addr: SocketAddr) -> Channel {
-    Endpoint::from_shared(format!("http://{addr}"))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap()
-}
-
-async fn client(addr: SocketAddr) -> LocalizerClient<Channel> {
-    LocalizerClient::new(channel(addr).await).max_decoding_message_size(64 << 20)
 }
 
 async fn health(addr: SocketAddr, service: &str) -> ServingStatus {
@@ -116,16 +91,9 @@ async fn wait_serving(addr: SocketAddr) -> Vec<ServingStatus> {
     }
 }
 
+/// How far (metres) the pose of an answer is from `v`'s; `None` when it has no pose.
 fn translation_error(r: &proto::LocalizeResponse, v: &View) -> Option<f64> {
-    let pose = wire::pose(r.pose.as_ref())?;
-    Some((pose.translation.vector - v.world_from_camera.translation.vector).norm())
-}
-
-fn request(v: &View, map_id: &str) -> proto::LocalizeRequest {
-    proto::LocalizeRequest {
-        map_id: map_id.into(),
-        ..wire::raw_request(&v.rgb, &v.depth, None)
-    }
+    pntr_tests::translation_error(r, &v.world_from_camera)
 }
 
 fn in_all(r: proto::LocalizeRequest) -> proto::LocalizeRequest {
@@ -141,19 +109,6 @@ async fn code_of(c: &mut LocalizerClient<Channel>, r: proto::LocalizeRequest) ->
         Ok(r) => (Code::Ok, r.into_inner().reason),
         Err(e) => (e.code(), e.message().to_string()),
     }
-}
-
-fn scrape(addr: SocketAddr) -> String {
-    let mut s = std::net::TcpStream::connect(addr).unwrap();
-    s.write_all(b"GET /metrics HTTP/1.0\r\nHost: test\r\n\r\n")
-        .unwrap();
-    let mut out = String::new();
-    s.read_to_string(&mut out).unwrap();
-    assert!(
-        out.starts_with("HTTP/1.0 200") || out.starts_with("HTTP/1.1 200"),
-        "{out}"
-    );
-    out
 }
 
 fn settings(dbs: &[&Path]) -> Settings {
@@ -176,11 +131,6 @@ async fn pool_state(running: &Running, busy: usize, queued: usize) {
         );
         tokio::time::sleep(Duration::from_millis(1)).await;
     }
-}
-
-async fn stop(mut running: Running) {
-    running.shutdown();
-    running.wait().await.unwrap();
 }
 
 #[test]
@@ -331,6 +281,16 @@ fn localizes_reports_and_refuses_bad_input() {
             edit(&mut r);
             r
         };
+        // HPointLoc's principal point with the focal lengths given.
+        let focal = |fx: f64, fy: f64| {
+            Some(proto::Intrinsics {
+                fx,
+                fy,
+                cx: 127.5,
+                cy: 127.5,
+                distortion: Vec::new(),
+            })
+        };
         let small = RgbImage::new(128, 256, rgb.data[..128 * 256 * 3].to_vec()).unwrap();
         let big = (600u32, 100u32);
         let cases: Vec<(&str, proto::LocalizeRequest, Code, &str)> = vec![
@@ -404,43 +364,19 @@ fn localizes_reports_and_refuses_bad_input() {
             ),
             (
                 "zero focal length",
-                with(&|r| {
-                    r.intrinsics = Some(proto::Intrinsics {
-                        fx: 0.0,
-                        fy: 128.0,
-                        cx: 127.5,
-                        cy: 127.5,
-                        distortion: Vec::new(),
-                    })
-                }),
+                with(&|r| r.intrinsics = focal(0.0, 128.0)),
                 Code::InvalidArgument,
                 "focal",
             ),
             (
                 "negative focal length",
-                with(&|r| {
-                    r.intrinsics = Some(proto::Intrinsics {
-                        fx: 128.0,
-                        fy: -128.0,
-                        cx: 127.5,
-                        cy: 127.5,
-                        distortion: Vec::new(),
-                    })
-                }),
+                with(&|r| r.intrinsics = focal(128.0, -128.0)),
                 Code::InvalidArgument,
                 "focal",
             ),
             (
                 "NaN focal length",
-                with(&|r| {
-                    r.intrinsics = Some(proto::Intrinsics {
-                        fx: f64::NAN,
-                        fy: 128.0,
-                        cx: 127.5,
-                        cy: 127.5,
-                        distortion: Vec::new(),
-                    })
-                }),
+                with(&|r| r.intrinsics = focal(f64::NAN, 128.0)),
                 Code::InvalidArgument,
                 "focal",
             ),
@@ -901,12 +837,6 @@ fn overload_deadlines_auth_and_drain() {
         assert_eq!(health(addr, "").await, ServingStatus::Serving);
         let mut c = client(addr).await;
         let v = &f.queries[0];
-        let authed = |r: proto::LocalizeRequest, token: &str| {
-            let mut req = Request::new(r);
-            req.metadata_mut()
-                .insert("authorization", format!("Bearer {token}").parse().unwrap());
-            req
-        };
 
         // Without the token, or with a wrong one: UNAUTHENTICATED, for every RPC.
         let e = c.localize(request(v, "")).await.unwrap_err();
@@ -1139,9 +1069,7 @@ fn priors_fall_back_and_streams_track() {
         let same_place: Vec<&View> = vec![still; 4];
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         let mut out = c
-            .localize_stream(pntr_service::tokio_stream::wrappers::ReceiverStream::new(
-                rx,
-            ))
+            .localize_stream(ReceiverStream::new(rx))
             .await
             .unwrap()
             .into_inner();
@@ -1172,23 +1100,17 @@ fn priors_fall_back_and_streams_track() {
         drop(out);
         drop(tx);
         drop(c);
-        let t = Instant::now();
-        while gauge(&scrape(running.metrics_addr)) != 0.0 {
-            assert!(
-                t.elapsed() < Duration::from_secs(20),
-                "stream state still held after the client left"
-            );
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        let streams = || gauge(&scrape(running.metrics_addr));
+        let (limit, poll) = (Duration::from_secs(20), Duration::from_millis(50));
+        let gone = "stream state still held after the client left";
+        wait_until(|| streams() == 0.0, limit, poll, gone).await;
         // A client that stops reading its answers, keeps sending, then cancels the call: the
         // stream's state and its count in pntr_streams_active go with it.
         let mut c2 = client(running.addr).await;
         let (tx, rx) = tokio::sync::mpsc::channel(16);
         let call = tokio::spawn(async move {
             let mut out = c2
-                .localize_stream(pntr_service::tokio_stream::wrappers::ReceiverStream::new(
-                    rx,
-                ))
+                .localize_stream(ReceiverStream::new(rx))
                 .await
                 .unwrap()
                 .into_inner();
@@ -1201,26 +1123,13 @@ fn priors_fall_back_and_streams_track() {
                 break;
             }
         }
-        let t = Instant::now();
-        while gauge(&scrape(running.metrics_addr)) < 1.0 {
-            assert!(
-                t.elapsed() < Duration::from_secs(20),
-                "the stream never opened"
-            );
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        wait_until(|| streams() >= 1.0, limit, poll, "the stream never opened").await;
         tokio::time::sleep(Duration::from_millis(500)).await;
         call.abort();
         let _ = call.await;
         drop(tx);
-        let t = Instant::now();
-        while gauge(&scrape(running.metrics_addr)) != 0.0 {
-            assert!(
-                t.elapsed() < Duration::from_secs(20),
-                "a cancelled stream whose client had stopped reading is still counted"
-            );
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
+        let counted = "a cancelled stream whose client had stopped reading is still counted";
+        wait_until(|| streams() == 0.0, limit, poll, counted).await;
         let text = scrape(running.metrics_addr);
         for mode in ["GLOBAL", "PRIOR", "TRACKING"] {
             assert!(

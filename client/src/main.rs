@@ -111,21 +111,28 @@ enum Command {
 }
 
 /// Exit quietly, as other command-line tools do, when the reader of stdout goes away (`pntr ... |
-/// head -1`): Rust ignores SIGPIPE, so a write to a closed pipe would otherwise panic in `println!`.
-#[cfg(unix)]
-#[allow(unsafe_code)]
-fn default_sigpipe() {
-    // SAFETY: restores the default disposition of one signal at start, before any thread exists;
-    // signal() has no other effect on memory.
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
-    }
+/// head -1`): Rust ignores SIGPIPE, so `println!` to a closed pipe panics; that one panic becomes
+/// exit status 141 (128 + SIGPIPE, what a shell reports for a tool killed by it) without a message.
+/// SIGPIPE itself stays ignored, so a socket the server closed is an error, not a silent death.
+fn quiet_on_closed_stdout() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let message = info
+            .payload()
+            .downcast_ref::<String>()
+            .map(String::as_str)
+            .or_else(|| info.payload().downcast_ref::<&str>().copied())
+            .unwrap_or("");
+        if message.contains("failed printing to stdout") && message.contains("Broken pipe") {
+            std::process::exit(141);
+        }
+        default(info);
+    }));
 }
 
 fn main() {
     use std::io::IsTerminal;
-    #[cfg(unix)]
-    default_sigpipe();
+    quiet_on_closed_stdout();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         .with_ansi(std::io::stderr().is_terminal())

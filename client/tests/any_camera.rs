@@ -11,7 +11,9 @@
 //! the camera fields `synth` writes.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+mod support;
 
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 use pntr_dataset::{DatasetIndex, Role, View};
@@ -19,27 +21,9 @@ use pntr_pipeline::eval::pose_error;
 use pntr_service::config::Settings;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self, DepthEncoding};
-use pntr_service::tokio;
 use pntr_service::tonic::Code;
 use pntr_service::wire;
-
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .env_remove("PNTR_TOKEN")
-        .output()
-        .expect("pntr runs")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use support::{build_db, ok, ok_json, pntr, runtime, serve, stop, MODELS};
 
 fn queries(root: &Path) -> Vec<View> {
     let index = DatasetIndex::open(root).unwrap();
@@ -53,20 +37,9 @@ fn queries(root: &Path) -> Vec<View> {
     out
 }
 
+/// The scene of seed 9 (four Points, four query draws each) with `extra` arguments.
 fn synth(root: &Path, extra: &[&str]) {
-    let mut args = vec![
-        "synth",
-        "--out",
-        root.to_str().unwrap(),
-        "--points-per-scene",
-        "4",
-        "--queries-per-point",
-        "4",
-        "--seed",
-        "9",
-    ];
-    args.extend_from_slice(extra);
-    ok(&pntr(&args));
+    support::synth(root, "4", "4", &[&["--seed", "9"][..], extra].concat());
 }
 
 /// (translation error m, rotation error deg) of a LOCALIZED answer, `None` otherwise.
@@ -154,7 +127,6 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
     let base = dir.path().join("map-camera");
     let vga_root = dir.path().join("vga");
     let lens_root = dir.path().join("lens");
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
     synth(&base, &[]);
     // The same seed: the same scene, Points and query poses, seen through other cameras.
     synth(&vga_root, &["--query-camera", "640x480", "--hfov", "69"]);
@@ -170,15 +142,7 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
         ],
     );
     let map = dir.path().join("m.pntrmap");
-    ok(&pntr(&[
-        "build-db",
-        "--dataset",
-        base.to_str().unwrap(),
-        "--out",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-    ]));
+    build_db(&map, &["--dataset", base.to_str().unwrap()]);
 
     // The camera fields: the database keeps HPointLoc's camera, the queries carry theirs.
     let vga = queries(&vga_root);
@@ -197,28 +161,19 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
     );
     assert_eq!(vga[0].world_from_camera, native[0].world_from_camera);
     assert!(lens[0].intrinsics.is_distorted());
-    let info: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+    let info = ok_json(&pntr(&[
         "info",
         "--dataset",
         vga_root.to_str().unwrap(),
         "--json",
-    ])))
-    .unwrap();
+    ]));
     assert_eq!(info["scenes"][0]["query_width"], 640, "{info}");
     assert_eq!(info["scenes"][0]["width"], 256, "{info}");
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let mut settings = Settings::local(vec![map.clone()], models.into());
+    let rt = runtime();
+    let mut settings = Settings::local(vec![map.clone()], MODELS.into());
     settings.workers = 2;
-    let server = rt.block_on(async {
-        let s = pntr_service::start(settings).await.unwrap();
-        s.ready().await.unwrap();
-        s
-    });
+    let [server] = serve(&rt, [settings]);
     let addr = server.addr.to_string();
 
     rt.block_on(async {
@@ -357,8 +312,7 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
     let mut localized = 0;
     for (i, v) in vga.iter().take(4).enumerate() {
         let (rgb, depth) = files(v, &format!("vga{i}"));
-        let out: serde_json::Value =
-            serde_json::from_str(&ok(&localize(&rgb, &depth, &fmt(&v.intrinsics)))).unwrap();
+        let out = ok_json(&localize(&rgb, &depth, &fmt(&v.intrinsics)));
         if out["status"] == "LOCALIZED" {
             let t = &out["pose"]["translation"];
             let p = nalgebra::Vector3::new(
@@ -409,7 +363,7 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
         "--json",
     ]);
     // Accepted (a sideways depth would be INVALID_ARGUMENT, a failed command here).
-    let answer: serde_json::Value = serde_json::from_str(&ok(&out)).unwrap();
+    let answer = ok_json(&out);
     assert!(answer["status"].is_string(), "{answer}");
     // Millimetres in a float32 metre file.
     let f32_file = dir.path().join("mm.f32");
@@ -427,5 +381,5 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
         err.contains("look like millimetres") && !err.contains("panicked"),
         "{err}"
     );
-    drop(server);
+    stop(&rt, [server]);
 }

@@ -1,53 +1,22 @@
 //! The `pntr` binary as a user runs it: output keys other tools depend on, and clear errors.
 
-use std::process::{Command, Output};
+use std::process::Command;
 
 mod support;
 
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .output()
-        .expect("pntr runs")
-}
-
-fn fails_cleanly(out: &Output) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(
-        !out.status.success(),
-        "expected failure, got success: {err}"
-    );
-    assert!(
-        !err.contains("panicked"),
-        "a panic is not an error message: {err}"
-    );
-    err
-}
+use support::{build_db, fails_cleanly, ok, ok_json, pntr, read_json, synth, MODELS};
 
 #[test]
 fn synth_then_info_report_the_same_dataset() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().to_str().unwrap();
-    let out = pntr(&[
-        "synth",
-        "--out",
-        root,
-        "--scenes",
+    let out = synth(
+        dir.path(),
         "2",
-        "--points-per-scene",
-        "2",
-        "--queries-per-point",
         "3",
-        "--seed",
-        "4",
-        "--json",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+        &["--scenes", "2", "--seed", "4", "--json"],
     );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     let scenes = v["scenes"].as_array().unwrap();
     assert_eq!(scenes.len(), 2);
     for s in scenes {
@@ -64,13 +33,7 @@ fn synth_then_info_report_the_same_dataset() {
     assert_eq!(frames, expected);
     assert!(v["frames_per_second"].as_f64().unwrap() > 0.0);
 
-    let out = pntr(&["info", "--dataset", root, "--json"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let info: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let info = ok_json(&pntr(&["info", "--dataset", root, "--json"]));
     for (a, b) in info["scenes"].as_array().unwrap().iter().zip(scenes) {
         assert_eq!(a["name"], b["name"]);
         assert_eq!(a["queries"], b["queries"]);
@@ -85,20 +48,7 @@ fn synth_then_info_report_the_same_dataset() {
         .path()
         .join("HPointLoc_dataset/synth000/synth000_point1.hdf5");
     let before = std::fs::metadata(&p).unwrap().len();
-    let out = pntr(&[
-        "synth",
-        "--out",
-        root,
-        "--scenes",
-        "1",
-        "--points-per-scene",
-        "2",
-        "--queries-per-point",
-        "3",
-        "--seed",
-        "4",
-    ]);
-    assert!(out.status.success());
+    synth(dir.path(), "2", "3", &["--scenes", "1", "--seed", "4"]);
     assert_eq!(std::fs::metadata(&p).unwrap().len(), before);
     let leftovers: Vec<_> = std::fs::read_dir(dir.path().join("HPointLoc_dataset"))
         .unwrap()
@@ -177,54 +127,16 @@ fn build_db_refuses_a_map_id_that_cannot_travel_in_metadata() {
 fn build_db_then_eval_write_the_documented_json_keys() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().to_str().unwrap();
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
-    let out = pntr(&[
-        "synth",
-        "--out",
-        root,
-        "--points-per-scene",
-        "3",
-        "--queries-per-point",
-        "3",
-        "--seed",
-        "8",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    synth(dir.path(), "3", "3", &["--seed", "8"]);
     let map = dir.path().join("m.pntrmap");
     let map_s = map.to_str().unwrap();
-    let out = pntr(&[
-        "build-db",
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--out",
-        map_s,
-        "--models",
-        models,
-        "--json",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let out = build_db(&map, &["--dataset", root, "--scene", "synth000", "--json"]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(v["map_id"], "synth000");
     assert_eq!(v["images"], 18);
     assert_eq!(v["preset"], "xfeat-mnn");
     // The map describes itself from its header.
-    let out = pntr(&["info", "--db", map_s, "--json"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let h: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let h = ok_json(&pntr(&["info", "--db", map_s, "--json"]));
     assert_eq!(h["map_id"], "synth000");
     assert_eq!(h["preset"]["name"], "xfeat-mnn");
     assert_eq!(h["models"][0]["role"], "extractor");
@@ -254,18 +166,12 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         "--db",
         map_s,
         "--models",
-        models,
+        MODELS,
         "--json",
         report.to_str().unwrap(),
     ];
-    let out = pntr(&eval);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
     // An MNN preset's matching time is 0.0 ms, and the table says why.
-    let table = String::from_utf8_lossy(&out.stdout);
+    let table = ok(&pntr(&eval));
     assert!(
         table.contains("matching 0.0") && table.contains("inside retrieval's keypoint vote"),
         "{table}"
@@ -292,7 +198,7 @@ fn build_db_then_eval_write_the_documented_json_keys() {
             "{err}"
         );
     }
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let r = read_json(&report);
     let n = r["queries"].as_u64().unwrap();
     assert!(n >= 6, "{r}");
     assert!(r["localized"].as_u64().unwrap() <= n);
@@ -331,14 +237,8 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     // Pictures: error distributions, precision/recall over the threshold, the scene from above.
     let plots = dir.path().join("plots");
     let outcomes = dir.path().join("queries.jsonl");
-    let out = pntr(&[
-        "eval",
-        "--dataset",
-        root,
-        "--db",
-        map_s,
-        "--models",
-        models,
+    let eval_map = |extra: &[&str]| support::eval(dir.path(), &map, extra);
+    ok(&eval_map(&[
         "--queries",
         "6",
         "--json",
@@ -347,15 +247,10 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         plots.to_str().unwrap(),
         "--per-query",
         outcomes.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ]));
     // One line per query, agreeing with the report: a LOCALIZED query has its error, and its
     // best estimate is that pose.
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let r = read_json(&report);
     let lines: Vec<serde_json::Value> = std::fs::read_to_string(&outcomes)
         .unwrap()
         .lines()
@@ -412,45 +307,17 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         &["synth000: 6 queries", "database cameras", "x (m)", "z (m)"],
     );
     let legacy = dir.path().join("legacy.json");
-    let out = pntr(&[
-        "eval",
-        "--dataset",
-        root,
-        "--db",
-        map_s,
-        "--models",
-        models,
+    ok(&eval_map(&[
         "--legacy-metric",
         "--queries",
         "3",
         "--json",
         legacy.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let l: serde_json::Value = serde_json::from_slice(&std::fs::read(&legacy).unwrap()).unwrap();
+    ]));
+    let l = read_json(&legacy);
     assert!(l["metric"].as_str().unwrap().starts_with("legacy"), "{l}");
     // Without --json the table alone, on stdout.
-    let out = pntr(&[
-        "eval",
-        "--dataset",
-        root,
-        "--db",
-        map_s,
-        "--models",
-        models,
-        "--queries",
-        "2",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let table = String::from_utf8_lossy(&out.stdout);
+    let table = ok(&eval_map(&["--queries", "2"]));
     assert!(
         table.contains("pipeline") && table.contains("0.25m_2deg"),
         "{table}"
@@ -492,21 +359,11 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     ]));
     assert!(err.contains("nope"), "{err}");
     // The good map survived the failed builds.
-    assert!(pntr(&[
-        "eval",
-        "--dataset",
-        root,
-        "--db",
-        map_s,
-        "--models",
-        models,
-        "--queries",
-        "1",
-        "--json",
-        report.to_str().unwrap(),
-    ])
-    .status
-    .success());
+    assert!(
+        eval_map(&["--queries", "1", "--json", report.to_str().unwrap()])
+            .status
+            .success()
+    );
 }
 
 #[test]
@@ -514,22 +371,8 @@ fn build_db_killed_while_replacing_a_map_leaves_the_old_map_loadable() {
     let dir = tempfile::tempdir().unwrap();
     let small = dir.path().join("small");
     let large = dir.path().join("large");
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
     for (root, points) in [(&small, "2"), (&large, "8")] {
-        let out = pntr(&[
-            "synth",
-            "--out",
-            root.to_str().unwrap(),
-            "--points-per-scene",
-            points,
-            "--queries-per-point",
-            "2",
-        ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        synth(root, points, "2", &[]);
     }
     let map = dir.path().join("m.pntrmap");
     let build = |root: &std::path::Path| {
@@ -541,7 +384,7 @@ fn build_db_killed_while_replacing_a_map_leaves_the_old_map_loadable() {
                 "--out",
                 map.to_str().unwrap(),
             ])
-            .args(["--models", models])
+            .args(["--models", MODELS])
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .spawn()
@@ -549,7 +392,7 @@ fn build_db_killed_while_replacing_a_map_leaves_the_old_map_loadable() {
     };
     assert!(build(&small).wait().unwrap().success());
     let original = std::fs::read(&map).unwrap();
-    // SIGKILL a rebuild from the larger dataset at several points of its run (loading models,
+    // SIGKILL a rebuild from the larger dataset at several points of its run (loading MODELS,
     // extracting, training, writing): the map in place is always the complete old one, or, once a
     // rebuild got to its rename, the complete new one; it always loads.
     let report = dir.path().join("r.json");
@@ -559,19 +402,11 @@ fn build_db_killed_while_replacing_a_map_leaves_the_old_map_loadable() {
         let _ = child.kill();
         let _ = child.wait();
         let now = std::fs::read(&map).unwrap();
-        let out = pntr(&[
-            "eval",
-            "--dataset",
-            small.to_str().unwrap(),
-            "--db",
-            map.to_str().unwrap(),
-            "--models",
-            models,
-            "--queries",
-            "1",
-            "--json",
-            report.to_str().unwrap(),
-        ]);
+        let out = support::eval(
+            &small,
+            &map,
+            &["--queries", "1", "--json", report.to_str().unwrap()],
+        );
         assert!(
             out.status.success(),
             "after a kill at {delay_ms} ms the map does not load: {}",
@@ -598,30 +433,13 @@ fn models_are_found_from_any_directory() {
         }
         c.output().expect("pntr runs")
     };
-    let out = run(
-        &[
-            "synth",
-            "--out",
-            "data",
-            "--points-per-scene",
-            "2",
-            "--queries-per-point",
-            "1",
-        ],
+    let synth = ["synth", "--out", "data", "--points-per-scene", "2"];
+    ok(&run(
+        &[&synth[..], &["--queries-per-point", "1"]].concat(),
         None,
-    );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ));
     let build = ["build-db", "--dataset", "data", "--out", "m.pntrmap"];
-    let out = run(&build, None);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ok(&run(&build, None));
     assert!(dir.path().join("m.pntrmap").is_file());
     // A wrong PNTR_MODELS is named, not silently replaced by another folder.
     let err = fails_cleanly(&run(&build, Some("/nonexistent/models")));
@@ -699,4 +517,30 @@ fn cli_reference_matches_the_clap_definitions() {
         "docs/reference/cli.md differs from the binaries' --help: regenerate it with \
          `PNTR_UPDATE_DOCS=1 cargo test -p pntr-cli --test cli cli_reference`"
     );
+}
+
+/// `pntr ... | head -1`: a reader that goes away early ends pntr quietly (status 0 when all was
+/// written before, 141 as for SIGPIPE otherwise), never with a panic's message and backtrace.
+#[test]
+fn a_closed_stdout_ends_pntr_quietly() {
+    let dir = tempfile::tempdir().unwrap();
+    synth(dir.path(), "2", "1", &["--seed", "5"]);
+    for _ in 0..3 {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_pntr"))
+            .args(["info", "--dataset", dir.path().to_str().unwrap()])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // Close the reading end at once: pntr's first line meets a closed pipe.
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(
+            out.status.success() || out.status.code() == Some(141),
+            "{:?}: {err}",
+            out.status
+        );
+    }
 }

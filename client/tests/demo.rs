@@ -2,23 +2,21 @@
 //! pntr-server on 127.0.0.1, localizes queries through it over gRPC with the real models, and prints a
 //! recall table that must show real localization. A second run reuses the cached scene and map.
 
-use std::process::Command;
+mod support;
+
+use support::{ok, pntr, MODELS};
 
 fn demo(dir: &std::path::Path, queries: &str) -> String {
-    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../models");
-    let out = Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(["demo", "--out", dir.to_str().unwrap(), "--queries", queries])
-        .arg("--models")
-        .arg(&models)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    stdout
+    let out = dir.to_str().unwrap();
+    ok(&pntr(&[
+        "demo",
+        "--out",
+        out,
+        "--queries",
+        queries,
+        "--models",
+        MODELS,
+    ]))
 }
 
 fn row(stdout: &str, name: &str) -> Vec<f64> {

@@ -9,69 +9,32 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
-use support::{err, ok, pntr};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use support::{
+    build_db, build_db_refused, err, json_pose, map_images, mapping_drive, ok_json, pntr, runtime,
+    serve, stop, tum_pose, tum_rows, MODELS,
+};
 
-const MODELS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
-
+/// A mapping drive of the scene of `seed` (four Points, four query draws each), with `extra`
+/// arguments.
 fn synth(root: &Path, seed: &str, extra: &[&str]) {
-    let mut args = vec![
-        "synth",
-        "--out",
-        root.to_str().unwrap(),
-        "--points-per-scene",
-        "4",
-        "--queries-per-point",
-        "4",
-        "--seed",
-        seed,
-        "--trajectory-seconds",
-        "300",
-        "--mapping-run",
-    ];
-    args.extend_from_slice(extra);
-    ok(&pntr(&args));
+    mapping_drive(root, ("4", "4"), seed, "300", extra);
 }
 
+/// A map of the sequence `seq` without its check, with `extra` arguments: the build's summary.
 fn build(seq: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
-    let mut args = vec![
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--models",
-        MODELS,
-        "--no-check",
-        "--json",
-    ];
-    args.extend_from_slice(extra);
-    serde_json::from_str(&ok(&pntr(&args))).unwrap()
+    let source = ["--sequence", seq.to_str().unwrap(), "--no-check", "--json"];
+    serde_json::from_str(&build_db(out, &[&source[..], extra].concat())).unwrap()
 }
 
 /// `(id, world_from_camera)` of every image of a map (`pntr info --images`).
 fn images(map: &Path) -> Vec<(String, Isometry3<f64>)> {
-    let out = ok(&pntr(&[
-        "info",
-        "--db",
-        map.to_str().unwrap(),
-        "--images",
-        "--json",
-    ]));
-    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
-    v["image_list"]
-        .as_array()
-        .unwrap()
+    map_images(map)
         .iter()
         .map(|im| {
-            let t: Vec<f64> = serde_json::from_value(im["translation"].clone()).unwrap();
-            let q: Vec<f64> = serde_json::from_value(im["rotation_wxyz"].clone()).unwrap();
             (
                 im["id"].as_str().unwrap().to_string(),
-                Isometry3::from_parts(
-                    Translation3::new(t[0], t[1], t[2]),
-                    UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
-                ),
+                json_pose(&im["translation"], &im["rotation_wxyz"]),
             )
         })
         .collect()
@@ -79,18 +42,9 @@ fn images(map: &Path) -> Vec<(String, Isometry3<f64>)> {
 
 /// A TUM trajectory file with every pose moved by `t` (a SLAM session whose origin was elsewhere).
 fn move_trajectory(src: &Path, dst: &Path, t: &Isometry3<f64>) {
-    let text = std::fs::read_to_string(src).unwrap();
     let mut out = String::new();
-    for l in text.lines() {
-        if l.starts_with('#') || l.trim().is_empty() {
-            continue;
-        }
-        let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
-        let pose = Isometry3::from_parts(
-            Translation3::new(v[1], v[2], v[3]),
-            UnitQuaternion::from_quaternion(Quaternion::new(v[7], v[4], v[5], v[6])),
-        );
-        let m = t * pose;
+    for v in tum_rows(src) {
+        let m = t * tum_pose(&v);
         let (p, q) = (m.translation.vector, m.rotation);
         out += &format!(
             "{:.6} {:.9} {:.9} {:.9} {:.12} {:.12} {:.12} {:.12}\n",
@@ -126,20 +80,7 @@ fn sessions_extend_and_merge_maps() {
     // Extend: the map keeps its id and every image it had, and gains the views the second
     // session adds (other lighting counts as another view).
     let ext = dir.path().join("ext.pntrmap");
-    let e: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
-        "build-db",
-        "--extend",
-        a.to_str().unwrap(),
-        "--sequence",
-        seq(&second).to_str().unwrap(),
-        "--out",
-        ext.to_str().unwrap(),
-        "--models",
-        MODELS,
-        "--no-check",
-        "--json",
-    ])))
-    .unwrap();
+    let e = build(&seq(&second), &ext, &["--extend", a.to_str().unwrap()]);
     assert_eq!(e["map_id"], "lab", "{e}");
     assert_eq!(e["base_images"].as_u64().unwrap() as usize, a_images.len());
     let added = e["images_added"].as_u64().unwrap() as usize;
@@ -167,17 +108,8 @@ fn sessions_extend_and_merge_maps() {
     assert!(msg.contains("is already in map `lab`"), "{msg}");
     assert_eq!(std::fs::read(&ext).unwrap(), before);
     // An extended map keeps its id: --map-id is refused.
-    let msg = err(&pntr(&[
-        "build-db",
-        "--extend",
-        a.to_str().unwrap(),
-        "--sequence",
-        seq(&second).to_str().unwrap(),
-        "--map-id",
-        "other",
-        "--out",
-        ext.to_str().unwrap(),
-    ]));
+    let other_id = ["--extend", a.to_str().unwrap(), "--map-id", "other"];
+    let msg = build_db_refused(&seq(&second), &ext, &other_id);
     assert!(msg.contains("--map-id"), "{msg}");
 
     // An extend killed while it writes the new version leaves the map file as it was (it writes a
@@ -241,7 +173,7 @@ fn sessions_extend_and_merge_maps() {
         &["--trajectory", moved.to_str().unwrap()],
     );
     let merged = dir.path().join("merged.pntrmap");
-    let m: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
+    let m = ok_json(&pntr(&[
         "maps",
         "merge",
         a.to_str().unwrap(),
@@ -249,13 +181,10 @@ fn sessions_extend_and_merge_maps() {
         "--out",
         merged.to_str().unwrap(),
         "--json",
-    ])))
-    .unwrap();
-    let t: Vec<f64> = serde_json::from_value(m["transform"]["translation"].clone()).unwrap();
-    let q: Vec<f64> = serde_json::from_value(m["transform"]["rotation_wxyz"].clone()).unwrap();
-    let a_from_b = Isometry3::from_parts(
-        Translation3::new(t[0], t[1], t[2]),
-        UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
+    ]));
+    let a_from_b = json_pose(
+        &m["transform"]["translation"],
+        &m["transform"]["rotation_wxyz"],
     );
     let error = a_from_b * slam;
     assert!(
@@ -296,15 +225,11 @@ fn sessions_extend_and_merge_maps() {
     // serves the new version (`pntr maps extend`, the admin token from PNTR_ADMIN_TOKEN).
     let served = dir.path().join("served.pntrmap");
     std::fs::copy(&a, &served).unwrap();
-    let rt = pntr_service::tokio::runtime::Runtime::new().unwrap();
+    let rt = runtime();
     let mut settings = pntr_service::config::Settings::local(vec![served.clone()], MODELS.into());
     settings.admin_token = Some("adm1n-t0ken".into());
     settings.workers = 1;
-    let running = rt.block_on(async {
-        let running = pntr_service::start(settings).await.unwrap();
-        running.ready().await.unwrap();
-        running
-    });
+    let [running] = serve(&rt, [settings]);
     let addr = running.addr.to_string();
     let admin = |args: &[&str], token: bool| {
         let mut c = Command::new(env!("CARGO_BIN_EXE_pntr"));
@@ -316,24 +241,19 @@ fn sessions_extend_and_merge_maps() {
         }
         c.output().unwrap()
     };
-    let list = |token| -> serde_json::Value {
-        serde_json::from_str(&ok(&admin(&["list", "--json"], token))).unwrap()
-    };
+    let list = |token| ok_json(&admin(&["list", "--json"], token));
     let before = list(true);
     let v1 = before["maps"][0]["version"].as_str().unwrap().to_string();
     assert_eq!(before["maps"][0]["map_id"], "lab");
-    let change: serde_json::Value = serde_json::from_str(&ok(&admin(
-        &[
-            "extend",
-            "--map-id",
-            "lab",
-            "--sequence",
-            seq(&second).to_str().unwrap(),
-            "--json",
-        ],
-        true,
-    )))
-    .unwrap();
+    let second_seq = seq(&second);
+    let extend = [
+        "extend",
+        "--map-id",
+        "lab",
+        "--sequence",
+        second_seq.to_str().unwrap(),
+    ];
+    let change = ok_json(&admin(&[&extend[..], &["--json"]].concat(), true));
     assert_eq!(
         change["images_added"].as_u64().unwrap() as usize,
         added,
@@ -344,8 +264,7 @@ fn sessions_extend_and_merge_maps() {
     let after = list(true);
     assert_ne!(after["maps"][0]["version"], v1.as_str());
     // What a robot's client sees of it (GetMapInfo, no admin token needed).
-    let info: serde_json::Value =
-        serde_json::from_str(&ok(&pntr(&["info", "--addr", &addr, "--json"]))).unwrap();
+    let info = ok_json(&pntr(&["info", "--addr", &addr, "--json"]));
     assert_eq!(info["version"], after["maps"][0]["version"], "{info}");
     assert_eq!(info["camera_axes"], "opencv", "{info}");
     assert_eq!(info["loaded_map_ids"], serde_json::json!(["lab"]), "{info}");
@@ -358,24 +277,11 @@ fn sessions_extend_and_merge_maps() {
         a_images.len() + added,
         "written to the map's file"
     );
-    let msg = err(&admin(
-        &[
-            "extend",
-            "--map-id",
-            "lab",
-            "--sequence",
-            seq(&second).to_str().unwrap(),
-        ],
-        true,
-    ));
+    let msg = err(&admin(&extend, true));
     assert!(msg.contains("already in map"), "{msg}");
     let msg = err(&admin(&["list"], false));
     assert!(msg.contains("admin token"), "{msg}");
-    rt.block_on(async move {
-        let mut running = running;
-        running.shutdown();
-        running.wait().await.unwrap();
-    });
+    stop(&rt, [running]);
 
     // Sessions of another apartment are refused: too few keyframes agree.
     let c = dir.path().join("c.pntrmap");
@@ -394,13 +300,8 @@ fn sessions_extend_and_merge_maps() {
 
 /// groundtruth.txt rows: (stamp, position).
 fn super_trajectory(path: &Path) -> Vec<(f64, Vector3<f64>)> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
-            (v[0], Vector3::new(v[1], v[2], v[3]))
-        })
+    tum_rows(path)
+        .iter()
+        .map(|v| (v[0], Vector3::new(v[1], v[2], v[3])))
         .collect()
 }

@@ -8,22 +8,19 @@ mod support;
 
 use std::path::Path;
 
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
-use support::{err, ok, pntr};
+use nalgebra::{UnitQuaternion, Vector3};
+use support::{
+    build_db, build_db_refused, eval, json_pose, map_info, mapping_drive, ok, read_json, tum_pose,
+    tum_rows, MODELS,
+};
 
 /// groundtruth.txt rows: (stamp, translation, rotation).
 fn trajectory(path: &Path) -> Vec<(f64, Vector3<f64>, UnitQuaternion<f64>)> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
-            (
-                v[0],
-                Vector3::new(v[1], v[2], v[3]),
-                UnitQuaternion::from_quaternion(Quaternion::new(v[7], v[4], v[5], v[6])),
-            )
+    tum_rows(path)
+        .iter()
+        .map(|v| {
+            let pose = tum_pose(v);
+            (v[0], pose.translation.vector, pose.rotation)
         })
         .collect()
 }
@@ -32,43 +29,25 @@ fn trajectory(path: &Path) -> Vec<(f64, Vector3<f64>, UnitQuaternion<f64>)> {
 fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("data");
-    let root_s = root.to_str().unwrap();
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
-    ok(&pntr(&[
-        "synth",
-        "--out",
-        root_s,
-        "--points-per-scene",
-        "5",
-        "--queries-per-point",
-        "6",
-        "--seed",
-        "31",
-        "--trajectory-seconds",
-        "300",
-        "--mapping-run",
-    ]));
-    let seq = root.join("sequences/synth000");
+    let seq = mapping_drive(&root, ("5", "6"), "31", "300", &[]);
     let gt = trajectory(&seq.join("groundtruth.txt"));
     // A mapping run stops after its last Point: well under the 300 s cap.
     assert!(gt.len() > 200 && gt.len() < 3000, "{} frames", gt.len());
 
     let map = dir.path().join("drive.pntrmap");
     let plots = dir.path().join("plots");
-    let out = ok(&pntr(&[
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--out",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-        "--map-id",
-        "lab",
-        "--plot",
-        plots.to_str().unwrap(),
-        "--json",
-    ]));
+    let out = build_db(
+        &map,
+        &[
+            "--sequence",
+            seq.to_str().unwrap(),
+            "--map-id",
+            "lab",
+            "--plot",
+            plots.to_str().unwrap(),
+            "--json",
+        ],
+    );
     let s: serde_json::Value = serde_json::from_str(&out).unwrap();
     let images = s["images"].as_u64().unwrap() as usize;
     assert_eq!(s["frames"].as_u64().unwrap() as usize, gt.len(), "{s}");
@@ -97,14 +76,7 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
     assert!(plots.join("map_check.png").is_file());
 
     // Every map image with its stamp and pose: the recording's own pose at that stamp.
-    let out = ok(&pntr(&[
-        "info",
-        "--db",
-        map.to_str().unwrap(),
-        "--images",
-        "--json",
-    ]));
-    let info: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let info = map_info(&map, &["--images"]);
     assert_eq!(info["camera_axes"], "opencv");
     let list = info["image_list"].as_array().unwrap();
     assert_eq!(list.len(), images);
@@ -115,34 +87,18 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
             .iter()
             .find(|g| (g.0 - stamp).abs() < 1e-6)
             .expect("a recorded frame");
-        let tr: Vec<f64> = serde_json::from_value(im["translation"].clone()).unwrap();
-        let r: Vec<f64> = serde_json::from_value(im["rotation_wxyz"].clone()).unwrap();
-        assert!(
-            (Vector3::new(tr[0], tr[1], tr[2]) - t).norm() < 1e-5,
-            "{im}"
-        );
-        let rq = UnitQuaternion::from_quaternion(Quaternion::new(r[0], r[1], r[2], r[3]));
-        assert!(rq.angle_to(q) < 1e-5, "{im}");
-        assert!(r[0] >= 0.0);
+        let pose = json_pose(&im["translation"], &im["rotation_wxyz"]);
+        assert!((pose.translation.vector - t).norm() < 1e-5, "{im}");
+        assert!(pose.rotation.angle_to(q) < 1e-5, "{im}");
+        assert!(im["rotation_wxyz"][0].as_f64().unwrap() >= 0.0);
         places.insert(im["place"].as_u64().unwrap());
     }
     assert!(places.len() >= 5, "{places:?}");
 
     // The scene's HPointLoc queries (Habitat axes) against the drive's map (optical axes).
     let report = dir.path().join("eval.json");
-    ok(&pntr(&[
-        "eval",
-        "--dataset",
-        root_s,
-        "--db",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-        "--json",
-        report.to_str().unwrap(),
-    ]));
-    let r: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+    ok(&eval(&root, &map, &["--json", report.to_str().unwrap()]));
+    let r = read_json(&report);
     let recall = r["recall"]["0.25m_2deg"].as_f64().unwrap();
     assert!(recall >= 0.8, "recall {recall}: {r}");
     // The retrieval row comes from the map images' own poses; the Point rows do not apply.
@@ -160,22 +116,10 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
         .collect();
     std::fs::write(&slam, text).unwrap();
     let map2 = dir.path().join("slam.pntrmap");
-    let out = ok(&pntr(&[
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--trajectory",
-        slam.to_str().unwrap(),
-        "--out",
-        map2.to_str().unwrap(),
-        "--models",
-        models,
-        "--check-sequence",
-        seq.to_str().unwrap(),
-        "--check-frames",
-        "30",
-        "--json",
-    ]));
+    let (seq_s, slam_s) = (seq.to_str().unwrap(), slam.to_str().unwrap());
+    let check = ["--check-sequence", seq_s, "--check-frames", "30"];
+    let from_slam = ["--sequence", seq_s, "--trajectory", slam_s, "--json"];
+    let out = build_db(&map2, &[&from_slam[..], &check].concat());
     let s2: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(s2["check"]["kind"], "another recording", "{s2}");
     assert_eq!(s2["check"]["frames"], 30, "{s2}");
@@ -191,86 +135,38 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
 
     // Depth in the wrong unit is named, with the flag that fixes it; so is a missing trajectory
     // and a mismatch of trajectories and sequences.
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--depth-scale",
-        "5",
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-        "--models",
-        models,
-    ]));
+    let x = dir.path().join("x.pntrmap");
+    let refused = |extra: &[&str]| build_db_refused(&seq, &x, extra);
+    let e = refused(&["--depth-scale", "5", "--models", MODELS]);
     assert!(
         e.contains("--depth-scale") && e.contains("finer units"),
         "{e}"
     );
     std::fs::remove_file(seq.join("groundtruth.txt")).unwrap();
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-        "--models",
-        models,
-    ]));
+    let e = refused(&["--models", MODELS]);
     assert!(
         e.contains("no frame has a pose") && e.contains("--trajectory"),
         "{e}"
     );
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--trajectory",
-        slam.to_str().unwrap(),
-        "--trajectory",
-        slam.to_str().unwrap(),
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-    ]));
+    let e = refused(&["--trajectory", slam_s, "--trajectory", slam_s]);
     assert!(e.contains("one per sequence"), "{e}");
-    assert!(!dir.path().join("x.pntrmap").exists());
+    assert!(!x.exists());
 }
 
 #[test]
 fn a_distorted_camera_is_undistorted_as_its_frames_are_read() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().join("data");
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
-    ok(&pntr(&[
-        "synth",
-        "--out",
-        root.to_str().unwrap(),
-        "--points-per-scene",
-        "4",
-        "--queries-per-point",
-        "4",
-        "--seed",
-        "33",
-        "--trajectory-seconds",
-        "120",
-        "--mapping-run",
+    let lens = [
         "--query-camera",
         "320x240",
         "--query-distortion=-0.2,0.05,0,0,0",
-    ]));
-    let seq = root.join("sequences/synth000");
+    ];
+    let seq = mapping_drive(&root, ("4", "4"), "33", "120", &lens);
     let calib = std::fs::read_to_string(seq.join("calibration.txt")).unwrap();
     assert_eq!(calib.split_whitespace().count(), 9, "{calib}");
     let map = dir.path().join("lens.pntrmap");
-    let out = ok(&pntr(&[
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--out",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-        "--json",
-    ]));
+    let out = build_db(&map, &["--sequence", seq.to_str().unwrap(), "--json"]);
     let s: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert!(
         s["check"]["localized_share"].as_f64().unwrap() >= 0.9,
@@ -278,13 +174,7 @@ fn a_distorted_camera_is_undistorted_as_its_frames_are_read() {
     );
     assert!(s["check"]["ate_rmse_m"].as_f64().unwrap() <= 0.05, "{s}");
     // The map holds rectified images: its camera has no distortion.
-    let info: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
-        "info",
-        "--db",
-        map.to_str().unwrap(),
-        "--json",
-    ])))
-    .unwrap();
+    let info = map_info(&map, &[]);
     let d: Vec<f64> = serde_json::from_value(info["intrinsics"]["distortion"].clone()).unwrap();
     assert!(d.iter().all(|v| *v == 0.0), "{info}");
 }

@@ -1,14 +1,10 @@
 //! `pntr register`: the JSON contract and clear errors for malformed CSV.
 
 use std::fmt::Write as _;
-use std::process::Command;
 
-fn pntr(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .output()
-        .expect("pntr runs")
-}
+mod support;
+
+use support::{ok_json, pntr};
 
 /// A rotation of `deg` about z and a translation; 500 pairs, the first `outliers` scrambled.
 fn csv(deg: f64, outliers: usize) -> String {
@@ -43,12 +39,7 @@ fn check(v: &serde_json::Value, deg: f64) {
         .to_degrees();
     assert!((angle - deg).abs() < 0.1, "angle {angle}");
     assert!((r[2][2].as_f64().unwrap() - 1.0).abs() < 1e-6);
-    let t: Vec<f64> = v["translation"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|x| x.as_f64().unwrap())
-        .collect();
+    let t: Vec<f64> = serde_json::from_value(v["translation"].clone()).unwrap();
     assert!(
         (t[0] - 0.5).abs() < 1e-3 && (t[1] + 0.25).abs() < 1e-3 && (t[2] - 1.0).abs() < 1e-3,
         "{t:?}"
@@ -62,13 +53,7 @@ fn teaser_and_icp_print_the_transform() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("pairs.csv");
     std::fs::write(&f, csv(30.0, 400)).unwrap();
-    let out = pntr(&["register", "--pairs", f.to_str().unwrap()]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = ok_json(&pntr(&["register", "--pairs", f.to_str().unwrap()]));
     check(&v, 30.0);
     let inliers: Vec<u64> = v["inliers"]
         .as_array()
@@ -83,7 +68,7 @@ fn teaser_and_icp_print_the_transform() {
     );
 
     std::fs::write(&f, csv(8.0, 20)).unwrap();
-    let out = pntr(&[
+    let v = ok_json(&pntr(&[
         "register",
         "--pairs",
         f.to_str().unwrap(),
@@ -91,13 +76,7 @@ fn teaser_and_icp_print_the_transform() {
         "icp",
         "--noise-bound",
         "0.02",
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    ]));
     check(&v, 8.0);
 }
 

@@ -2,71 +2,21 @@
 //! port) with a map built by `pntr build-db` from a scene generated here: `pntr localize`, `pntr bench`
 //! (closed loop, open loop, sweep), `pntr eval --remote`, and the token check.
 
-use std::path::Path;
-use std::process::{Command, Output};
-
 mod support;
 
 use pntr_service::config::Settings;
-use pntr_service::tokio;
-
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .env_remove("PNTR_TOKEN")
-        .output()
-        .expect("pntr runs")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
-}
+use support::{build_db, ok, ok_json, pntr, read_json, runtime, serve, stop, synth, MODELS};
 
 #[test]
 fn localize_bench_and_remote_eval_against_a_live_server() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().to_str().unwrap();
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
-    ok(&pntr(&[
-        "synth",
-        "--out",
-        root,
-        "--points-per-scene",
-        "3",
-        "--queries-per-point",
-        "3",
-        "--seed",
-        "12",
-    ]));
+    synth(dir.path(), "3", "3", &["--seed", "12"]);
     let map = dir.path().join("m.pntrmap");
-    ok(&pntr(&[
-        "build-db",
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--out",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-    ]));
+    build_db(&map, &["--dataset", root, "--scene", "synth000"]);
 
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let mut open = Settings::local(vec![map.clone()], models.into());
+    let rt = runtime();
+    let mut open = Settings::local(vec![map.clone()], MODELS.into());
     open.workers = 2;
     let mut locked = open.clone();
     locked.token = Some("s3cret".into());
@@ -92,35 +42,31 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     std::fs::write(&ca, ca_pem).unwrap();
     let mut tls = locked.clone();
     tls.tls = Some((cert, key));
-    let (a, b, c, t) = rt.block_on(async {
-        let a = pntr_service::start(open).await.unwrap();
-        let b = pntr_service::start(locked).await.unwrap();
-        let c = pntr_service::start(second).await.unwrap();
-        let t = pntr_service::start(tls).await.unwrap();
-        for s in [&a, &b, &c, &t] {
-            s.ready().await.unwrap();
-        }
-        (a, b, c, t)
-    });
+    let [a, b, c, t] = serve(&rt, [open, locked, second, tls]);
     let addr = a.addr.to_string();
+    // `pntr localize` of the scene's queries and `pntr bench` of the dataset, through the server(s)
+    // at `addr`, with further arguments.
+    let localize = |addr: &str, extra: &[&str]| {
+        let args = [
+            "localize",
+            "--addr",
+            addr,
+            "--dataset",
+            root,
+            "--scene",
+            "synth000",
+        ];
+        pntr(&[&args[..], extra].concat())
+    };
+    let bench = |addr: &str, extra: &[&str]| {
+        pntr(&[&["bench", "--addr", addr, "--dataset", root][..], extra].concat())
+    };
 
     // Verification turns some right poses away (symmetric rooms); most of the first queries pass.
     let answers: Vec<serde_json::Value> = (0..6)
         .map(|q| {
             let q = q.to_string();
-            let out = ok(&pntr(&[
-                "localize",
-                "--addr",
-                &addr,
-                "--dataset",
-                root,
-                "--scene",
-                "synth000",
-                "--query",
-                &q,
-                "--json",
-            ]));
-            serde_json::from_str(&out).unwrap()
+            ok_json(&localize(&addr, &["--query", &q, "--json"]))
         })
         .collect();
     for v in &answers {
@@ -173,25 +119,29 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
 
     // Closed loop.
     let report = dir.path().join("bench.json");
-    let out = ok(&pntr(&[
-        "bench",
-        "--addr",
+    let plots = dir.path().join("plots");
+    // `pntr bench` writing its report, with `extra` arguments: its stdout.
+    let bench_report = |addr: &str, extra: &[&str]| {
+        let json = ["--json", report.to_str().unwrap()];
+        ok(&bench(addr, &[extra, &json].concat()))
+    };
+    // A short run: no warm-up, three frames.
+    let brief = |duration| ["--duration", duration, "--warmup", "0", "--frames", "3"];
+    let out = bench_report(
         &addr,
-        "--dataset",
-        root,
-        "--concurrency",
-        "2",
-        "--duration",
-        "2",
-        "--warmup",
-        "0.5",
-        "--frames",
-        "5",
-        "--json",
-        report.to_str().unwrap(),
-    ]));
+        &[
+            "--concurrency",
+            "2",
+            "--duration",
+            "2",
+            "--warmup",
+            "0.5",
+            "--frames",
+            "5",
+        ],
+    );
     assert!(out.contains("p99 ms"), "{out}");
-    let r = json(&report);
+    let r = read_json(&report);
     assert!(r["requests"].as_u64().unwrap() >= 2, "{r}");
     assert_eq!(r["errors"], 0, "{r}");
     assert!(r["fps"].as_f64().unwrap() > 0.0);
@@ -204,47 +154,20 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert!(r["localized_share"].as_f64().unwrap() >= 0.5, "{r}");
 
     // Open loop and a sweep.
-    let out = ok(&pntr(&[
-        "bench",
-        "--addr",
-        &addr,
-        "--dataset",
-        root,
-        "--rate",
-        "4",
-        "--duration",
-        "1.5",
-        "--warmup",
-        "0",
-        "--frames",
-        "3",
-        "--json",
-        report.to_str().unwrap(),
-    ]));
+    let out = bench_report(&addr, &[&["--rate", "4"][..], &brief("1.5")].concat());
     assert!(out.contains("4/s"), "{out}");
-    assert!(json(&report)["requests"].as_u64().unwrap() >= 5);
-    ok(&pntr(&[
-        "bench",
-        "--addr",
+    assert!(read_json(&report)["requests"].as_u64().unwrap() >= 5);
+    bench_report(
         &addr,
-        "--dataset",
-        root,
-        "--sweep",
-        "1,2",
-        "--duration",
-        "1",
-        "--warmup",
-        "0",
-        "--frames",
-        "3",
-        "--json",
-        report.to_str().unwrap(),
-        "--plot",
-        dir.path().join("plots").to_str().unwrap(),
-    ]));
-    let sweep = json(&report)["sweep"].as_array().unwrap().clone();
+        &[
+            &brief("1")[..],
+            &["--sweep", "1,2", "--plot", plots.to_str().unwrap()],
+        ]
+        .concat(),
+    );
+    let sweep = read_json(&report)["sweep"].as_array().unwrap().clone();
     support::assert_picture(
-        &dir.path().join("plots"),
+        &plots,
         "bench_sweep",
         (1200, 560),
         &[
@@ -255,26 +178,16 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         ],
     );
     // The service's overhead, measured against the in-process pipeline on the same frames.
-    ok(&pntr(&[
-        "bench",
-        "--addr",
+    bench_report(
         &addr,
-        "--dataset",
-        root,
-        "--duration",
-        "0.5",
-        "--warmup",
-        "0",
-        "--frames",
-        "3",
-        "--compare-in-process",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-        "--json",
-        report.to_str().unwrap(),
-    ]));
-    let o = &json(&report)["overhead"];
+        &[
+            &brief("0.5")[..],
+            &["--compare-in-process", map.to_str().unwrap()],
+            &["--models", MODELS],
+        ]
+        .concat(),
+    );
+    let o = &read_json(&report)["overhead"];
     assert_eq!(o["pairs"], 3, "{o}");
     assert!(
         o["ratio"].as_f64().unwrap() > 0.0 && o["in_process_ms_mean"].as_f64().unwrap() > 0.0,
@@ -285,33 +198,12 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
 
     // Client-side balancing over two replicas, and a clear error when one is down.
     let both = format!("{addr},{}", c.addr);
-    ok(&pntr(&[
-        "bench",
-        "--addr",
+    bench_report(
         &both,
-        "--dataset",
-        root,
-        "--concurrency",
-        "2",
-        "--duration",
-        "1.5",
-        "--warmup",
-        "0",
-        "--frames",
-        "3",
-        "--json",
-        report.to_str().unwrap(),
-    ]));
-    assert_eq!(json(&report)["errors"], 0);
-    let out = pntr(&[
-        "bench",
-        "--addr",
-        &format!("{addr},127.0.0.1:9"),
-        "--dataset",
-        root,
-        "--duration",
-        "1",
-    ]);
+        &[&["--concurrency", "2"][..], &brief("1.5")].concat(),
+    );
+    assert_eq!(read_json(&report)["errors"], 0);
+    let out = bench(&format!("{addr},127.0.0.1:9"), &["--duration", "1"]);
     assert!(String::from_utf8_lossy(&out.stderr)
         .contains("cannot reach pntr-server at http://127.0.0.1:9"));
 
@@ -328,77 +220,41 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         "--json",
         eval.to_str().unwrap(),
     ]));
-    let e = json(&eval);
+    let e = read_json(&eval);
     assert_eq!(e["queries"], 4);
     assert!(e["recall"]["1m"].as_f64().unwrap() >= 0.5, "{e}");
 
     // The token: refused without it (a clean error naming the code), accepted with it.
     let locked_addr = b.addr.to_string();
-    let out = pntr(&[
-        "localize",
-        "--addr",
-        &locked_addr,
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--query",
-        "0",
-    ]);
+    let out = localize(&locked_addr, &["--query", "0"]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
         err.contains("UNAUTHENTICATED") && !err.contains("panicked"),
         "{err}"
     );
-    ok(&pntr(&[
-        "localize",
-        "--addr",
+    ok(&localize(
         &locked_addr,
-        "--token",
-        "s3cret",
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--query",
-        "0",
-    ]));
+        &["--token", "s3cret", "--query", "0"],
+    ));
     // TLS with the token, end to end with `pntr`; without the CA the handshake fails cleanly.
     let tls_addr = t.addr.to_string();
-    let v: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
-        "localize",
-        "--addr",
+    let v = ok_json(&localize(
         &tls_addr,
-        "--tls-ca",
-        ca.to_str().unwrap(),
-        "--tls-domain",
-        "localhost",
-        "--token",
-        "s3cret",
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--query",
-        "1",
-        "--json",
-    ])))
-    .unwrap();
+        &[
+            "--tls-ca",
+            ca.to_str().unwrap(),
+            "--tls-domain",
+            "localhost",
+            "--token",
+            "s3cret",
+            "--query",
+            "1",
+            "--json",
+        ],
+    ));
     assert_eq!(v["status"], "LOCALIZED", "{v}");
-    let out = pntr(&[
-        "localize",
-        "--addr",
-        &tls_addr,
-        "--token",
-        "s3cret",
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--query",
-        "1",
-    ]);
+    let out = localize(&tls_addr, &["--token", "s3cret", "--query", "1"]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && !err.contains("panicked"));
     // The plaintext client is told the server expects TLS (not only "transport error").
@@ -407,23 +263,8 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
         "{err}"
     );
     // A closed port is a clear error.
-    let out = pntr(&[
-        "localize",
-        "--addr",
-        "127.0.0.1:9",
-        "--dataset",
-        root,
-        "--scene",
-        "synth000",
-        "--query",
-        "0",
-    ]);
+    let out = localize("127.0.0.1:9", &["--query", "0"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot reach pntr-server"));
 
-    rt.block_on(async move {
-        for mut s in [a, b, c, t] {
-            s.shutdown();
-            s.wait().await.unwrap();
-        }
-    });
+    stop(&rt, [a, b, c, t]);
 }

@@ -8,17 +8,9 @@ use std::path::Path;
 mod support;
 
 use pntr_service::config::Settings;
-use pntr_service::tokio;
-use support::{ok, pntr};
-
-fn lines(path: &Path) -> Vec<Vec<f64>> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
-        .collect()
-}
+use support::{
+    build_db, ok, pntr, read_json, replay, runtime, serve, stop, synth, tum_pose, tum_rows, MODELS,
+};
 
 /// `replay --record` of 50 frames, read back with the `mcap` Python reader: every channel with its
 /// Foxglove schema and the expected count, and answers that agree with the replay's report.
@@ -69,42 +61,27 @@ fn check_recording(path: &Path, report: &serde_json::Value) {
 fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path().to_str().unwrap();
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
-    let out = ok(&pntr(&[
-        "synth",
-        "--out",
-        root,
-        "--points-per-scene",
-        "6",
-        "--queries-per-point",
-        "1",
-        "--seed",
-        "21",
-        "--trajectory-seconds",
-        "5",
-        "--json",
-    ]));
+    let drive = ["--seed", "21", "--trajectory-seconds", "5", "--json"];
+    let out = synth(dir.path(), "6", "1", &drive);
     let summary: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(summary["scenes"][0]["sequence_frames"], 50, "{summary}");
     // The TUM layout: 16-bit depth at 5000 per metre, ground truth of every frame, the camera.
     let seq = dir.path().join("sequences/synth000");
-    let gt = lines(&seq.join("groundtruth.txt"));
+    let gt = tum_rows(&seq.join("groundtruth.txt"));
     assert_eq!(gt.len(), 50);
     assert!(gt.iter().all(|l| l.len() == 8));
     assert!((gt[1][0] - gt[0][0] - 0.1).abs() < 1e-6, "10 Hz");
     // The TUM convention: optical camera axes, so the image's "down" (camera +y) is the scene's
     // down (world -y, the scene being y-up) and the camera looks level (camera +z horizontal).
     for g in &gt {
-        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-            g[7], g[4], g[5], g[6],
-        ));
+        let q = tum_pose(g).rotation;
         let down = q * nalgebra::Vector3::y();
         let forward = q * nalgebra::Vector3::z();
         assert!(down.y < -0.99 && forward.y.abs() < 0.1, "{g:?}");
     }
     let speed = ((gt[49][1] - gt[48][1]).powi(2) + (gt[49][3] - gt[48][3]).powi(2)).sqrt() / 0.1;
     assert!(speed <= 0.5 + 1e-6, "{speed} m/s");
-    let calib = &lines(&seq.join("calibration.txt"))[0];
+    let calib = &tum_rows(&seq.join("calibration.txt"))[0];
     assert_eq!(calib.len(), 4, "fx fy cx cy");
     for (v, want) in calib.iter().zip([128.0, 128.0, 127.5, 127.5]) {
         assert!((v - want).abs() < 1e-9, "{calib:?}");
@@ -115,26 +92,9 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     assert!(rgb_list.contains("0.100000 rgb/0.100000.png"), "{rgb_list}");
 
     let map = dir.path().join("m.pntrmap");
-    ok(&pntr(&[
-        "build-db",
-        "--dataset",
-        root,
-        "--out",
-        map.to_str().unwrap(),
-        "--models",
-        models,
-    ]));
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let settings = Settings::local(vec![map.clone()], models.into());
-    let mut server = rt.block_on(async {
-        let s = pntr_service::start(settings).await.unwrap();
-        s.ready().await.unwrap();
-        s
-    });
+    build_db(&map, &["--dataset", root]);
+    let rt = runtime();
+    let [server] = serve(&rt, [Settings::local(vec![map.clone()], MODELS.into())]);
     let addr = server.addr.to_string();
     // `pntr localize` with a frame of the TUM folder: its 16-bit depth is 5000 per metre, not
     // millimetres, and is read so (said on stderr); the frames localize.
@@ -164,21 +124,7 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         let report = dir.path().join(format!("{name}.json"));
         let plots = dir.path().join(format!("{name}-plots"));
         let recording = dir.path().join(format!("{name}.mcap"));
-        let mut args = vec![
-            "replay",
-            "--addr",
-            &addr,
-            "--sequence",
-            seq.to_str().unwrap(),
-            "--rate",
-            "50",
-            "--trajectory",
-            traj.to_str().unwrap(),
-            "--json",
-            report.to_str().unwrap(),
-            "--plot",
-            plots.to_str().unwrap(),
-        ];
+        let mut args = vec!["--rate", "50", "--plot", plots.to_str().unwrap()];
         args.extend(extra);
         if name == "tracking" {
             args.extend([
@@ -188,13 +134,12 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
                 map.to_str().unwrap(),
             ]);
         }
-        let printed = ok(&pntr(&args));
+        let printed = ok(&replay(&addr, &seq, &traj, &report, &args));
         assert!(
             printed.contains("50 frames") && printed.contains("ATE"),
             "{printed}"
         );
-        let r: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        let r = read_json(&report);
         for k in [
             "frames",
             "localized_share",
@@ -213,7 +158,7 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         }
         assert_eq!(r["frames"], 50);
         // The estimated trajectory: LOCALIZED frames only, TUM order, near the ground truth.
-        let est = lines(&traj);
+        let est = tum_rows(&traj);
         let localized = r["localized_share"].as_f64().unwrap();
         assert_eq!(est.len(), (localized * 50.0).round() as usize, "{r}");
         assert!(localized >= 0.5, "{name}: {r}");
@@ -279,23 +224,15 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     let bag = dir.path().join("drive.mcap");
     pntr_dataset::bag::write_bag(&bag, &frames, &tum.intrinsics.unwrap(), &topics).unwrap();
     let report = dir.path().join("bag.json");
-    let printed = ok(&pntr(&[
-        "replay",
-        "--addr",
+    let printed = ok(&replay(
         &addr,
-        "--sequence",
-        bag.to_str().unwrap(),
-        "--pose-topic",
-        "/ground_truth",
-        "--rate",
-        "50",
-        "--trajectory",
-        dir.path().join("bag.txt").to_str().unwrap(),
-        "--json",
-        report.to_str().unwrap(),
-    ]));
+        &bag,
+        &dir.path().join("bag.txt"),
+        &report,
+        &["--pose-topic", "/ground_truth", "--rate", "50"],
+    ));
     assert!(printed.contains("20 frames"), "{printed}");
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let r = read_json(&report);
     // The bag's frames, ground truth and camera arrive (depth is in whole millimetres here, so the
     // answers are not bit-identical to the TUM replay's; tracking precision is measured in
     // BENCHMARKS.md, not asserted on one short drive).
@@ -303,19 +240,8 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     assert!(r["frames_with_ground_truth"].as_u64().unwrap() >= 10, "{r}");
     assert!(r["ate_rmse_m"].as_f64().unwrap() < 1.0, "{r}");
     // A topic the bag lacks is named beside the topics it has.
-    let wrong = pntr(&[
-        "replay",
-        "--addr",
-        &addr,
-        "--sequence",
-        bag.to_str().unwrap(),
-        "--rgb-topic",
-        "/rgb",
-        "--trajectory",
-        dir.path().join("x.txt").to_str().unwrap(),
-        "--json",
-        dir.path().join("x.json").to_str().unwrap(),
-    ]);
+    let (x_txt, x_json) = (dir.path().join("x.txt"), dir.path().join("x.json"));
+    let wrong = replay(&addr, &bag, &x_txt, &x_json, &["--rgb-topic", "/rgb"]);
     assert!(!wrong.status.success());
     let err = String::from_utf8_lossy(&wrong.stderr);
     assert!(
@@ -324,20 +250,9 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     );
 
     // A folder that is not a sequence is named with what was expected.
-    let bad = pntr(&[
-        "replay",
-        "--addr",
-        &addr,
-        "--sequence",
-        root,
-        "--trajectory",
-        dir.path().join("x.txt").to_str().unwrap(),
-        "--json",
-        dir.path().join("x.json").to_str().unwrap(),
-    ]);
+    let bad = replay(&addr, dir.path(), &x_txt, &x_json, &[]);
     assert!(!bad.status.success());
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("rgb.txt"), "{err}");
-    server.shutdown();
-    rt.block_on(server.wait()).unwrap();
+    stop(&rt, [server]);
 }

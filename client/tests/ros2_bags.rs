@@ -7,40 +7,19 @@
 mod support;
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 use pntr_service::config::Settings;
-use pntr_service::tokio;
-use support::{err, ok, pntr};
-
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
-/// `$PNTR_PYTHON` or set-up's venv, which has `rosbags`.
-fn python() -> PathBuf {
-    let p = std::env::var_os("PNTR_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| root().join(".deps/venv/bin/python"));
-    let ok = Command::new(&p)
-        .args(["-c", "import rosbags, numpy, PIL"])
-        .status()
-        .is_ok_and(|s| s.success());
-    assert!(
-        ok,
-        "{} cannot import rosbags: run `bash scripts/setup.sh` (or set PNTR_PYTHON)",
-        p.display()
-    );
-    p
-}
+use support::{
+    build_db, build_db_refused, err, eval, map_images, mapping_drive, ok, read_json, replay,
+    repo_root, runtime, serve, stop, MODELS,
+};
 
 fn to_bag(seq: &Path, out: &Path, extra: &[&str]) {
-    let o = Command::new(python())
-        .arg(root().join("scripts/tum_to_rosbag2.py"))
+    // `$PNTR_PYTHON` or set-up's venv, which has `rosbags`.
+    let o = Command::new(support::python_importing("rosbags, numpy, PIL"))
+        .arg(repo_root().join("scripts/tum_to_rosbag2.py"))
         .arg(seq)
         .arg(out)
         .args(extra)
@@ -54,31 +33,10 @@ type Images = BTreeMap<i64, (Vec<f64>, Vec<f64>)>;
 
 /// Build a map (no check) and list its images: stamp -> (translation, rotation w x y z).
 fn build(seq: &Path, map: &Path, extra: &[&str]) -> (serde_json::Value, Images) {
-    let models = root().join("models");
-    let mut args = vec![
-        "build-db",
-        "--sequence",
-        seq.to_str().unwrap(),
-        "--out",
-        map.to_str().unwrap(),
-        "--models",
-        models.to_str().unwrap(),
-        "--no-check",
-        "--json",
-    ];
-    args.extend(extra);
-    let s: serde_json::Value = serde_json::from_str(&ok(&pntr(&args))).unwrap();
-    let info: serde_json::Value = serde_json::from_str(&ok(&pntr(&[
-        "info",
-        "--db",
-        map.to_str().unwrap(),
-        "--images",
-        "--json",
-    ])))
-    .unwrap();
-    let images = info["image_list"]
-        .as_array()
-        .unwrap()
+    let source = ["--sequence", seq.to_str().unwrap(), "--no-check", "--json"];
+    let s: serde_json::Value =
+        serde_json::from_str(&build_db(map, &[&source[..], extra].concat())).unwrap();
+    let images = map_images(map)
         .iter()
         .map(|im| {
             (
@@ -95,40 +53,15 @@ fn build(seq: &Path, map: &Path, extra: &[&str]) -> (serde_json::Value, Images) 
 
 fn recall(dataset: &Path, map: &Path) -> f64 {
     let report = map.with_extension("eval.json");
-    ok(&pntr(&[
-        "eval",
-        "--dataset",
-        dataset.to_str().unwrap(),
-        "--db",
-        map.to_str().unwrap(),
-        "--models",
-        root().join("models").to_str().unwrap(),
-        "--json",
-        report.to_str().unwrap(),
-    ]));
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
-    r["recall"]["0.25m_2deg"].as_f64().unwrap()
+    ok(&eval(dataset, map, &["--json", report.to_str().unwrap()]));
+    read_json(&report)["recall"]["0.25m_2deg"].as_f64().unwrap()
 }
 
 #[test]
 fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_folder() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    ok(&pntr(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--points-per-scene",
-        "5",
-        "--queries-per-point",
-        "6",
-        "--seed",
-        "31",
-        "--trajectory-seconds",
-        "300",
-        "--mapping-run",
-    ]));
-    let seq = data.join("sequences/synth000");
+    let seq = mapping_drive(&data, ("5", "6"), "31", "300", &[]);
     let (tum, tum_images) = build(&seq, &dir.path().join("tum.pntrmap"), &[]);
 
     // PNG colour, compressedDepth, poses only in TF (interpolation not needed), split files.
@@ -232,15 +165,8 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     assert!(o["skipped"]["no_pose"].as_u64().unwrap_or(0) <= 2, "{o}");
 
     // A camera frame TF does not hold: refused naming both frames and the stamp.
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        png.to_str().unwrap(),
-        "--camera-frame",
-        "camera_depth_optical_frame",
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-    ]));
+    let x = dir.path().join("x.pntrmap");
+    let e = build_db_refused(&png, &x, &["--camera-frame", "camera_depth_optical_frame"]);
     assert!(
         e.contains("no transform from map to camera_depth_optical_frame at"),
         "{e}"
@@ -259,26 +185,19 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     );
     // A missing trajectory file names the flag; a folder of .mcap files without metadata.yaml says
     // what to give instead.
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        png.to_str().unwrap(),
-        "--trajectory",
-        dir.path().join("nope.txt").to_str().unwrap(),
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-    ]));
+    let e = build_db_refused(
+        &png,
+        &x,
+        &[
+            "--trajectory",
+            dir.path().join("nope.txt").to_str().unwrap(),
+        ],
+    );
     assert!(e.contains("--trajectory"), "{e}");
     let loose = dir.path().join("loose");
     std::fs::create_dir(&loose).unwrap();
     std::fs::copy(png.join("bag_png_0.mcap"), loose.join("bag_png_0.mcap")).unwrap();
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        loose.to_str().unwrap(),
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-    ]));
+    let e = build_db_refused(&loose, &x, &[]);
     assert!(e.contains("without metadata.yaml"), "{e}");
 
     // A bag cut short by a power loss: its intact part is read, with a warning.
@@ -312,68 +231,41 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     )
     .unwrap();
     std::fs::write(db3.join("bag_db3_0.db3"), b"SQLite format 3\0").unwrap();
-    let e = err(&pntr(&[
-        "build-db",
-        "--sequence",
-        db3.to_str().unwrap(),
-        "--out",
-        dir.path().join("x.pntrmap").to_str().unwrap(),
-    ]));
+    let e = build_db_refused(&db3, &x, &[]);
     assert!(
         e.contains("sqlite3") && e.contains("ros2 bag convert"),
         "{e}"
     );
 
     // The JPEG bag folder replayed through LocalizeStream against the TUM folder's map.
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .unwrap();
-    let settings = Settings::local(vec![dir.path().join("tum.pntrmap")], root().join("models"));
-    let mut server = rt.block_on(async {
-        let s = pntr_service::start(settings).await.unwrap();
-        s.ready().await.unwrap();
-        s
-    });
+    let rt = runtime();
+    let settings = Settings::local(vec![dir.path().join("tum.pntrmap")], MODELS.into());
+    let [server] = serve(&rt, [settings]);
     let addr = server.addr.to_string();
     let report = dir.path().join("replay.json");
-    ok(&pntr(&[
-        "replay",
-        "--addr",
+    let est = dir.path().join("est.txt");
+    ok(&replay(
         &addr,
-        "--sequence",
-        jpeg.to_str().unwrap(),
-        "--rate",
-        "50",
-        "--frames",
-        "150",
-        "--trajectory",
-        dir.path().join("est.txt").to_str().unwrap(),
-        "--json",
-        report.to_str().unwrap(),
-    ]));
+        &jpeg,
+        &est,
+        &report,
+        &["--rate", "50", "--frames", "150"],
+    ));
     // Depth in another unit than the bag says: named before a drive localizes nothing.
-    let e = err(&pntr(&[
-        "replay",
-        "--addr",
+    let (x_txt, x_json) = (dir.path().join("x.txt"), dir.path().join("x.json"));
+    let e = err(&replay(
         &addr,
-        "--sequence",
-        jpeg.to_str().unwrap(),
-        "--depth-scale",
-        "50",
-        "--trajectory",
-        dir.path().join("x.txt").to_str().unwrap(),
-        "--json",
-        dir.path().join("x.json").to_str().unwrap(),
-    ]));
+        &jpeg,
+        &x_txt,
+        &x_json,
+        &["--depth-scale", "50"],
+    ));
     assert!(
         e.contains("--depth-scale") && e.contains("finer units"),
         "{e}"
     );
-    server.shutdown();
-    rt.block_on(server.wait()).unwrap();
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    stop(&rt, [server]);
+    let r = read_json(&report);
     // (A frame recorded before the first map -> odom transform has no pose to compare with.)
     assert!(
         r["frames_with_ground_truth"].as_u64().unwrap() >= 145,

@@ -4,55 +4,14 @@
 //! writing a checksummed file that eval then uses, and a damaged calibration refused by name.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn pntr(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pntr"))
-        .args(args)
-        .output()
-        .expect("pntr runs")
-}
+mod support;
 
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "stderr: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use support::{build_db, eval, ok, pntr, read_json, MODELS};
 
+/// A scene of `points` Points with six query draws each.
 fn synth(dir: &Path, seed: &str, points: &str) {
-    ok(&pntr(&[
-        "synth",
-        "--out",
-        dir.to_str().unwrap(),
-        "--points-per-scene",
-        points,
-        "--queries-per-point",
-        "6",
-        "--seed",
-        seed,
-    ]));
-}
-
-/// `pntr eval` of the map's own dataset with `extra` arguments.
-fn eval(map_root: &Path, db: &Path, models: &str, extra: &[&str]) -> Output {
-    let mut args = vec![
-        "eval",
-        "--dataset",
-        map_root.to_str().unwrap(),
-        "--db",
-        db.to_str().unwrap(),
-        "--models",
-        models,
-    ];
-    args.extend_from_slice(extra);
-    pntr(&args)
-}
-
-fn json(path: &Path) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+    support::synth(dir, points, "6", &["--seed", seed]);
 }
 
 #[test]
@@ -66,22 +25,12 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     synth(&map_root, "7", "6");
     synth(&other, "4242", "6");
     synth(&third, "913", "4");
-    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
     let db = dir.path().join("map.pntrmap");
-    ok(&pntr(&[
-        "build-db",
-        "--dataset",
-        map_root.to_str().unwrap(),
-        "--out",
-        db.to_str().unwrap(),
-        "--models",
-        models,
-    ]));
+    build_db(&db, &["--dataset", map_root.to_str().unwrap()]);
     let report = dir.path().join("eval.json");
     ok(&eval(
         &map_root,
         &db,
-        models,
         &[
             "--negatives",
             other.to_str().unwrap(),
@@ -89,7 +38,7 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
             report.to_str().unwrap(),
         ],
     ));
-    let r = json(&report);
+    let r = read_json(&report);
     eprintln!("{}", serde_json::to_string_pretty(&r["negatives"]).unwrap());
     let neg = &r["negatives"];
     let sent = neg["queries"].as_u64().unwrap();
@@ -124,21 +73,8 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     let cal = dir.path().join("cal.json");
     // The same places through a narrower robot camera, for `--camera-dataset`.
     let narrow = dir.path().join("narrow");
-    ok(&pntr(&[
-        "synth",
-        "--out",
-        narrow.to_str().unwrap(),
-        "--points-per-scene",
-        "6",
-        "--queries-per-point",
-        "2",
-        "--seed",
-        "7",
-        "--query-camera",
-        "320x240",
-        "--hfov",
-        "69",
-    ]));
+    let camera = ["--query-camera", "320x240", "--hfov", "69"];
+    support::synth(&narrow, "6", "2", &[&["--seed", "7"][..], &camera].concat());
     // `pntr calibrate` on this map with the given negatives, output and further arguments.
     let calibrate = |negatives: &[&Path], out: &Path, extra: &[&str]| {
         let mut args = vec![
@@ -150,7 +86,7 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
             "--out",
             out.to_str().unwrap(),
             "--models",
-            models,
+            MODELS,
         ];
         for n in negatives {
             args.extend(["--negatives", n.to_str().unwrap()]);
@@ -170,7 +106,7 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     let e = String::from_utf8_lossy(&twice.stderr);
     assert!(!twice.status.success() && e.contains("given twice"), "{e}");
     assert!(s["threshold"].as_f64().unwrap() >= 0.5, "{s}");
-    let c = json(&cal);
+    let c = read_json(&cal);
     assert_eq!(c["format"], "pntr-calibration");
     // The other camera's queries and both sets of negatives joined the fit.
     let fitted = c["fitted_on"]["datasets"].to_string();
@@ -181,7 +117,6 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     ok(&eval(
         &map_root,
         &db,
-        models,
         &[
             "--calibration",
             cal.to_str().unwrap(),
@@ -193,7 +128,7 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
             again.to_str().unwrap(),
         ],
     ));
-    let a = json(&again);
+    let a = read_json(&again);
     assert_eq!(a["queries"], 6);
     assert_eq!(
         a["effects"], "robot",
@@ -211,17 +146,12 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     let bad = dir.path().join("damaged.json");
     std::fs::write(&bad, damaged).unwrap();
     let x = dir.path().join("x.json");
-    let out = eval(
-        &map_root,
-        &db,
-        models,
-        &[
-            "--calibration",
-            bad.to_str().unwrap(),
-            "--json",
-            x.to_str().unwrap(),
-        ],
-    );
+    let x_s = x.to_str().unwrap();
+    let with_calibration = |file: &Path| {
+        let file = file.to_str().unwrap();
+        eval(&map_root, &db, &["--calibration", file, "--json", x_s])
+    };
+    let out = with_calibration(&bad);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -230,17 +160,7 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     );
     let truncated = dir.path().join("truncated.json");
     std::fs::write(&truncated, &text[..text.len() / 2]).unwrap();
-    let out = eval(
-        &map_root,
-        &db,
-        models,
-        &[
-            "--calibration",
-            truncated.to_str().unwrap(),
-            "--json",
-            x.to_str().unwrap(),
-        ],
-    );
+    let out = with_calibration(&truncated);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("truncated.json"));
 
@@ -255,16 +175,11 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
         "--effects",
         "robot",
         "--json",
-        x.to_str().unwrap(),
+        x_s,
     ]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("in process only"));
-    let out = eval(
-        &map_root,
-        &db,
-        models,
-        &["--min-confidence", "2", "--json", x.to_str().unwrap()],
-    );
+    let out = eval(&map_root, &db, &["--min-confidence", "2", "--json", x_s]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("between 0 and 1"));
 }

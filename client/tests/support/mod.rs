@@ -1,10 +1,27 @@
-//! Checks shared by the CLI tests.
+//! Helpers and checks shared by the CLI tests: the `pntr` binary run and its output checked, scenes
+//! generated and maps built through it, files it writes read back, and servers started in process.
 
 // Each test binary uses its own part of this module.
 #![allow(dead_code)]
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+use pntr_service::config::Settings;
+use pntr_service::tokio::runtime::Runtime;
+use pntr_service::Running;
+
+/// The committed ONNX models.
+pub const MODELS: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../models");
+
+/// The repository root (the folder holding the top-level Cargo.toml).
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("client/ has a parent")
+        .to_path_buf()
+}
 
 /// Run the `pntr` binary under test (without a token from the environment).
 pub fn pntr(args: &[&str]) -> Output {
@@ -26,11 +43,207 @@ pub fn ok(out: &Output) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Its stdout as JSON, asserting it succeeded.
+pub fn ok_json(out: &Output) -> serde_json::Value {
+    serde_json::from_str(&ok(out)).unwrap()
+}
+
+/// Its stderr, asserting it failed without a panic.
+pub fn fails_cleanly(out: &Output) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        !out.status.success(),
+        "expected failure, got success: {err}"
+    );
+    assert!(
+        !err.contains("panicked"),
+        "a panic is not an error message: {err}"
+    );
+    err
+}
+
+/// A JSON file `pntr` wrote.
+pub fn read_json(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+/// `pntr synth --out root --points-per-scene points --queries-per-point queries` with `extra`
+/// arguments; its stdout, asserting it succeeded.
+pub fn synth(root: &Path, points: &str, queries: &str, extra: &[&str]) -> String {
+    let args = [
+        "synth",
+        "--out",
+        root.to_str().unwrap(),
+        "--points-per-scene",
+        points,
+        "--queries-per-point",
+        queries,
+    ];
+    ok(&pntr(&[&args[..], extra].concat()))
+}
+
+/// A robot's mapping drive (`pntr synth --mapping-run`) of at most `seconds` through the scene of
+/// `seed` with `points` Points and `queries` query draws each, with `extra` arguments: its TUM folder.
+pub fn mapping_drive(
+    root: &Path,
+    (points, queries): (&str, &str),
+    seed: &str,
+    seconds: &str,
+    extra: &[&str],
+) -> PathBuf {
+    let drive = [
+        "--seed",
+        seed,
+        "--trajectory-seconds",
+        seconds,
+        "--mapping-run",
+    ];
+    synth(root, points, queries, &[&drive[..], extra].concat());
+    root.join("sequences/synth000")
+}
+
+/// `pntr info --db map` with `extra` arguments, as JSON.
+pub fn map_info(map: &Path, extra: &[&str]) -> serde_json::Value {
+    let args = ["info", "--db", map.to_str().unwrap(), "--json"];
+    ok_json(&pntr(&[&args[..], extra].concat()))
+}
+
+/// `pntr build-db --out out --models MODELS` with `source` (`--dataset DIR`, `--sequence DIR`...)
+/// and further arguments; its stdout, asserting it succeeded.
+pub fn build_db(out: &Path, source: &[&str]) -> String {
+    let args = [
+        "build-db",
+        "--out",
+        out.to_str().unwrap(),
+        "--models",
+        MODELS,
+    ];
+    ok(&pntr(&[&args[..], source].concat()))
+}
+
+/// `pntr build-db --sequence seq --out out` with `extra` arguments, asserting it failed: its stderr.
+pub fn build_db_refused(seq: &Path, out: &Path, extra: &[&str]) -> String {
+    let args = ["build-db", "--sequence", seq.to_str().unwrap()];
+    err(&pntr(
+        &[&args[..], &["--out", out.to_str().unwrap()], extra].concat(),
+    ))
+}
+
+/// `pntr eval --dataset dataset --db db --models MODELS` with `extra` arguments.
+pub fn eval(dataset: &Path, db: &Path, extra: &[&str]) -> Output {
+    let (data, db) = (dataset.to_str().unwrap(), db.to_str().unwrap());
+    let args = ["eval", "--dataset", data, "--db", db, "--models", MODELS];
+    pntr(&[&args[..], extra].concat())
+}
+
+/// `pntr replay --addr addr --sequence seq --trajectory trajectory --json report` with `extra`
+/// arguments.
+pub fn replay(addr: &str, seq: &Path, trajectory: &Path, report: &Path, extra: &[&str]) -> Output {
+    let input = [
+        "replay",
+        "--addr",
+        addr,
+        "--sequence",
+        seq.to_str().unwrap(),
+    ];
+    let (trajectory, report) = (trajectory.to_str().unwrap(), report.to_str().unwrap());
+    let output = ["--trajectory", trajectory, "--json", report];
+    pntr(&[&input[..], &output, extra].concat())
+}
+
+/// The images of a map as `pntr info --images --json` lists them (id, stamp, place, translation,
+/// rotation_wxyz).
+pub fn map_images(map: &Path) -> Vec<serde_json::Value> {
+    map_info(map, &["--images"])["image_list"]
+        .as_array()
+        .unwrap()
+        .clone()
+}
+
+/// A pose from JSON `translation` [x, y, z] and `rotation_wxyz` [w, x, y, z].
+pub fn json_pose(
+    translation: &serde_json::Value,
+    rotation_wxyz: &serde_json::Value,
+) -> Isometry3<f64> {
+    let t: Vec<f64> = serde_json::from_value(translation.clone()).unwrap();
+    let q: Vec<f64> = serde_json::from_value(rotation_wxyz.clone()).unwrap();
+    Isometry3::from_parts(
+        Translation3::new(t[0], t[1], t[2]),
+        UnitQuaternion::from_quaternion(Quaternion::new(q[0], q[1], q[2], q[3])),
+    )
+}
+
+/// The rows of a TUM text file (groundtruth.txt, calibration.txt, a trajectory), comments and blank
+/// lines left out, as numbers.
+pub fn tum_rows(path: &Path) -> Vec<Vec<f64>> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+        .collect()
+}
+
+/// A TUM row's pose: `stamp tx ty tz qx qy qz qw`.
+pub fn tum_pose(row: &[f64]) -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(row[1], row[2], row[3]),
+        UnitQuaternion::from_quaternion(Quaternion::new(row[7], row[4], row[5], row[6])),
+    )
+}
+
+/// A two-thread tokio runtime for the servers and clients of a test.
+pub fn runtime() -> Runtime {
+    pntr_service::tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+/// Servers (the `pntr-service` library, as the binary starts it) started on `rt`, one per settings,
+/// each returned once it has loaded its maps.
+pub fn serve<const N: usize>(rt: &Runtime, settings: [Settings; N]) -> [Running; N] {
+    rt.block_on(async {
+        let mut servers = Vec::with_capacity(N);
+        for s in settings {
+            servers.push(pntr_service::start(s).await.unwrap());
+        }
+        for s in &servers {
+            s.ready().await.unwrap();
+        }
+        let mut servers = servers.into_iter();
+        std::array::from_fn(|_| servers.next().expect("one server per settings"))
+    })
+}
+
+/// Shut the servers down, one after the other, and wait until each has stopped.
+pub fn stop(rt: &Runtime, servers: impl IntoIterator<Item = Running>) {
+    rt.block_on(async move {
+        for mut s in servers {
+            s.shutdown();
+            s.wait().await.unwrap();
+        }
+    });
+}
+
 /// The Python interpreter with the test packages: `$PNTR_PYTHON`, else set-up's venv.
-pub fn python() -> std::path::PathBuf {
+pub fn python() -> PathBuf {
     std::env::var_os("PNTR_PYTHON")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../.deps/venv/bin/python"))
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_root().join(".deps/venv/bin/python"))
+}
+
+/// [`python`], asserting it can import `modules` (`"rosbags, numpy"`): the fix is named when not.
+pub fn python_importing(modules: &str) -> PathBuf {
+    let p = python();
+    let imported = Command::new(&p)
+        .args(["-c", &format!("import {modules}")])
+        .status()
+        .is_ok_and(|s| s.success());
+    let fix = "run `bash scripts/setup.sh` (or set PNTR_PYTHON)";
+    assert!(imported, "{} cannot import {modules}: {fix}", p.display());
+    p
 }
 
 /// An MCAP file read back with the format's own Python reader (`mcap`, not pntr's code): for each

@@ -3,22 +3,16 @@
 //! answering keep-alive PINGs, serves a map with another preset of the same descriptors (`--preset`),
 //! and on SIGTERM refuses new requests, finishes the ones it holds and exits 0.
 
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::tokio;
-use pntr_service::tonic_health::pb::health_check_response::ServingStatus;
-use pntr_service::tonic_health::pb::health_client::HealthClient;
-use pntr_service::tonic_health::pb::HealthCheckRequest;
 use pntr_service::wire;
 
-const BIN: &str = env!("CARGO_BIN_EXE_pntr-server");
-
 mod common;
-use common::{gauge, models, runtime, scrape};
+use common::{gauge, models, runtime, scrape, wait_serving, KillOnDrop, BIN};
 
 #[test]
 fn bad_settings_exit_2_with_the_reason() {
@@ -59,53 +53,8 @@ fn bad_settings_exit_2_with_the_reason() {
 
 /// Start `pntr-server` on `db` with ephemeral ports and `extra` flags; returns it with its gRPC and
 /// metrics addresses (read from the line it prints).
-fn spawn(db: &std::path::Path, extra: &[&str]) -> (std::process::Child, SocketAddr, SocketAddr) {
-    let mut child = Command::new(BIN)
-        .arg("--db")
-        .arg(db)
-        .arg("--models")
-        .arg(models())
-        .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
-        .args(extra)
-        .env("PNTR_LOG", "warn")
-        .stdout(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    // "pntr-server listening on 127.0.0.1:P metrics on 127.0.0.1:Q"
-    let words: Vec<&str> = line.split_whitespace().collect();
-    assert_eq!(words[..3], ["pntr-server", "listening", "on"], "{line}");
-    assert_eq!(words[4..6], ["metrics", "on"], "{line}");
-    let addr: SocketAddr = words[3].parse().unwrap();
-    let metrics: SocketAddr = words[6].parse().unwrap();
-    assert_ne!(addr.port(), 0);
-    (child, addr, metrics)
-}
-
-/// Poll health until SERVING.
-async fn wait_serving(url: &str) {
-    let t = Instant::now();
-    loop {
-        let channel = pntr_service::tonic::transport::Endpoint::from_shared(url.to_string())
-            .unwrap()
-            .connect()
-            .await
-            .unwrap();
-        let s = HealthClient::new(channel)
-            .check(HealthCheckRequest::default())
-            .await
-            .unwrap()
-            .into_inner()
-            .status;
-        if s == ServingStatus::Serving as i32 {
-            return;
-        }
-        assert!(t.elapsed() < Duration::from_secs(120), "never SERVING");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+fn spawn(db: &std::path::Path, extra: &[&str]) -> (KillOnDrop, SocketAddr, SocketAddr) {
+    common::spawn(common::server_command(db, &models(), extra).env("PNTR_LOG", "warn"))
 }
 
 /// Fire `n` requests at once, spread over `channels` connections, and return the most requests the
@@ -150,7 +99,7 @@ async fn burst(
 fn one_connection_holds_at_most_max_streams_per_connection() {
     let dir = tempfile::tempdir().unwrap();
     let (db, query) = common::demo_map(dir.path());
-    let (child, addr, metrics) = spawn(
+    let (_server, addr, metrics) = spawn(
         &db,
         &[
             "--workers",
@@ -161,7 +110,6 @@ fn one_connection_holds_at_most_max_streams_per_connection() {
             "2",
         ],
     );
-    let _server = KillOnDrop(child);
     let req = wire::raw_request(&query.rgb, &query.depth, None);
     runtime().block_on(async {
         let url = format!("http://{addr}");
@@ -178,16 +126,6 @@ fn one_connection_holds_at_most_max_streams_per_connection() {
     });
 }
 
-/// Stops a server child however the test ends.
-struct KillOnDrop(std::process::Child);
-
-impl Drop for KillOnDrop {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
 #[cfg(unix)]
 #[test]
 fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
@@ -199,8 +137,7 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
         ("xfeat-mnn-int8", "xfeat-int8"),
         ("xfeat-mnn-bf16", "xfeat-bf16"),
     ] {
-        let (child, addr, _) = spawn(&db, &["--workers", "1", "--preset", preset]);
-        let _server = KillOnDrop(child);
+        let (_server, addr, _) = spawn(&db, &["--workers", "1", "--preset", preset]);
         runtime().block_on(async {
             let url = format!("http://{addr}");
             wait_serving(&url).await;
@@ -258,13 +195,7 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
     }
     // A preset of other descriptors (ORB, bag of words) cannot use this map: a setting error (exit
     // 2) before anything is bound, naming both presets and the ones that can.
-    let out = Command::new(BIN)
-        .arg("--db")
-        .arg(&db)
-        .arg("--models")
-        .arg(models())
-        .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
-        .args(["--preset", "classical"])
+    let out = common::server_command(&db, &models(), &["--preset", "classical"])
         .output()
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
@@ -290,8 +221,7 @@ fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
     let dir = tempfile::tempdir().unwrap();
     let (db, query) = common::demo_map(dir.path());
 
-    let (child, addr, metrics) = spawn(&db, &["--workers", "1", "--drain-timeout-s", "60"]);
-    let mut server = KillOnDrop(child);
+    let (mut server, addr, metrics) = spawn(&db, &["--workers", "1", "--drain-timeout-s", "60"]);
     let rt = runtime();
     rt.block_on(async {
         let url = format!("http://{addr}");
@@ -305,19 +235,15 @@ fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
             let (mut c, r) = (c.clone(), req.clone());
             held.spawn(async move { c.localize(r).await });
         }
-        let t = Instant::now();
-        while gauge(&scrape(metrics), "pntr_in_flight_requests") != 5.0 {
-            assert!(
-                t.elapsed() < Duration::from_secs(30),
-                "the requests never arrived"
-            );
-            tokio::time::sleep(Duration::from_millis(1)).await;
-        }
-        let killed = Command::new("kill")
-            .args(["-TERM", &server.0.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(killed.success());
+        common::wait_gauge(
+            metrics,
+            "pntr_in_flight_requests",
+            |g| g == 5.0,
+            (Duration::from_secs(30), Duration::from_millis(1)),
+            "the requests never arrived",
+        )
+        .await;
+        common::signal(&server.0, "TERM");
         // A new request is refused while those five still drain.
         let t = Instant::now();
         let mut answered = Vec::new();
@@ -365,17 +291,12 @@ fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
             assert_eq!(r.into_inner().map_id, "demo");
         }
     });
-    let t = Instant::now();
-    let status = loop {
-        if let Some(s) = server.0.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(60),
-            "did not exit after SIGTERM"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = common::wait_exit(
+        &mut server.0,
+        Duration::from_secs(60),
+        Duration::from_millis(20),
+        "did not exit after SIGTERM",
+    );
     assert_eq!(status.code(), Some(0), "{status:?}");
 }
 
@@ -421,7 +342,7 @@ fn keepalive_pings_close_connections_whose_peer_is_gone() {
     let dir = tempfile::tempdir().unwrap();
     let (db, _) = common::demo_map(dir.path());
     // A peer that stops answering is found by the unanswered PING and its connection closed.
-    let (child, addr, _) = spawn(
+    let (_server, addr, _) = spawn(
         &db,
         &[
             "--keepalive-interval-s",
@@ -430,12 +351,10 @@ fn keepalive_pings_close_connections_whose_peer_is_gone() {
             "0.5",
         ],
     );
-    let _server = KillOnDrop(child);
     let (pinged, closed) = silent_http2_peer(addr, Duration::from_secs(30));
     assert!(pinged && closed, "pinged {pinged}, closed {closed}");
     // With the PINGs turned off, the same silent peer keeps its connection.
-    let (child, addr, _) = spawn(&db, &["--keepalive-interval-s", "0"]);
-    let _server = KillOnDrop(child);
+    let (_server, addr, _) = spawn(&db, &["--keepalive-interval-s", "0"]);
     let (pinged, closed) = silent_http2_peer(addr, Duration::from_secs(3));
     assert!(!pinged && !closed, "pinged {pinged}, closed {closed}");
 }

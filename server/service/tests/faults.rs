@@ -1,46 +1,27 @@
 //! Faults at start-up (issue 10): a corrupted map or a missing model stops the real `pntr-server`
 //! binary with a message naming the problem and a non-zero exit, and health never says SERVING.
 
-use std::io::{BufRead, BufReader};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
+use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::tokio;
 use pntr_service::tonic_health::pb::health_check_response::ServingStatus;
-use pntr_service::tonic_health::pb::health_client::HealthClient;
-use pntr_service::tonic_health::pb::HealthCheckRequest;
-
-const BIN: &str = env!("CARGO_BIN_EXE_pntr-server");
 
 mod common;
-use common::{gauge, models, scrape};
+use common::{gauge, models, scrape, sum_series};
 
 /// Start the server, poll health until the process exits; return (exit code, stderr, ever SERVING).
 fn run_until_exit(db: &Path, models: &Path) -> (Option<i32>, String, bool) {
-    let mut child = Command::new(BIN)
-        .arg("--db")
-        .arg(db)
-        .arg("--models")
-        .arg(models)
-        .args([
-            "--addr",
-            "127.0.0.1:0",
-            "--metrics-addr",
-            "127.0.0.1:0",
-            "--workers",
-            "1",
-        ])
+    let mut child = common::server_command(db, models, &["--workers", "1"])
         .env("PNTR_LOG", "warn")
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
+    let line = common::first_line(&mut child);
     let mut serving = false;
     if let Some(addr) = line.split_whitespace().nth(3) {
         let addr: SocketAddr = addr.parse().unwrap();
@@ -51,19 +32,7 @@ fn run_until_exit(db: &Path, models: &Path) -> (Option<i32>, String, bool) {
                 t.elapsed() < Duration::from_secs(120),
                 "the server neither served nor exited"
             );
-            let s = rt.block_on(async {
-                let ep =
-                    pntr_service::tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
-                        .unwrap();
-                match ep.connect().await {
-                    Ok(ch) => HealthClient::new(ch)
-                        .check(HealthCheckRequest::default())
-                        .await
-                        .map(|r| r.into_inner().status)
-                        .ok(),
-                    Err(_) => None,
-                }
-            });
+            let s = rt.block_on(common::health(&format!("http://{addr}")));
             serving |= s == Some(ServingStatus::Serving as i32);
             std::thread::sleep(Duration::from_millis(20));
         }
@@ -137,11 +106,7 @@ fn corrupted_maps_and_missing_models_stop_the_server_before_it_serves() {
 /// Pipeline runs that finished with an answer recorded (the `total` stage histogram's count, summed
 /// over maps).
 fn total_runs(text: &str) -> f64 {
-    text.lines()
-        .filter(|l| l.starts_with("pntr_stage_duration_seconds_count{stage=\"total\""))
-        .filter_map(|l| l.split_whitespace().last())
-        .filter_map(|v| v.parse::<f64>().ok())
-        .sum()
+    sum_series(text, "pntr_stage_duration_seconds_count{stage=\"total\"")
 }
 
 #[test]
@@ -159,34 +124,21 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
         let url = format!("http://{addr}");
         let req = pntr_service::wire::raw_request(&query.rgb, &query.depth, None);
         // Until gauge `name` is `want` (or, with `at_least`, at least `want`).
-        let wait_gauge = |name: &'static str, want: f64, at_least: bool| async move {
-            let t = Instant::now();
-            loop {
-                let g = gauge(&scrape(metrics), name);
-                if g == want || (at_least && g >= want) {
-                    break;
-                }
-                assert!(
-                    t.elapsed() < Duration::from_secs(60),
-                    "{name} never reached {want}"
-                );
-                tokio::time::sleep(Duration::from_millis(1)).await;
-            }
+        let wait_gauge = |name: &'static str, want: f64, at_least: bool| {
+            let reached = move |g: f64| g == want || (at_least && g >= want);
+            let what = format!("{name} never reached {want}");
+            let limits = (Duration::from_secs(60), Duration::from_millis(1));
+            async move { common::wait_gauge(metrics, name, reached, limits, &what).await }
         };
         let wait_for =
             |want: f64, at_least: bool| wait_gauge("pntr_in_flight_requests", want, at_least);
         let wait_busy = |want: f64| wait_gauge("pntr_busy_workers", want, false);
         // One request occupies the only worker; six more wait in the queue on another connection.
-        let mut first =
-            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
-                .await
-                .unwrap();
+        let mut first = LocalizerClient::connect(url.clone()).await.unwrap();
         let r0 = req.clone();
         let a = tokio::spawn(async move { first.localize(r0).await });
         wait_for(1.0, false).await;
-        let c = pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
-            .await
-            .unwrap();
+        let c = LocalizerClient::connect(url.clone()).await.unwrap();
         let mut queued = tokio::task::JoinSet::new();
         for _ in 0..6 {
             let (mut c, r) = (c.clone(), req.clone());
@@ -204,14 +156,14 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
         );
         wait_for(0.0, false).await;
         // The abandoned jobs leave the queue as the worker reaches them, skipping each.
-        let t = Instant::now();
-        while gauge(&scrape(metrics), "pntr_queue_depth") != 0.0 {
-            assert!(
-                t.elapsed() < Duration::from_secs(60),
-                "the queue never drained"
-            );
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
+        common::wait_gauge(
+            metrics,
+            "pntr_queue_depth",
+            |g| g == 0.0,
+            (Duration::from_secs(60), Duration::from_millis(5)),
+            "the queue never drained",
+        )
+        .await;
         // At most one of them had started before its client left.
         let runs = total_runs(&scrape(metrics));
         assert!(
@@ -219,10 +171,7 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
             "{runs} pipeline runs for 1 answered + 6 abandoned requests"
         );
         // And the server keeps answering.
-        let mut again =
-            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
-                .await
-                .unwrap();
+        let mut again = LocalizerClient::connect(url.clone()).await.unwrap();
         // The fastest of three answers: the deadline below is half a localization, and one slow
         // run (the parallel test runner loading the cores) would set it above a fast one.
         let mut single_s = f64::INFINITY;
@@ -237,20 +186,15 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
         // zero and the request is counted once, as CANCELLED.
         let counter = |text: &str, code: &str| {
             // Summed over the map_id label.
-            let key = format!("pntr_requests_total{{status=\"ERROR\",code=\"{code}\",");
-            text.lines()
-                .filter(|l| l.starts_with(&key))
-                .filter_map(|l| l.split_whitespace().last())
-                .filter_map(|v| v.parse::<f64>().ok())
-                .sum::<f64>()
+            sum_series(
+                text,
+                &format!("pntr_requests_total{{status=\"ERROR\",code=\"{code}\","),
+            )
         };
         wait_busy(0.0).await;
         let cancelled_before = counter(&scrape(metrics), "CANCELLED");
         let runs_before = total_runs(&scrape(metrics));
-        let mut leaving =
-            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
-                .await
-                .unwrap();
+        let mut leaving = LocalizerClient::connect(url.clone()).await.unwrap();
         let r = req.clone();
         let call = tokio::spawn(async move { leaving.localize(r).await });
         wait_busy(1.0).await;
@@ -270,10 +214,7 @@ fn clients_that_disconnect_while_queued_or_running_leave_no_work_and_right_gauge
 
         // A deadline shorter than the work: DEADLINE_EXCEEDED at the deadline, the worker still
         // frees itself, nothing stays in flight.
-        let mut hurried =
-            pntr_service::proto::localizer_client::LocalizerClient::connect(url.clone())
-                .await
-                .unwrap();
+        let mut hurried = LocalizerClient::connect(url.clone()).await.unwrap();
         let mut r = pntr_service::tonic::Request::new(req.clone());
         // Half a localization: ample to send the frame, short of the work.
         r.set_timeout(Duration::from_secs_f64((single_s / 2.0).clamp(0.02, 0.5)));

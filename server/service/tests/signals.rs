@@ -2,94 +2,40 @@
 //! replaced on disk (the server keeps answering), SIGTERM ends open streams with UNAVAILABLE right
 //! away (so robots reconnect) and the process exits cleanly well before its drain timeout.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
-use pntr_pipeline::preset::Preset;
-use pntr_pipeline::{map, mapfile};
+use pntr_pipeline::mapfile;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self};
-use pntr_service::tonic::transport::Endpoint;
+use pntr_service::tokio_stream::wrappers::ReceiverStream;
 use pntr_service::tonic::Code;
 
-fn models() -> std::path::PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models")
-}
-
-fn signal(child: &Child, name: &str) {
-    let ok = Command::new("kill")
-        .args([format!("-{name}"), child.id().to_string()])
-        .status()
-        .unwrap()
-        .success();
-    assert!(ok, "kill -{name}");
-}
-
-/// Kills the server if the test fails half-way.
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
+mod common;
+use common::{models, signal};
 
 #[test]
 fn sighup_reloads_and_sigterm_ends_streams() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = pntr_synth::SynthConfig {
-        points_per_scene: 3,
-        queries_per_point: 2,
-        seed: 12,
-        ..Default::default()
-    };
-    pntr_synth::synthesize(&cfg, dir.path(), pntr_synth::plan_all(&cfg), &|| {}).unwrap();
-    let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
-    let preset = Preset::named("fast").unwrap();
-    let stage = preset.map_feature_config(models()).build().unwrap();
-    let scenes: Vec<_> = index.scenes.iter().collect();
-    let mut built =
-        map::build("site", &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+    let (mut built, index) = common::synthetic_map(dir.path(), 3, 2, 12, "site");
     let path = dir.path().join("site.pntrmap");
     mapfile::save(&built, &path).unwrap();
-    let query = {
-        let r = index.scenes[0].points[0].open().unwrap();
-        r.view(pntr_dataset::Role::Query, 0).unwrap()
-    };
+    let query = common::first_query(&index);
 
-    let mut child = Command::new(env!("CARGO_BIN_EXE_pntr-server"))
-        .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
-        .arg("--db")
-        .arg(&path)
-        .arg("--models")
-        .arg(models())
-        .args(["--workers", "1", "--drain-timeout-s", "300"])
+    let (server, addr, _) = common::spawn(
+        common::server_command(
+            &path,
+            &models(),
+            &["--workers", "1", "--drain-timeout-s", "300"],
+        )
         .env("PNTR_ADMIN_TOKEN", "admin-token-for-tests")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let server = Server(child);
-    let addr = line
-        .split_whitespace()
-        .nth(3)
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .to_string();
+        .stderr(Stdio::null()),
+    );
 
     let rt = pntr_service::tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let ch = Endpoint::from_shared(format!("http://{addr}"))
-            .unwrap()
-            .connect()
-            .await
-            .unwrap();
+        let ch = common::channel(addr).await;
         let mut c = LocalizerClient::new(ch).max_decoding_message_size(64 << 20);
         let version = |mut c: LocalizerClient<_>| async move {
             let t = Instant::now();
@@ -126,9 +72,7 @@ fn sighup_reloads_and_sigterm_ends_streams() {
         // An open stream answers from the new version; SIGTERM ends it with UNAVAILABLE.
         let (tx, rx) = pntr_service::tokio::sync::mpsc::channel(2);
         let mut out = c
-            .localize_stream(pntr_service::tokio_stream::wrappers::ReceiverStream::new(
-                rx,
-            ))
+            .localize_stream(ReceiverStream::new(rx))
             .await
             .unwrap()
             .into_inner();
@@ -150,17 +94,12 @@ fn sighup_reloads_and_sigterm_ends_streams() {
         drop(tx);
     });
     let mut server = server;
-    let t = Instant::now();
-    let status = loop {
-        if let Some(s) = server.0.try_wait().unwrap() {
-            break s;
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(30),
-            "the server did not exit after SIGTERM"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let status = common::wait_exit(
+        &mut server.0,
+        Duration::from_secs(30),
+        Duration::from_millis(50),
+        "the server did not exit after SIGTERM",
+    );
     assert!(status.success(), "{status:?}");
 }
 
@@ -171,18 +110,7 @@ fn sighup_reloads_and_sigterm_ends_streams() {
 #[test]
 fn the_ready_line_comes_only_after_loading() {
     let dir = tempfile::tempdir().unwrap();
-    let cfg = pntr_synth::SynthConfig {
-        points_per_scene: 2,
-        queries_per_point: 1,
-        seed: 13,
-        ..Default::default()
-    };
-    pntr_synth::synthesize(&cfg, dir.path(), pntr_synth::plan_all(&cfg), &|| {}).unwrap();
-    let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
-    let preset = Preset::named("fast").unwrap();
-    let stage = preset.map_feature_config(models()).build().unwrap();
-    let scenes: Vec<_> = index.scenes.iter().collect();
-    let built = map::build("site", &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+    let (built, _) = common::synthetic_map(dir.path(), 2, 1, 13, "site");
     let good = dir.path().join("good.pntrmap");
     mapfile::save(&built, &good).unwrap();
     let bytes = std::fs::read(&good).unwrap();
@@ -191,19 +119,11 @@ fn the_ready_line_comes_only_after_loading() {
     mapfile::read_header(&cut).expect("the header still reads");
 
     let run = |db: &Path| {
-        Command::new(env!("CARGO_BIN_EXE_pntr-server"))
-            .args(["--addr", "127.0.0.1:0", "--metrics-addr", "127.0.0.1:0"])
-            .arg("--db")
-            .arg(db)
-            .arg("--models")
-            .arg(models())
-            .args(["--workers", "1"])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap()
+        let mut c = common::server_command(db, &models(), &["--workers", "1"]);
+        c.stdout(Stdio::piped()).stderr(Stdio::piped());
+        c
     };
-    let out = run(&cut).wait_with_output().unwrap();
+    let out = run(&cut).spawn().unwrap().wait_with_output().unwrap();
     let (stdout, stderr) = (
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr),
@@ -218,20 +138,10 @@ fn the_ready_line_comes_only_after_loading() {
         "the error names the file: {stderr}"
     );
 
-    let mut child = run(&good);
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let server = Server(child);
-    let addr = line.split_whitespace().nth(3).unwrap().to_string();
+    let (server, addr, _) = common::spawn(&mut run(&good));
     let rt = pntr_service::tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let ch = Endpoint::from_shared(format!("http://{addr}"))
-            .unwrap()
-            .connect()
-            .await
-            .unwrap();
+        let ch = common::channel(addr).await;
         let info = LocalizerClient::new(ch)
             .get_map_info(proto::GetMapInfoRequest::default())
             .await
