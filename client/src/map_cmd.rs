@@ -167,6 +167,10 @@ pub struct EvalArgs {
     /// become LOCALIZED and wrong (in process only; three localizations a query).
     #[arg(long)]
     pub stability: bool,
+    /// With --stability: also localize every query through this preset (one describing images as
+    /// the map does, e.g. `xfeat-mnn-bf16` for an `xfeat-mnn` map) and count how its answers differ.
+    #[arg(long, requires = "stability", value_name = "PRESET")]
+    pub stability_preset: Option<String>,
     /// Also write every query to this MCAP file with Foxglove's schemas (open it in Foxglove): its
     /// image and camera, the answer (pose with covariance, status, reason), the ground truth and the
     /// map's cameras (in process), in ROS conventions (z-up `map`, optical `camera_optical`).
@@ -562,12 +566,13 @@ pub fn evaluate_in_process(
     effects: Option<pntr_synth::effects::RobotEffects>,
     record: Option<&pntr_service::visual::Recording>,
     stability: bool,
+    variant: Option<&Pipeline>,
 ) -> Result<(EvalReport, Stability)> {
     use pntr_synth::effects::Perturbation;
     let map = pipeline.map.clone();
     // With --stability, the answers to each query's perturbed copies (made in the localizer, which
     // sees the frame as localized), counted in the observer (which knows the truth).
-    let pending: std::cell::RefCell<Vec<(&'static str, Answer)>> = Default::default();
+    let pending: std::cell::RefCell<Vec<(String, Answer)>> = Default::default();
     let mut counts = Stability::new();
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total, "localizing queries");
@@ -598,7 +603,15 @@ pub fn evaluate_in_process(
                         .map(|l| Answer::of(&l, &map));
                     pending
                         .borrow_mut()
-                        .push((kind.name(), a.unwrap_or_default()));
+                        .push((kind.name().to_string(), a.unwrap_or_default()));
+                }
+                // The same frame through another preset of the same descriptors (bf16 against
+                // float, say).
+                if let Some(v) = variant {
+                    let a = v.localize_with(&q, &opts).map(|l| Answer::of(&l, &map));
+                    pending
+                        .borrow_mut()
+                        .push((format!("preset:{}", v.preset.name), a.unwrap_or_default()));
                 }
             }
             Ok(Answer::of(&pipeline.localize_with(&q, &opts)?, &map))
@@ -853,6 +866,19 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         Some(p) => Some(start_recording(p, None, 0.0)?),
         None => None,
     };
+    let variant = match &args.stability_preset {
+        Some(name) => {
+            let p = Preset::named(name)?;
+            let st = feature_stage(&p, &models, args.threads)?;
+            Some(
+                Pipeline::new(pipeline.map.clone(), st, p)?.with_calibration(
+                    calibration(args.calibration.as_deref())?,
+                    args.min_confidence,
+                ),
+            )
+        }
+        None => None,
+    };
     let (report, stability) = evaluate_in_process(
         &pipeline,
         &scenes,
@@ -860,6 +886,7 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         fx,
         record.as_ref(),
         args.stability,
+        variant.as_ref(),
     )?;
     finish_recording(record)?;
     print!("{}", eval::table(&report));
