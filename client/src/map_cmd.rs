@@ -496,15 +496,12 @@ pub fn start_recording(
 
 /// Write a map's image poses into a recording, in ROS conventions.
 fn show_map_cameras(rec: &pntr_service::visual::Recording, map: &Map, time_s: f64) {
-    let (up, axes) = (
-        pntr_core::pose::UpAxis::parse(&map.header.up_axis),
-        map.header.axes(),
-    );
+    let frames = pntr_service::wire::MapFrames::of(&map.header);
     rec.view().map_cameras(
         time_s,
         map.images
             .iter()
-            .map(|im| pntr_core::pose::map_to_ros(&im.world_from_camera, up, axes)),
+            .map(|im| frames.pose_to_ros(&im.world_from_camera)),
     );
 }
 
@@ -518,12 +515,12 @@ fn record_query(
     truth: Option<&nalgebra::Isometry3<f64>>,
     a: &Answer,
 ) {
-    use pntr_core::pose::{map_to_ros, ros_from_map_world, rotate_covariance, UpAxis};
-    let to_ros =
-        |p: &nalgebra::Isometry3<f64>| map_to_ros(p, UpAxis::Y, pntr_core::CameraAxes::Habitat);
+    // Evaluation answers are in the dataset's frames: y up, Habitat axes.
+    let frames = pntr_service::wire::MapFrames::default();
+    let to_ros = |p: &nalgebra::Isometry3<f64>| frames.pose_to_ros(p);
     let covariance = a
         .covariance
-        .and_then(|c| rotate_covariance(&c, &ros_from_map_world(UpAxis::Y)))
+        .map(|c| frames.covariance_to_ros(&c))
         .unwrap_or_default();
     let id = format!("query-{n}");
     let status = match a.status {

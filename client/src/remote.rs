@@ -238,11 +238,7 @@ impl Remote {
         let frames = req
             .ok()
             .and_then(|r| self.rt.block_on(client.get_map_info(r)).ok())
-            .map(|info| wire::MapFrames {
-                up: pntr_core::pose::UpAxis::parse(&info.get_ref().up_axis),
-                camera: pntr_core::CameraAxes::parse(&info.get_ref().camera_axes)
-                    .unwrap_or(pntr_core::CameraAxes::Habitat),
-            })
+            .map(|info| wire::MapFrames::of_info(info.get_ref()))
             .unwrap_or_default();
         self.frames = Some(frames);
         frames

@@ -291,13 +291,17 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         )?))
         .ok()
         .map(|i| i.into_inner());
-    let map_axes = info
+    let map_frames = info
         .as_ref()
-        .and_then(|i| pntr_core::CameraAxes::parse(&i.camera_axes))
-        .unwrap_or(pntr_core::CameraAxes::Habitat);
-    let up = pntr_core::pose::UpAxis::parse(info.as_ref().map_or("y", |i| i.up_axis.as_str()));
-    let to_ros =
-        |p: &Isometry3<f64>| pntr_core::pose::map_to_ros(p, up, pntr_core::CameraAxes::OpenCv);
+        .map(wire::MapFrames::of_info)
+        .unwrap_or_default();
+    let map_axes = map_frames.camera;
+    // The estimates and the truth below are in the map's frame with optical axes.
+    let optical = wire::MapFrames {
+        camera: pntr_core::CameraAxes::OpenCv,
+        ..map_frames
+    };
+    let to_ros = |p: &Isometry3<f64>| optical.pose_to_ros(p);
     let recording = match &args.record {
         Some(path) => Some(crate::map_cmd::start_recording(
             path,
@@ -406,11 +410,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         if let Some(rec) = &recording {
             let k = pntr_service::decode::intrinsics(Some(&camera), rgb.width, rgb.height)
                 .map_err(|s| anyhow::anyhow!("the camera: {}", s.message()))?;
-            let covariance = pntr_core::pose::rotate_covariance(
-                &r.covariance,
-                &pntr_core::pose::ros_from_map_world(up),
-            )
-            .unwrap_or_default();
+            let covariance = optical.covariance_to_ros(&r.covariance);
             rec.view().observe(&pntr_service::visual::Observation {
                 time_s: timestamp,
                 picture: Some((pntr_service::visual::Picture::Raw(&rgb), &k)),

@@ -284,7 +284,6 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
 /// Every 2 s while a live Foxglove client listens, the poses of the loaded maps' images (a client
 /// that connects later sees them within 2 s; the WebSocket protocol does not replay old messages).
 async fn show_map_cameras(state: Arc<State>, mut stop: watch::Receiver<bool>) {
-    use pntr_core::pose::{map_to_ros, UpAxis};
     loop {
         tokio::select! {
             _ = tokio::time::sleep(std::time::Duration::from_secs(2)) => {}
@@ -301,11 +300,11 @@ async fn show_map_cameras(state: Arc<State>, mut stop: watch::Receiver<bool>) {
             .map_or(0.0, |d| d.as_secs_f64());
         let maps = engine.maps();
         let poses = maps.iter().flat_map(|m| {
-            let (up, axes) = (UpAxis::parse(&m.map.header.up_axis), m.map.header.axes());
+            let frames = crate::wire::MapFrames::of(&m.map.header);
             m.map
                 .images
                 .iter()
-                .map(move |im| map_to_ros(&im.world_from_camera, up, axes))
+                .map(move |im| frames.pose_to_ros(&im.world_from_camera))
         });
         live.view().map_cameras(now, poses);
     }

@@ -9,7 +9,6 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
-use pntr_core::pose::{map_to_ros, ros_from_map_world, rotate_covariance};
 use pntr_pipeline::odometry::Keyframe;
 use pntr_pipeline::prior::{tracking_heading, tracking_region, Heading, LocalizeOptions, Region};
 use tokio::sync::oneshot;
@@ -707,10 +706,7 @@ impl LocalizerService {
             frame_convention: proto::FrameConvention::Map as i32,
         };
         if let Some((live, rgb, k)) = &watched {
-            let to_ros = |p: &Isometry3<f64>| map_to_ros(p, frames.up, frames.camera);
-            let covariance =
-                rotate_covariance(&response.covariance, &ros_from_map_world(frames.up))
-                    .unwrap_or_default();
+            let covariance = frames.covariance_to_ros(&response.covariance);
             live.view().observe(&crate::visual::Observation {
                 time_s: std::time::SystemTime::now()
                     .duration_since(std::time::UNIX_EPOCH)
@@ -728,7 +724,11 @@ impl LocalizerService {
                 inliers: response.inliers,
                 mode: loc.mode.name(),
                 matched_image_id: &response.matched_image_id,
-                pose: loc.pose.as_ref().filter(|_| localized).map(to_ros),
+                pose: loc
+                    .pose
+                    .as_ref()
+                    .filter(|_| localized)
+                    .map(|p| frames.pose_to_ros(p)),
                 covariance: &covariance,
                 truth: None,
             });

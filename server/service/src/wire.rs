@@ -196,6 +196,26 @@ impl MapFrames {
         }
     }
 
+    /// The frames a server reports in `GetMapInfo` (y up and Habitat's axes for what it leaves
+    /// empty or does not know).
+    pub fn of_info(info: &proto::MapInfo) -> Self {
+        Self {
+            up: UpAxis::parse(&info.up_axis),
+            camera: CameraAxes::parse(&info.camera_axes).unwrap_or(CameraAxes::Habitat),
+        }
+    }
+
+    /// A `world_from_camera` in these frames as ROS expects it ([`pntr_core::pose::map_to_ros`]).
+    pub fn pose_to_ros(&self, world_from_camera: &Isometry3<f64>) -> Isometry3<f64> {
+        map_to_ros(world_from_camera, self.up, self.camera)
+    }
+
+    /// A 36-value covariance in the map's world frame rotated into the ROS frame; empty for
+    /// anything but 36 values ([`pntr_core::pose::rotate_covariance`]).
+    pub fn covariance_to_ros(&self, covariance: &[f64]) -> Vec<f64> {
+        rotate_covariance(covariance, &ros_from_map_world(self.up)).unwrap_or_default()
+    }
+
     /// `ros_world_from_map_world` as a wire pose (rotation only).
     pub fn ros_from_map(&self) -> proto::Pose {
         to_proto_pose(&Isometry3::from_parts(
@@ -226,11 +246,9 @@ pub fn answer_in(
 ) {
     if convention == proto::FrameConvention::Ros {
         if let Some(p) = pose(r.pose.as_ref()) {
-            r.pose = Some(to_proto_pose(&map_to_ros(&p, frames.up, frames.camera)));
+            r.pose = Some(to_proto_pose(&frames.pose_to_ros(&p)));
         }
-        if let Some(c) = rotate_covariance(&r.covariance, &ros_from_map_world(frames.up)) {
-            r.covariance = c;
-        }
+        r.covariance = frames.covariance_to_ros(&r.covariance);
         r.frame_convention = proto::FrameConvention::Ros as i32;
     } else {
         r.frame_convention = proto::FrameConvention::Map as i32;
