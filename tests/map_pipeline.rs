@@ -419,3 +419,273 @@ fn a_noisy_depth_sensor_is_measured_and_its_far_matches_kept() {
         right(&noisy_grown)
     );
 }
+
+/// A map fits its own calibration: every region held out yields frames the rest of the map cannot
+/// place (its own negatives), the fitted threshold refuses them, the calibration travels inside the
+/// map file, is used by the pipeline, and a damaged one is refused when the map is read.
+#[test]
+fn a_map_fits_its_own_calibration_from_held_out_regions() {
+    use pntr_pipeline::calibration::{Calibration, CalibrationSource};
+    use pntr_pipeline::selfcal::{self, PosedFrame, Regions};
+    let dir = tempfile::tempdir().unwrap();
+    let index = pntr_tests::synthetic_dataset(dir.path(), 8, 4, 41);
+    let preset = Preset::named("xfeat-mnn").unwrap();
+    let (map, _) = build(&index, &preset);
+    let regions = Regions::of_map(&map).unwrap();
+    assert!(regions.count() >= 2, "{} regions", regions.count());
+    for r in 0..regions.count() {
+        assert!((0..map.images.len()).any(|i| regions.of_image(i) == r));
+        // Holding a region out keeps whole places: no place is on both sides.
+        let outside = regions.outside(r);
+        for (i, im) in map.images.iter().enumerate() {
+            let held = regions.of_image(i) == r;
+            assert_eq!(held, outside.binary_search(&i).is_err());
+            let same_place = map
+                .images
+                .iter()
+                .enumerate()
+                .filter(|(_, o)| (o.scene, o.point) == (im.scene, im.point));
+            for (j, _) in same_place {
+                assert_eq!(regions.of_image(j), regions.of_image(i));
+            }
+        }
+    }
+    let models = pntr_tests::models();
+    let stage = preset.feature_config(models).build().unwrap();
+    let pipeline = Pipeline::new(Arc::new(map), stage.clone(), preset.clone()).unwrap();
+    assert_eq!(pipeline.calibration().1, CalibrationSource::Shipped);
+    let scenes: Vec<_> = index.scenes.iter().collect();
+    let list = eval::query_list(scenes.iter().copied(), 0).unwrap();
+    let mut views = eval::QueryViews::default();
+    let mut frame = |i: usize| {
+        let (p, qi) = &list[i];
+        let v = views.view(p, *qi)?;
+        Ok(Some(PosedFrame {
+            query: Query {
+                rgb: v.rgb,
+                depth: v.depth,
+                intrinsics: v.intrinsics,
+            },
+            world_from_camera: v.world_from_camera,
+            scene: 0,
+        }))
+    };
+    let n = list.len();
+    let mut answers =
+        selfcal::pass(&pipeline, &regions, n, false, &mut frame, &mut |_, _| {}).unwrap();
+    let held = selfcal::pass(&pipeline, &regions, n, true, &mut frame, &mut |_, _| {}).unwrap();
+    assert_eq!((answers.len(), held.len()), (n, n));
+    // Against the whole map most frames are placed right; with their region held out, every
+    // region contributes frames the rest of the map cannot place right: the map's own negatives.
+    let right = |a: &selfcal::Answered| a.samples.candidates.iter().any(|c| c.1);
+    assert!(answers.iter().filter(|a| right(a)).count() * 10 >= n * 7);
+    for r in 0..regions.count() {
+        let negatives = held
+            .iter()
+            .filter(|a| a.region == r && a.held_out && !right(a))
+            .count();
+        assert!(negatives > 0, "region {r} gave no negative");
+    }
+    answers.extend(held);
+    let base = Calibration::embedded();
+    let fitted = selfcal::fit(&base, &pipeline.map, &regions, &answers, "2026-12-03").unwrap();
+    eprintln!("{fitted:#?}");
+    assert!(fitted.calibration.threshold >= base.threshold);
+    assert!(fitted.false_positives <= fitted.false_positives_base);
+    // The recall cap is 1 % of both passes' frames: at most 2 % of the in-map ones.
+    let cost = fitted.in_map_recall_base - fitted.in_map_recall;
+    assert!(cost <= 2.0 * selfcal::MAX_RECALL_COST + 1e-9, "{cost}");
+    assert_eq!(fitted.held_out_queries, n);
+    assert_eq!(fitted.regions, regions.count());
+    fitted.check(Path::new("x")).unwrap();
+
+    // Stored in the map, read back, used by the pipeline.
+    let mut map = Arc::try_unwrap(pipeline.map).unwrap();
+    map.header.calibration = Some(fitted.clone());
+    assert!(!map.calibration_is_stale());
+    let path = dir.path().join("own.pntrmap");
+    mapfile::save(&map, &path).unwrap();
+    let back = load(&path).unwrap();
+    assert_eq!(back.header.calibration.as_ref(), Some(&fitted));
+    let p = Pipeline::new(Arc::new(back), stage.clone(), preset.clone()).unwrap();
+    assert_eq!(p.calibration().1, CalibrationSource::Map);
+    assert_eq!(p.min_confidence(), fitted.calibration.threshold);
+    // `--calibration` still overrides it.
+    let p = p.with_calibration(Arc::new(base.clone()), None);
+    assert_eq!(p.calibration().1, CalibrationSource::File);
+    assert_eq!(p.min_confidence(), base.threshold);
+
+    // A map whose images changed since keeps it, stale.
+    let ids: Vec<&str> = map.images[1..].iter().map(|im| im.id.as_str()).collect();
+    assert!(fitted.is_stale_for(ids));
+
+    // Damaged: a threshold changed without its checksum is refused, naming the map and why.
+    let mut damaged = fitted.clone();
+    damaged.calibration.threshold = 0.2;
+    map.header.calibration = Some(damaged);
+    let bad = dir.path().join("damaged.pntrmap");
+    mapfile::save(&map, &bad).unwrap();
+    let e = load(&bad).unwrap_err();
+    assert!(
+        e.contains("damaged.pntrmap") && e.contains("own calibration") && e.contains("checksum"),
+        "{e}"
+    );
+    // So is one from a future version.
+    let mut future = fitted.clone();
+    future.version = 99;
+    map.header.calibration = Some(future.sealed());
+    mapfile::save(&map, &bad).unwrap();
+    let e = load(&bad).unwrap_err();
+    assert!(e.contains("version 99"), "{e}");
+}
+
+/// A room that looks the same turned round (every box has a twin turned by 180 degrees about the
+/// room's centre, plain colours, light from above): a query in it verifies at its true pose and at
+/// the turned one, so it is answered NOT_LOCALIZED, and the reason names the turned pose (issue 41).
+#[test]
+fn a_room_that_looks_alike_turned_round_is_refused_naming_it() {
+    use nalgebra::{Isometry3, Translation3, Vector3};
+    use pntr_pipeline::map::{MapBuilder, NewImage};
+    use pntr_synth::protocol::camera_rotation;
+    use pntr_synth::scene::{Scene, SceneBox};
+    use pntr_synth::texture::{Material, Pattern};
+    let (w, d, h) = (6.0f32, 4.0f32, 2.7f32);
+    let plain = |a: [f32; 3], seed: u32| Material::new(Pattern::Plain, a, a, seed);
+    let materials = vec![
+        plain([0.8, 0.8, 0.75], 1),
+        plain([0.45, 0.35, 0.25], 2),
+        plain([0.9, 0.9, 0.9], 3),
+        plain([0.2, 0.3, 0.7], 4),
+        plain([0.8, 0.2, 0.2], 5),
+        plain([0.1, 0.6, 0.2], 6),
+        plain([0.9, 0.7, 0.1], 7),
+    ];
+    let mut boxes = Vec::new();
+    let mut add = |min: [f32; 3], max: [f32; 3], m: u16, turned: bool| {
+        let b = |min: [f32; 3], max: [f32; 3]| SceneBox {
+            min: Vector3::from(min),
+            max: Vector3::from(max),
+            faces: [m; 6],
+            instance: 1,
+        };
+        boxes.push(b(min, max));
+        if turned {
+            // 180 degrees about the vertical axis through (w/2, d/2): x -> w - x, z -> d - z.
+            boxes.push(b(
+                [w - max[0], min[1], d - max[2]],
+                [w - min[0], max[1], d - min[2]],
+            ));
+        }
+    };
+    let t = 0.1;
+    add([-t, -t, -t], [w + t, 0.0, d + t], 1, false); // floor
+    add([-t, h, -t], [w + t, h + t, d + t], 2, false); // ceiling
+    add([-t, 0.0, -t], [w + t, h, 0.0], 0, true); // walls z = 0 and z = d
+    add([-t, 0.0, 0.0], [0.0, h, d], 0, true); // walls x = 0 and x = w
+    add([0.6, 0.0, 0.3], [1.6, 0.8, 1.0], 3, true); // furniture and its twin
+    add([2.2, 0.0, 0.2], [2.7, 1.6, 0.6], 4, true);
+    add([4.3, 0.0, 0.25], [5.6, 0.45, 0.9], 5, true);
+    add([1.0, 1.2, 0.0], [2.0, 1.9, 0.04], 6, true); // pictures
+    add([3.6, 1.0, 0.0], [4.4, 1.6, 0.04], 4, true);
+    add([0.0, 1.1, 1.4], [0.04, 1.8, 2.3], 6, true);
+    add([0.0, 0.0, 3.0], [0.5, 1.0, 3.5], 3, true);
+    let scene = Scene {
+        name: "turned".into(),
+        boxes,
+        materials,
+        instance_categories: vec![0, 1],
+        rooms: Vec::new(),
+        ceiling_m: h,
+        width_m: w,
+        depth_m: d,
+        lights: [Vector3::y(), Vector3::y()],
+    };
+    let renderer = pntr_synth::Renderer::new(&scene);
+    let k = pntr_core::Intrinsics::hpointloc();
+    let pose = |x: f64, z: f64, yaw_deg: f64| {
+        Isometry3::from_parts(
+            Translation3::new(x, 1.2, z),
+            camera_rotation(yaw_deg.to_radians(), 0.0, 0.0),
+        )
+    };
+    // Points on a grid that the turn maps onto itself, six directions each.
+    let preset = Preset::named("xfeat-mnn").unwrap();
+    let models = pntr_tests::models();
+    let stage = preset.map_feature_config(models.clone()).build().unwrap();
+    let mut builder = MapBuilder::new(&preset, &stage).unwrap();
+    let grid = [
+        (1.5, 1.3),
+        (3.0, 1.3),
+        (4.5, 1.3),
+        (1.5, 2.7),
+        (3.0, 2.7),
+        (4.5, 2.7),
+    ];
+    for (point, (x, z)) in (0u32..).zip(grid) {
+        for yaw in (0..6).map(|i| 60.0 * i as f64 + 15.0) {
+            let p = pose(x, z, yaw);
+            let f = renderer.render(&p, &k, point as u64 * 10 + (yaw as u64));
+            builder
+                .add(NewImage {
+                    id: format!("turned/point{point}/yaw{yaw}"),
+                    scene: 0,
+                    point,
+                    world_from_camera: p,
+                    stamp: None,
+                    rgb: &f.rgb,
+                    depth: &f.depth,
+                    labels: Some(&f.labels),
+                    camera: k,
+                })
+                .unwrap();
+        }
+    }
+    let map = builder
+        .finish(
+            "turned",
+            vec!["turned".into()],
+            pntr_core::CameraAxes::Habitat,
+            "y",
+            &models,
+        )
+        .unwrap();
+    let stage = preset.feature_config(models).build().unwrap();
+    let pipeline = Pipeline::new(Arc::new(map), stage, preset).unwrap();
+    let (mut refused, mut named, mut wrong_localized) = (0, 0, 0);
+    let queries = [
+        (2.1, 1.7, 20.0),
+        (2.4, 1.6, 170.0),
+        (3.6, 2.2, 80.0),
+        (2.0, 2.0, 250.0),
+    ];
+    for (i, &(x, z, yaw)) in queries.iter().enumerate() {
+        let truth = pose(x, z, yaw);
+        let f = renderer.render(&truth, &k, 1000 + i as u64);
+        let l = pipeline
+            .localize(&Query {
+                rgb: f.rgb,
+                depth: f.depth,
+                intrinsics: k,
+            })
+            .unwrap();
+        eprintln!(
+            "query {i}: {:?} {:.3} {:?}",
+            l.status, l.confidence, l.reason
+        );
+        if l.status == Status::Localized {
+            let (dt, dr) = eval::pose_error(&l.pose.unwrap(), &truth, false);
+            wrong_localized += (dt > 1.0 || dr > 10.0) as usize;
+            continue;
+        }
+        refused += 1;
+        named += l
+            .reason
+            .as_deref()
+            .is_some_and(|r| r.contains("turned by") && r.contains("looks alike turned round"))
+            as usize;
+    }
+    // No confident answer at the twin's pose, and the room's symmetry is named.
+    assert_eq!(wrong_localized, 0);
+    assert!(refused >= 2, "{refused} of {} refused", queries.len());
+    assert!(named >= 1, "{named} refusals name the turned pose");
+}

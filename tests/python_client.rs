@@ -579,7 +579,8 @@ def summary(a):
 with pc.Client(addr, token=token, timeout_s=120) as c:
     info = c.map_info()
     assert isinstance(info, pc.MapInfo)
-    report["map_info"] = {"map_id": info.map_id, "images": info.images, "loaded": list(info.loaded_map_ids)}
+    report["map_info"] = {"map_id": info.map_id, "images": info.images, "loaded": list(info.loaded_map_ids),
+                          "calibration_source": info.calibration_source, "min_confidence": info.min_confidence}
 
     # One call per frame.
     answers = []
@@ -715,6 +716,12 @@ fn typed_api_against_a_real_server() {
     });
     eprintln!("value errors: {:#}", r["value_errors"]);
     assert_eq!(r["map_info"]["map_id"], "all", "{}", r["map_info"]);
+    // The map of this test has no calibration of its own: the shipped one, and its threshold.
+    assert_eq!(r["map_info"]["calibration_source"], "shipped");
+    assert_eq!(
+        r["map_info"]["min_confidence"].as_f64().unwrap(),
+        pntr_pipeline::calibration::Calibration::embedded().threshold
+    );
 
     // Localize: 4x4 world_from_camera poses close to the Rust reader's ground truth.
     let answers = r["localize"].as_array().unwrap();

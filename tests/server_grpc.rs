@@ -51,6 +51,9 @@ fn fixture() -> &'static Fixture {
         let path = dir.path().join("all.pntrmap");
         mapfile::save(&built, &path).unwrap();
         built.header.map_id = "copy".into();
+        // The copy carries a calibration of its own (the shipped weights, a threshold a hair
+        // higher, so its answers stay those of `all`): GetMapInfo and the answers say so.
+        built.header.calibration = Some(own_calibration(&built));
         let copy = dir.path().join("copy.pntrmap");
         mapfile::save(&built, &copy).unwrap();
         let queries = pntr_tests::query_views(&index);
@@ -62,6 +65,43 @@ fn fixture() -> &'static Fixture {
             queries,
         }
     })
+}
+
+/// A map's own calibration as `pntr build-db` would store it, with the shipped weights and
+/// [`own_threshold`].
+fn own_calibration(map: &pntr_pipeline::map::Map) -> pntr_pipeline::calibration::MapCalibration {
+    use pntr_pipeline::calibration::{Calibration, MapCalibration, MAP_FORMAT, MAP_VERSION};
+    let base = Calibration::embedded();
+    MapCalibration {
+        format: MAP_FORMAT.into(),
+        version: MAP_VERSION,
+        calibration: Calibration {
+            threshold: own_threshold(),
+            ..base.clone()
+        },
+        method: "threshold".into(),
+        base_threshold: base.threshold,
+        base_checksum: base.checksum.clone(),
+        regions: 2,
+        in_map_queries: 10,
+        held_out_queries: 10,
+        held_out_right: 1,
+        negatives: 9,
+        false_positives_base: 1,
+        false_positives: 0,
+        in_map_recall_base: 1.0,
+        in_map_recall: 1.0,
+        expected_precision: 1.0,
+        images: map.images.len(),
+        fingerprint: map.image_fingerprint(),
+        checksum: String::new(),
+    }
+    .sealed()
+}
+
+/// The LOCALIZED threshold of map `copy`'s own calibration.
+fn own_threshold() -> f64 {
+    pntr_pipeline::calibration::Calibration::embedded().threshold + 1e-9
 }
 
 async fn health(addr: SocketAddr, service: &str) -> ServingStatus {
@@ -266,6 +306,30 @@ fn localizes_reports_and_refuses_bad_input() {
         assert_eq!(info.camera_axes, "habitat");
         assert_eq!((info.image_width, info.image_height), (256, 256));
         assert_eq!(info.loaded_map_ids, ["all", "copy"]);
+        // Which calibration answers use, and what it was fitted on.
+        let cal = info.calibration.unwrap();
+        assert_eq!(cal.source, "shipped");
+        let shipped = pntr_pipeline::calibration::Calibration::embedded();
+        assert_eq!(cal.threshold, shipped.threshold);
+        assert_eq!(cal.fitted_on, shipped.fitted_on.datasets);
+        let copy = c
+            .get_map_info(proto::GetMapInfoRequest {
+                map_id: "copy".into(),
+            })
+            .await
+            .unwrap()
+            .into_inner()
+            .calibration
+            .unwrap();
+        assert_eq!(copy.source, "map");
+        assert_eq!(copy.threshold, own_threshold());
+        assert_eq!(
+            (copy.regions, copy.negatives, copy.false_positives),
+            (2, 9, 0)
+        );
+        assert!(!copy.stale);
+        let answer = c.localize(request(v, "copy")).await.unwrap().into_inner();
+        assert_eq!(answer.min_confidence, own_threshold());
         let e = c
             .get_map_info(proto::GetMapInfoRequest::default())
             .await

@@ -1,18 +1,16 @@
 //! `pntr build-db --sequence`: a map from a robot's own recordings, and the check of where it works.
 
 use std::path::Path;
-use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 use pntr_core::Intrinsics;
 use pntr_dataset::recording::{Recording, RecordingOptions};
 use pntr_pipeline::keyframes::KeyframeParams;
 use pntr_pipeline::mapfile;
-use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::recording_map::{self, Session};
 use serde_json::json;
 
-use crate::map_cmd::{bar, feature_stage, map_feature_stage, models_dir, BuildArgs};
+use crate::map_cmd::{bar, map_feature_stage, models_dir, BuildArgs};
 
 /// The camera of `rec`: `--intrinsics` (at the size of the recording's first readable frame) or
 /// the recording's own calibration.
@@ -182,23 +180,22 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
     for w in &report.warnings {
         eprintln!("warning: {w}");
     }
-    let t = std::time::Instant::now();
-    mapfile::save(&map, &out).with_context(|| format!("writing {}", out.display()))?;
-    let write_s = t.elapsed().as_secs_f64();
-    let bytes = std::fs::metadata(&out)?.len();
-    let map_positions: Vec<[f64; 3]> = map
-        .images
-        .iter()
-        .map(|im| im.world_from_camera.translation.vector.into())
-        .collect();
-    let images = map.images.len();
-    let heap = map.heap_bytes();
-    let header = map.header.clone();
-    let check = if args.no_check {
-        None
+    let self_calibrate = !args.no_self_calibration;
+    let (map, check) = if args.no_check && !self_calibrate {
+        (map, None)
     } else {
-        let query_stage = feature_stage(&preset, &models, args.threads)?;
-        let pipeline = Pipeline::new(Arc::new(map), query_stage, preset.clone())?;
+        let opts = crate::selfcal_cmd::Options {
+            max_frames: args.self_calibration_frames,
+            base: None,
+            models: &models,
+            threads: args.threads,
+            samples: args.self_calibration_samples.as_deref(),
+        };
+        let (pipeline, base, regions, why) = crate::selfcal_cmd::for_recordings(map, &opts)?;
+        let regions = regions.filter(|_| self_calibrate);
+        if let (true, Some(why)) = (self_calibrate, &why) {
+            eprintln!("warning: the map keeps the shipped calibration: {why}");
+        }
         let other = args
             .check_sequence
             .as_deref()
@@ -216,15 +213,57 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
                 "frames between keyframes (the easy case: each is near one)",
             ),
         };
-        let frames = recording_map::evenly(&frames, args.check_frames);
-        let pb = bar(frames.len(), "checking the map");
-        let c = recording_map::check(&pipeline, &check_sessions, &frames, kind, &mut |d, n| {
-            pb.set_length(n as u64);
-            pb.set_position(d as u64);
-        })?;
-        pb.finish_and_clear();
-        Some(c)
+        let mut check = None;
+        let mut used = recording_map::evenly(&frames, args.self_calibration_frames);
+        if !args.no_check {
+            let frames = recording_map::evenly(&frames, args.check_frames);
+            let pb = bar(frames.len(), "checking the map");
+            let c = recording_map::check(
+                &pipeline,
+                &check_sessions,
+                &frames,
+                kind,
+                regions.as_ref(),
+                &mut |d, n| {
+                    pb.set_length(n as u64);
+                    pb.set_position(d as u64);
+                },
+            )?;
+            pb.finish_and_clear();
+            check = Some(c);
+            used = frames;
+        }
+        let map = match &regions {
+            Some(r) => {
+                // The check's answers are the in-map pass of the same frames.
+                let in_map = check.as_mut().map(|c| std::mem::take(&mut c.answers));
+                crate::selfcal_cmd::with_recordings(
+                    pipeline,
+                    &opts,
+                    &base,
+                    r,
+                    &check_sessions,
+                    &used,
+                    in_map,
+                )?
+            }
+            None => crate::selfcal_cmd::into_map(pipeline),
+        };
+        (map, check)
     };
+    let t = std::time::Instant::now();
+    mapfile::save(&map, &out).with_context(|| format!("writing {}", out.display()))?;
+    let write_s = t.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(&out)?.len();
+    let map_positions: Vec<[f64; 3]> = map
+        .images
+        .iter()
+        .map(|im| im.world_from_camera.translation.vector.into())
+        .collect();
+    let images = map.images.len();
+    let heap = map.heap_bytes();
+    let stale = map.calibration_is_stale();
+    let header = map.header.clone();
     if let (Some(dir), Some(c)) = (&args.plot, &check) {
         let frames: Vec<([f64; 3], Option<f64>)> = c
             .per_frame
@@ -274,6 +313,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         "stage_seconds": stage_seconds,
         "sequences": args.sequence.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
         "check": check.as_ref().map(serde_json::to_value).transpose()?,
+        "calibration": crate::selfcal_cmd::summary(header.calibration.as_ref(), stale),
         "warnings": report.warnings,
     });
     if args.json {
@@ -316,5 +356,9 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
             c.frames_over_1m
         );
     }
+    println!(
+        "{}",
+        crate::selfcal_cmd::line(header.calibration.as_ref(), stale)
+    );
     Ok(())
 }

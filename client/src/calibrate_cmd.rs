@@ -37,15 +37,23 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub camera_dataset: Vec<PathBuf>,
     /// Dataset of places the map does not cover (out-of-map queries). Repeatable (for example the same
-    /// places as rendered and with `--realism robot`).
-    #[arg(long, required = true)]
-    pub negatives: Vec<PathBuf>,
-    /// Write the calibration here (JSON; written to a temporary name, then renamed).
+    /// places as rendered and with `--realism robot`). Without it, `--db` is given its own
+    /// calibration instead (see `--db`).
     #[arg(long)]
-    pub out: PathBuf,
-    /// A map of --dataset from `pntr build-db`; without it the map is built first.
+    pub negatives: Vec<PathBuf>,
+    /// Write the calibration here (JSON; written to a temporary name, then renamed). Without
+    /// `--negatives`: the map with its own calibration [default: `--db`, rewritten atomically].
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// A map of --dataset from `pntr build-db`; without it the map is built first. Without
+    /// `--negatives`, refit this map's own calibration: --dataset's queries are localized against
+    /// the whole map and with their own region held out (what `build-db` does) and the map is
+    /// rewritten with it (`--out` for a copy).
     #[arg(long)]
     pub db: Option<PathBuf>,
+    /// Without `--negatives`: frames used, evenly spaced (0 = all); each is localized twice.
+    #[arg(long, default_value_t = crate::selfcal_cmd::DEFAULT_FRAMES, value_name = "N")]
+    pub self_calibration_frames: usize,
     /// Preset: fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
     /// xfeat-mnn-int8, xfeat-mnn-bf16 (default: the map's own, or `xfeat-mnn` when building).
     #[arg(long)]
@@ -155,7 +163,7 @@ fn collect(
 }
 
 /// Today's date (UTC) as YYYY-MM-DD.
-fn today() -> String {
+pub fn today() -> String {
     let days = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs() / 86_400)
@@ -184,10 +192,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     if !(args.l2.is_finite() && args.l2 >= 0.0) {
         anyhow::bail!("--l2 must be a finite number >= 0, not {}", args.l2);
     }
-    for (flag, p) in [
-        ("--out", Some(&args.out)),
-        ("--samples", args.samples.as_ref()),
-    ] {
+    if args.negatives.is_empty() {
+        return own(args);
+    }
+    let Some(out) = &args.out else {
+        anyhow::bail!("--out is required with --negatives (the calibration file to write)");
+    };
+    for (flag, p) in [("--out", Some(out)), ("--samples", args.samples.as_ref())] {
         if let Some(dir) = p
             .and_then(|p| p.parent())
             .filter(|d| !d.as_os_str().is_empty())
@@ -332,11 +343,11 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     c.fitted_on.datasets.extend(negatives);
     c.fitted_on.datasets.extend(other_cameras);
     c.fitted_on.date = today();
-    c.save(&args.out)?;
+    c.save(out)?;
     // Read it back: what was written is what the server will load.
-    let c: Calibration = Calibration::load(&args.out)?;
+    let c: Calibration = Calibration::load(out)?;
     let summary = serde_json::json!({
-        "out": args.out,
+        "out": out,
         "samples": c.fitted_on.samples,
         "positives": c.fitted_on.positives,
         "threshold": c.threshold,
@@ -346,6 +357,56 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         "weights": EVIDENCE_NAMES.iter().zip(&c.weights).map(|(n, w)| (n.to_string(), serde_json::json!(*w))).collect::<serde_json::Map<String, serde_json::Value>>(),
     });
     println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
+
+/// `pntr calibrate --db MAP --dataset D` without `--negatives`: refit the map's own calibration on
+/// D's queries and rewrite the map (or write `--out`).
+fn own(args: &CalibrateArgs) -> Result<()> {
+    let Some(db) = &args.db else {
+        anyhow::bail!(
+            "give --negatives (places the map does not cover) to fit a calibration file, or --db MAP to refit that map's own calibration from --dataset"
+        );
+    };
+    if !args.camera_dataset.is_empty() {
+        anyhow::bail!("--camera-dataset goes with --negatives (a calibration file)");
+    }
+    let out = args.out.clone().unwrap_or_else(|| db.clone());
+    let index = DatasetIndex::open(&args.dataset)?;
+    let models = map_cmd::models_dir(args.models.as_deref())?;
+    let map =
+        map_cmd::load_map(db, args.threads).with_context(|| format!("loading {}", db.display()))?;
+    let scenes: Vec<&SceneEntry> = map
+        .header
+        .scenes
+        .iter()
+        .map(|name| {
+            index.scenes.iter().find(|s| s.name == *name).with_context(|| {
+                format!(
+                    "--dataset {} has no scene `{name}`, which map {} holds: give the dataset the map was built from",
+                    args.dataset.display(),
+                    db.display()
+                )
+            })
+        })
+        .collect::<Result<_>>()?;
+    let opts = crate::selfcal_cmd::Options {
+        max_frames: args.self_calibration_frames,
+        base: args.calibration.as_deref(),
+        models: &models,
+        threads: args.threads,
+        samples: args.samples.as_deref(),
+    };
+    let map = crate::selfcal_cmd::with_dataset(map, &scenes, &opts)?;
+    pntr_pipeline::mapfile::save(&map, &out)
+        .with_context(|| format!("writing {}", out.display()))?;
+    let mut summary = crate::selfcal_cmd::summary(map.header.calibration.as_ref(), false);
+    summary["out"] = serde_json::json!(out);
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    eprintln!(
+        "{}",
+        crate::selfcal_cmd::line(map.header.calibration.as_ref(), false)
+    );
     Ok(())
 }
 

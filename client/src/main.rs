@@ -14,6 +14,7 @@ mod plot;
 mod register_cmd;
 mod remote;
 mod replay_cmd;
+mod selfcal_cmd;
 mod synth_cmd;
 
 use std::path::PathBuf;

@@ -76,6 +76,22 @@ pub struct BuildArgs {
     /// Skip the check after building from `--sequence`.
     #[arg(long)]
     pub no_check: bool,
+    /// Keep the shipped confidence calibration instead of fitting the map's own. By default the
+    /// map is cut into regions and frames with known poses (the dataset's queries, or the
+    /// recording's frames the map was not built from) are localized against the whole map and with
+    /// their own region held out; the LOCALIZED threshold is raised until the map's own look-alikes
+    /// (the held-out frames it places wrongly) are refused, and stored in the map.
+    #[arg(long)]
+    pub no_self_calibration: bool,
+    /// Frames the map's own calibration localizes, evenly spaced (0 = all); each is localized
+    /// twice. With a check, the check's frames are used instead and its answers reused.
+    #[arg(long, default_value_t = crate::selfcal_cmd::DEFAULT_FRAMES, value_name = "N")]
+    pub self_calibration_frames: usize,
+    /// Also write every self-calibration frame's answer here (JSON lines: held out or not, its
+    /// region, each verified candidate's evidence and whether it is right), to study the map's
+    /// look-alikes.
+    #[arg(long, value_name = "FILE.jsonl")]
+    pub self_calibration_samples: Option<PathBuf>,
     /// Draw the map from above with each checked frame coloured by how it went (PNG and SVG) into
     /// this folder.
     #[arg(long, value_name = "DIR")]
@@ -280,6 +296,19 @@ pub fn calibration(path: Option<&Path>) -> Result<Arc<Calibration>> {
     }))
 }
 
+/// `pipeline` with the calibration `--calibration` names, or the one it has (the map's own, else
+/// the shipped one), and `--min-confidence` when given.
+pub fn calibrated(
+    pipeline: Pipeline,
+    path: Option<&Path>,
+    min_confidence: Option<f64>,
+) -> Result<Pipeline> {
+    Ok(match path {
+        Some(_) => pipeline.with_calibration(calibration(path)?, min_confidence),
+        None => pipeline.with_min_confidence(min_confidence),
+    })
+}
+
 /// The scenes of a `--negatives` dataset.
 pub fn negative_scenes(path: Option<&Path>) -> Result<Vec<SceneEntry>> {
     match path {
@@ -445,6 +474,19 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
     let models = models_dir(args.models.as_deref())?;
     let map = build_map(&map_id, &scenes, &preset, &models, args.threads)?;
     let out = args.out.as_deref().context("--out is required")?;
+    let map = if args.no_self_calibration {
+        map
+    } else {
+        let opts = crate::selfcal_cmd::Options {
+            max_frames: args.self_calibration_frames,
+            base: None,
+            models: &models,
+            threads: args.threads,
+            samples: args.self_calibration_samples.as_deref(),
+        };
+        crate::selfcal_cmd::with_dataset(map, &scenes, &opts)
+            .context("fitting the map's own calibration (--no-self-calibration skips it)")?
+    };
     let t = std::time::Instant::now();
     mapfile::save(&map, out).with_context(|| format!("writing {}", out.display()))?;
     let write_s = t.elapsed().as_secs_f64();
@@ -459,6 +501,7 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
         "heap_bytes": map.heap_bytes(),
         "build_seconds": map.header.build_seconds,
         "write_seconds": write_s,
+        "calibration": crate::selfcal_cmd::summary(map.header.calibration.as_ref(), false),
     });
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
@@ -473,6 +516,10 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
             out.display(),
             write_s,
             bytes as f64 / 1e6
+        );
+        println!(
+            "{}",
+            crate::selfcal_cmd::line(map.header.calibration.as_ref(), false)
         );
     }
     Ok(())
@@ -845,10 +892,11 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
             (im.id.clone(), pose)
         })
         .collect();
-    let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?.with_calibration(
-        calibration(args.calibration.as_deref())?,
+    let pipeline = calibrated(
+        Pipeline::new(Arc::new(map), stage, preset.clone())?,
+        args.calibration.as_deref(),
         args.min_confidence,
-    );
+    )?;
     let opts = EvalOptions {
         legacy: args.legacy_metric,
         max_queries: args.queries,
@@ -867,12 +915,11 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         Some(name) => {
             let p = Preset::named(name)?;
             let st = feature_stage(&p, &models, args.threads)?;
-            Some(
-                Pipeline::new(pipeline.map.clone(), st, p)?.with_calibration(
-                    calibration(args.calibration.as_deref())?,
-                    args.min_confidence,
-                ),
-            )
+            Some(calibrated(
+                Pipeline::new(pipeline.map.clone(), st, p)?,
+                args.calibration.as_deref(),
+                args.min_confidence,
+            )?)
         }
         None => None,
     };
@@ -1000,6 +1047,18 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
             r.name, r.frames, r.first_stamp, r.last_stamp
         );
     }
+    // Whether the map changed since its calibration was fitted shows in the image ids (read with
+    // --images only; GetMapInfo and the server's log say it always).
+    let stale = list.as_ref().is_some_and(|(l, _)| {
+        header
+            .calibration
+            .as_ref()
+            .is_some_and(|c| c.is_stale_for(l.iter().filter_map(|im| im["id"].as_str())))
+    });
+    println!(
+        "{}",
+        crate::selfcal_cmd::line(header.calibration.as_ref(), stale)
+    );
     if let Some((_, version)) = &list {
         println!("version {version}");
     }

@@ -295,6 +295,16 @@ pub fn print_map_info(c: &ConnectArgs, json: bool) -> Result<()> {
                 "image_height": m.image_height,
                 "build_seconds": m.build_seconds,
                 "loaded_map_ids": m.loaded_map_ids,
+                "calibration": m.calibration.as_ref().map(|c| serde_json::json!({
+                    "source": c.source,
+                    "threshold": c.threshold,
+                    "fitted_on": c.fitted_on,
+                    "expected_precision": c.expected_precision,
+                    "negatives": c.negatives,
+                    "false_positives": c.false_positives,
+                    "regions": c.regions,
+                    "stale": c.stale,
+                })),
             }))?
         );
         return Ok(());
@@ -319,6 +329,20 @@ pub fn print_map_info(c: &ConnectArgs, json: bool) -> Result<()> {
         "answers by default in the {} convention (ask for `map` or `ros` per request; ROS: z-up map frame, optical camera axes)",
         wire::convention_name(m.frame_convention)
     );
+    if let Some(c) = &m.calibration {
+        match c.source.as_str() {
+            "map" => println!(
+                "calibration: the map's own{} (threshold {:.3}; {} regions held out, {} of {} own negatives LOCALIZED; expected precision {:.3})",
+                if c.stale { ", STALE: the map changed since it was fitted" } else { "" },
+                c.threshold,
+                c.regions,
+                c.false_positives,
+                c.negatives,
+                c.expected_precision
+            ),
+            other => println!("calibration: {other} (threshold {:.3})", c.threshold),
+        }
+    }
     println!("the server holds: {}", m.loaded_map_ids.join(", "));
     Ok(())
 }

@@ -183,3 +183,100 @@ fn out_of_map_queries_are_refused_and_calibration_round_trips() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("between 0 and 1"));
 }
+
+/// A map built from a dataset carries its own calibration (issue 41): `build-db` holds each region
+/// out in turn, says what it fitted and measured, `info` and `eval` use it, `--calibration` still
+/// overrides it, `calibrate --db` refits it (the same answers give the same calibration), and
+/// `--no-self-calibration` keeps the shipped one.
+#[test]
+fn a_map_carries_its_own_calibration() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("map");
+    synth(&root, "19", "8");
+    let root_s = root.to_str().unwrap();
+    let db = dir.path().join("own.pntrmap");
+    let s: serde_json::Value =
+        serde_json::from_str(&build_db(&db, &["--dataset", root_s, "--json"])).unwrap();
+    let c = &s["calibration"];
+    eprintln!("{}", serde_json::to_string_pretty(c).unwrap());
+    assert_eq!(c["source"], "map");
+    assert!(c["regions"].as_u64().unwrap() >= 2, "{c}");
+    // Every query (8 Points, up to 6 each), once against the whole map and once with its region
+    // held out.
+    let frames = c["in_map_frames"].as_u64().unwrap();
+    assert!((40..=48).contains(&frames), "{c}");
+    assert_eq!(c["held_out_frames"], frames);
+    assert!(c["negatives"].as_u64().unwrap() > 0, "{c}");
+    let (t, base) = (
+        c["threshold"].as_f64().unwrap(),
+        c["base_threshold"].as_f64().unwrap(),
+    );
+    assert!(t >= base && t < 1.0, "{c}");
+    assert!(c["false_positives"].as_u64() <= c["false_positives_at_base_threshold"].as_u64());
+    let cost = c["in_map_recall_at_base_threshold"].as_f64().unwrap()
+        - c["in_map_recall"].as_f64().unwrap();
+    // At most 1 % of both passes' frames answered right: 2 % of the in-map ones.
+    assert!(cost <= 0.02 + 1e-9, "{c}");
+    assert!(
+        c["fitted_on"][0].as_str().unwrap().contains("held out"),
+        "{c}"
+    );
+
+    let info = support::map_info(&db, &[]);
+    assert_eq!(info["calibration"]["format"], "pntr-map-calibration");
+    let text = ok(&pntr(&["info", "--db", db.to_str().unwrap()]));
+    assert!(text.contains("calibration: the map's own"), "{text}");
+
+    // eval answers with the map's threshold, or with the one --calibration names.
+    let x = dir.path().join("x.json");
+    let x_s = x.to_str().unwrap();
+    ok(&eval(&root, &db, &["--queries", "6", "--json", x_s]));
+    assert_eq!(read_json(&x)["min_confidence"].as_f64().unwrap(), t);
+    let shipped = Path::new(MODELS).join("calibration.json");
+    let shipped_s = shipped.to_str().unwrap();
+    ok(&eval(
+        &root,
+        &db,
+        &["--queries", "6", "--calibration", shipped_s, "--json", x_s],
+    ));
+    assert_eq!(read_json(&x)["min_confidence"].as_f64().unwrap(), base);
+
+    // Refit into a copy: the same frames and map give the same calibration.
+    let copy = dir.path().join("copy.pntrmap");
+    let args = [
+        "calibrate",
+        "--db",
+        db.to_str().unwrap(),
+        "--dataset",
+        root_s,
+    ];
+    let out = ok(&pntr(
+        &[
+            &args[..],
+            &["--out", copy.to_str().unwrap(), "--models", MODELS],
+        ]
+        .concat(),
+    ));
+    let again: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(again["source"], "map");
+    assert_eq!(again["threshold"].as_f64().unwrap(), t);
+    assert_eq!(
+        support::map_info(&copy, &[])["calibration"],
+        info["calibration"]
+    );
+    // Without a map to refit or negatives to fit on, it says what to give.
+    let err = String::from_utf8_lossy(
+        &pntr(&["calibrate", "--dataset", root_s, "--models", MODELS]).stderr,
+    )
+    .to_string();
+    assert!(err.contains("--negatives") && err.contains("--db"), "{err}");
+
+    let plain = dir.path().join("plain.pntrmap");
+    let s: serde_json::Value = serde_json::from_str(&build_db(
+        &plain,
+        &["--dataset", root_s, "--no-self-calibration", "--json"],
+    ))
+    .unwrap();
+    assert_eq!(s["calibration"]["source"], "shipped");
+    assert!(support::map_info(&plain, &[]).get("calibration").is_none());
+}

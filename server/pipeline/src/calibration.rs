@@ -206,6 +206,142 @@ pub fn model_inputs(e: &Evidence) -> [f64; N_FEATURES] {
     })
 }
 
+/// Where a pipeline's calibration came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CalibrationSource {
+    /// The one shipped with the models (`models/calibration.json`, embedded).
+    Shipped,
+    /// The map's own ([`MapCalibration`]).
+    Map,
+    /// A file the user named (`--calibration`).
+    File,
+}
+
+impl CalibrationSource {
+    /// `shipped`, `map` or `file`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Shipped => "shipped",
+            Self::Map => "map",
+            Self::File => "file",
+        }
+    }
+}
+
+/// The `format` value of a map's own calibration ([`MapCalibration`]).
+pub const MAP_FORMAT: &str = "pntr-map-calibration";
+/// The map calibration version this build reads and writes.
+pub const MAP_VERSION: u32 = 1;
+
+/// A map's own calibration, stored in the map's header ([`crate::map::MapHeader::calibration`]):
+/// the logistic model and the LOCALIZED threshold fitted on the map's own frames, each region of the
+/// map held out in turn ([`crate::selfcal`]), with what it was fitted on and what it measured there.
+///
+/// Versioned and checksummed on its own (FNV-1a of the canonical JSON of every other field, like a
+/// calibration file), so a damaged or hand-edited one is refused when the map is read, whatever the
+/// section checksum says. `fingerprint` names the map images it was fitted for: a map extended or
+/// merged since then keeps it but reports it stale ([`MapCalibration::is_stale_for`]) until
+/// `pntr calibrate --db` refits it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapCalibration {
+    /// Always [`MAP_FORMAT`].
+    pub format: String,
+    /// Always [`MAP_VERSION`].
+    pub version: u32,
+    /// The model and threshold in use (the base's weights when only the threshold was refitted).
+    pub calibration: Calibration,
+    /// What was refitted: `threshold` (the base calibration's weights kept).
+    pub method: String,
+    /// The base calibration's threshold and checksum (the shipped one unless `--calibration`).
+    pub base_threshold: f64,
+    /// See `base_threshold`.
+    pub base_checksum: String,
+    /// Regions the map was cut into; each was held out once.
+    pub regions: usize,
+    /// Frames localized against the whole map (in-map).
+    pub in_map_queries: usize,
+    /// Frames localized with their own region held out.
+    pub held_out_queries: usize,
+    /// Of those, answered right (within 1 m, 10 deg) by the rest of the map (views into a kept
+    /// region): they count as right, not as negatives.
+    pub held_out_right: usize,
+    /// Answers that are not right (every held-out frame the rest of the map cannot place, and
+    /// in-map answers off by more than 1 m or 10 deg): the map's own negatives.
+    pub negatives: usize,
+    /// Negatives LOCALIZED at the base threshold.
+    pub false_positives_base: usize,
+    /// Negatives LOCALIZED at the map's threshold.
+    pub false_positives: usize,
+    /// Share of in-map frames LOCALIZED right at the base threshold.
+    pub in_map_recall_base: f64,
+    /// The same at the map's threshold.
+    pub in_map_recall: f64,
+    /// Precision (within 1 m, 10 deg) of every LOCALIZED answer of both passes at the map's
+    /// threshold: what the map expects of itself.
+    pub expected_precision: f64,
+    /// Map images when it was fitted.
+    pub images: usize,
+    /// FNV-1a (hex) of the map's image ids in order when it was fitted ([`image_fingerprint`]).
+    pub fingerprint: String,
+    /// FNV-1a (hex) of every other field.
+    #[serde(default)]
+    pub checksum: String,
+}
+
+/// FNV-1a (hex) of image ids in order: which images a [`MapCalibration`] was fitted for.
+pub fn image_fingerprint<'a>(ids: impl IntoIterator<Item = &'a str>) -> String {
+    let mut h = pntr_core::bytes::FNV1A_START;
+    for id in ids {
+        h = pntr_core::bytes::fnv1a_update(h, id.as_bytes());
+        h = pntr_core::bytes::fnv1a_update(h, &[0]);
+    }
+    format!("{h:016x}")
+}
+
+impl MapCalibration {
+    /// The checksum of every field but `checksum`.
+    pub fn compute_checksum(&self) -> String {
+        let mut c = self.clone();
+        c.checksum.clear();
+        let bytes = serde_json::to_vec(&c).expect("plain data serialises");
+        format!("{:016x}", pntr_core::bytes::fnv1a(&bytes))
+    }
+
+    /// With its own and its model's checksums filled in.
+    pub fn sealed(mut self) -> Self {
+        self.calibration.checksum = self.calibration.compute_checksum();
+        self.checksum = self.compute_checksum();
+        self
+    }
+
+    /// Check format, version, both checksums and the model (as [`Calibration::parse`] does); `path`
+    /// names the map in errors.
+    pub fn check(&self, path: &Path) -> Result<(), PipelineError> {
+        let bad = |m: String| bad(path, format!("the map's own calibration: {m}"));
+        if self.format != MAP_FORMAT || self.version != MAP_VERSION {
+            return Err(bad(format!(
+                "format `{}` version {}; this build reads `{MAP_FORMAT}` version {MAP_VERSION} (refit it with `pntr calibrate --db`)",
+                self.format, self.version
+            )));
+        }
+        if self.checksum != self.compute_checksum() {
+            return Err(bad(
+                "checksum mismatch (the map was changed or damaged; refit with `pntr calibrate --db`)"
+                    .into(),
+            ));
+        }
+        let text = serde_json::to_string(&self.calibration).map_err(|e| bad(e.to_string()))?;
+        Calibration::parse(&text, path).map_err(|e| bad(e.to_string()))?;
+        Ok(())
+    }
+
+    /// True when `ids` (the map's image ids in order) are not the images it was fitted for.
+    pub fn is_stale_for<'a>(&self, ids: impl IntoIterator<Item = &'a str>) -> bool {
+        image_fingerprint(ids) != self.fingerprint
+    }
+}
+
 /// Number of model inputs.
 pub const N_FEATURES: usize = EVIDENCE_NAMES.len();
 
@@ -365,6 +501,58 @@ pub fn fit(
         ..FitInfo::default()
     };
     Ok(c)
+}
+
+/// Refit `base`'s weights and bias on `queries`' candidates, keeping its standardisation (mean and
+/// scale) and pulling each weight towards `base`'s by an L2 penalty `l2` on the difference (the
+/// bias is free): with few samples the result stays near `base`, with many it follows them. Newton's
+/// method, as [`fit`]. The threshold and provenance stay `base`'s (the caller sets them).
+pub fn refit_toward(base: &Calibration, queries: &[QuerySamples], l2: f64) -> Calibration {
+    let n = N_FEATURES;
+    let z: Vec<(nalgebra::DVector<f64>, f64)> = queries
+        .iter()
+        .flat_map(|q| q.candidates.iter())
+        .map(|(e, right)| {
+            let x = model_inputs(e);
+            let mut v = nalgebra::DVector::<f64>::zeros(n + 1);
+            for j in 0..n {
+                v[j] = (x[j] - base.mean[j]) / base.scale[j];
+            }
+            v[n] = 1.0;
+            (v, *right as u8 as f64)
+        })
+        .collect();
+    let mut w = nalgebra::DVector::<f64>::zeros(n + 1);
+    for j in 0..n {
+        w[j] = base.weights[j];
+    }
+    w[n] = base.bias;
+    for _ in 0..50 {
+        let mut g = nalgebra::DVector::<f64>::zeros(n + 1);
+        let mut h = nalgebra::DMatrix::<f64>::zeros(n + 1, n + 1);
+        for (zi, yi) in &z {
+            let p = sigmoid(w.dot(zi));
+            g += zi * (p - yi);
+            h += zi * zi.transpose() * (p * (1.0 - p)).max(1e-9);
+        }
+        for j in 0..n {
+            g[j] += l2 * (w[j] - base.weights[j]);
+            h[(j, j)] += l2;
+        }
+        // A bias with nothing to pull it (all samples one label) stays put.
+        h[(n, n)] += 1e-6;
+        let Some(step) = h.lu().solve(&g) else { break };
+        w -= &step;
+        if step.norm() < 1e-9 {
+            break;
+        }
+    }
+    Calibration {
+        weights: w.as_slice()[..n].to_vec(),
+        bias: w[n],
+        checksum: String::new(),
+        ..base.clone()
+    }
 }
 
 /// The smallest threshold at which the answers kept (probability >= threshold) reach `target`

@@ -45,6 +45,7 @@ pub mod preset;
 pub mod prior;
 pub mod recording_map;
 pub mod refine;
+pub mod selfcal;
 pub mod shortlist;
 pub mod verify;
 

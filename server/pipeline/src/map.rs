@@ -156,6 +156,11 @@ pub struct MapHeader {
     /// The recordings the map was built or extended from, in order (empty for a dataset's map).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub sessions: Vec<SessionRecord>,
+    /// The map's own confidence calibration, fitted on its frames with each region held out
+    /// ([`crate::selfcal`]); `None` for a map built without it (the shipped calibration then
+    /// applies). Checked when the map is read.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::calibration::MapCalibration>,
 }
 
 /// One recording a map was built or extended from: what tells it again.
@@ -208,6 +213,20 @@ pub struct Map {
 }
 
 impl Map {
+    /// [`crate::calibration::image_fingerprint`] of this map's images.
+    pub fn image_fingerprint(&self) -> String {
+        crate::calibration::image_fingerprint(self.images.iter().map(|im| im.id.as_str()))
+    }
+
+    /// True when the map carries its own calibration but was extended or merged since it was
+    /// fitted (other images than it was fitted for).
+    pub fn calibration_is_stale(&self) -> bool {
+        self.header
+            .calibration
+            .as_ref()
+            .is_some_and(|c| c.is_stale_for(self.images.iter().map(|im| im.id.as_str())))
+    }
+
     /// Bytes the map holds in memory, approximately (images plus retrieval vectors).
     pub fn heap_bytes(&self) -> usize {
         let dense = match &self.retriever.describer {
@@ -565,6 +584,7 @@ impl<'a> MapBuilder<'a> {
                 build_seconds: self.t0.elapsed().as_secs_f64(),
                 built_at_unix_s: Some(unix_now_s()),
                 sessions: Vec::new(),
+                calibration: None,
             },
             images: self.images,
             retriever,

@@ -438,7 +438,12 @@ fn small_section(r: &mut impl Read, path: &Path) -> Result<([u8; 4], Vec<u8>), P
 }
 
 fn parse_header(payload: &[u8], path: &Path) -> Result<MapHeader, PipelineError> {
-    serde_json::from_slice(payload).map_err(|e| bad(path, format!("section HEAD: {e}")))
+    let header: MapHeader =
+        serde_json::from_slice(payload).map_err(|e| bad(path, format!("section HEAD: {e}")))?;
+    if let Some(c) = &header.calibration {
+        c.check(path)?;
+    }
+    Ok(header)
 }
 
 fn expect(tag: &[u8; 4], want: &[u8; 4], path: &Path) -> Result<(), PipelineError> {

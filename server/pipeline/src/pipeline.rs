@@ -33,7 +33,7 @@ use pntr_retrieval::index::Hit;
 use serde::Serialize;
 
 use crate::alias::resolve;
-use crate::calibration::{choose, Calibration};
+use crate::calibration::{choose, Calibration, CalibrationSource};
 use crate::camera::to_map_scale;
 use crate::depth_noise::RangeBounds;
 use crate::map::Map;
@@ -91,6 +91,44 @@ pub const COVARIANCE_SCALE: f64 = 2.0;
 pub const INDEPENDENT_VIEW_M: f64 = 1.0;
 /// See [`INDEPENDENT_VIEW_M`].
 pub const INDEPENDENT_VIEW_DEG: f64 = 20.0;
+
+/// Map images tried for a LOCALIZED answer's turned look-alike ([`Pipeline::turned_views`]).
+pub const TURNED_CANDIDATES: usize = 2;
+/// A map image counts as turned when its horizontal viewing direction differs from the answer's by
+/// at least this, degrees (a room's 90 and 180 degree symmetries).
+pub const TURNED_MIN_DEG: f64 = 60.0;
+/// ... and when it was taken within this distance of the answer, metres (about a room).
+pub const TURNED_RADIUS_M: f64 = 8.0;
+
+/// What the search has seen of a query besides its features: its global descriptor, and the map
+/// images it may use ([`LocalizeOptions::among`]).
+struct Seen<'a> {
+    desc: &'a pntr_retrieval::global::Descriptor,
+    among: Option<&'a [usize]>,
+}
+
+/// Consensus counts only for a pose whose nearby map views agree with at least this share of the
+/// query's samples ([`consensus_may_lift`]).
+pub const CONSENSUS_MIN_VIEWS_AGREE: f64 = 0.6;
+/// ... and that leaves at most this share of samples in space the matched or nearby views saw
+/// through (each).
+pub const CONSENSUS_MAX_VIOLATION: f64 = 0.1;
+/// ... and whose grey levels agree within tiles (`local_gray` or `views_local_gray`) at least this
+/// much: a box room matched by its shape alone agrees in depth everywhere and in grey nowhere.
+pub const CONSENSUS_MIN_LOCAL_GRAY: f64 = 0.25;
+
+/// Whether other candidates' agreement may count for a pose with dense evidence `e`: only when the
+/// dense checks support it on their own. Adjacent views of one wrong place register to the same
+/// wrong pose, so their agreement lifted poses with free-space violations, low view agreement or
+/// no grey agreement to confidences of 0.99 and above (issue 41; BENCHMARKS.md, "A map's own
+/// calibration": of the out-of-map answers LOCALIZED against a drive's map, 7 of 75 before, 3
+/// after, with no in-map answer lost on three maps' own frames).
+pub fn consensus_may_lift(e: &Evidence) -> bool {
+    e.views_agree >= CONSENSUS_MIN_VIEWS_AGREE
+        && e.free_space_violation <= CONSENSUS_MAX_VIOLATION
+        && e.views_violation <= CONSENSUS_MAX_VIOLATION
+        && e.local_gray.max(e.views_local_gray) >= CONSENSUS_MIN_LOCAL_GRAY
+}
 
 /// One RGB-D query.
 #[derive(Debug, Clone)]
@@ -259,6 +297,7 @@ pub struct Pipeline {
     /// MNN with [`FALLBACK_MIN_SIMILARITY`], for frames whose candidates all failed to register.
     fallback: Mnn,
     calibration: Arc<Calibration>,
+    calibration_source: CalibrationSource,
     min_confidence: f64,
     /// Map indices of the images of each (scene, Point), for the nearby views of verification.
     point_views: HashMap<(u32, u32), Vec<usize>>,
@@ -293,7 +332,15 @@ impl Pipeline {
     pub fn new(map: Arc<Map>, stage: FeatureStage, preset: Preset) -> Result<Self, PipelineError> {
         preset.validate()?;
         preset.serves(&map.header.preset)?;
-        let calibration = Arc::new(Calibration::embedded());
+        // The map's own calibration when it carries one (fitted on its own regions), else the
+        // shipped one; `with_calibration` overrides either.
+        let (calibration, calibration_source) = match &map.header.calibration {
+            Some(own) => (Arc::new(own.calibration.clone()), CalibrationSource::Map),
+            None => (
+                Arc::new(Calibration::embedded()),
+                CalibrationSource::Shipped,
+            ),
+        };
         let mut point_views: HashMap<(u32, u32), Vec<usize>> = HashMap::new();
         for (i, im) in map.images.iter().enumerate() {
             point_views.entry((im.scene, im.point)).or_default().push(i);
@@ -331,6 +378,7 @@ impl Pipeline {
             },
             min_confidence: calibration.threshold,
             calibration,
+            calibration_source,
             point_views,
             map_focal_px,
             map_pixels,
@@ -359,7 +407,22 @@ impl Pipeline {
         }
         self.min_confidence = min_confidence.unwrap_or(calibration.threshold);
         self.calibration = calibration;
+        self.calibration_source = CalibrationSource::File;
         self
+    }
+
+    /// LOCALIZED when the confidence is at least `min_confidence` instead of the calibration's own
+    /// threshold (`None`: keep it).
+    pub fn with_min_confidence(mut self, min_confidence: Option<f64>) -> Self {
+        if let Some(m) = min_confidence {
+            self.min_confidence = m;
+        }
+        self
+    }
+
+    /// The confidence calibration in use, and where it came from.
+    pub fn calibration(&self) -> (&Calibration, CalibrationSource) {
+        (&self.calibration, self.calibration_source)
     }
 
     /// The focal length, pixels, that queries from other cameras are resampled to.
@@ -482,7 +545,13 @@ impl Pipeline {
         let td = Instant::now();
         let desc = self.map.retriever.describer.describe(&q.rgb, &fq)?;
         times.retrieval += td.elapsed().as_secs_f64();
-        let inside = opts.region.map(|r| self.images_within(&r));
+        let inside = opts.region.map(|r| {
+            let mut ids = self.images_within(&r);
+            if let Some(among) = &opts.among {
+                ids.retain(|i| among.binary_search(i).is_ok());
+            }
+            ids
+        });
         if let Some(ids) = inside.filter(|ids| !ids.is_empty()) {
             let k = opts.region_candidates.unwrap_or(shortlist);
             let ts = Instant::now();
@@ -500,7 +569,12 @@ impl Pipeline {
                 self.shortlisted(&fq, &q_pts, deep, k)?
             };
             times.retrieval += ts.elapsed().as_secs_f64();
-            let loc = self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, times, t0)?;
+            let seen = Seen {
+                desc: &desc,
+                among: opts.among.as_deref(),
+            };
+            let loc =
+                self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, &seen, times, t0)?;
             let on_track = loc.pose.is_some_and(|p| off_track(&p, opts).is_none());
             if loc.status == Status::Localized && on_track {
                 let loc = Localization {
@@ -512,13 +586,18 @@ impl Pipeline {
             times = loc.times;
         }
         let t2 = Instant::now();
-        let hits = self
-            .map
-            .retriever
-            .search(&desc, self.shortlist_depth(shortlist))?;
+        let depth = self.shortlist_depth(shortlist);
+        let hits = match &opts.among {
+            Some(among) => self.map.retriever.search_among(&desc, depth, among)?,
+            None => self.map.retriever.search(&desc, depth)?,
+        };
         let hits = self.shortlisted(&fq, &q_pts, hits, shortlist)?;
         times.retrieval += t2.elapsed().as_secs_f64();
-        let loc = self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, times, t0)?;
+        let seen = Seen {
+            desc: &desc,
+            among: opts.among.as_deref(),
+        };
+        let loc = self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, &seen, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the
         // camera can be, given its last verified pose) is a look-alike, not the robot's position.
         let loc = match loc.pose.and_then(|p| off_track(&p, opts)) {
@@ -716,6 +795,7 @@ impl Pipeline {
         q_bounds: &RangeBounds,
         q: &Query,
         shortlisted: Shortlisted,
+        seen: &Seen<'_>,
         mut times: StageTimes,
         t0: Instant,
     ) -> Result<Localization, PipelineError> {
@@ -834,35 +914,56 @@ impl Pipeline {
                 (c, e, w)
             })
             .collect();
-        // Ambiguity: the best rival that verifies well with a pose that disagrees (a symmetric room, a
-        // repeated piece of furniture) lowers the confidence of each.
-        let rivals: Vec<f64> = scored
-            .iter()
-            .map(|(_, _, w)| {
-                scored
-                    .iter()
-                    .filter(|(_, _, o)| !poses_agree(o, w, 0.5, 10.0))
-                    .map(|(_, e, _)| e.views_agree)
-                    .fold(0.0, f64::max)
-            })
-            .collect();
-        for ((_, e, _), r) in scored.iter_mut().zip(rivals) {
-            e.rival_agree = r;
+        let (mut probabilities, mut rivals, mut chosen) = self.decide(&mut scored);
+        // A pose about to be LOCALIZED: is the same room, turned round, also a pose? Rooms that look
+        // alike turned by 90 or 180 degrees gave the confident in-map errors (issue 41), and the
+        // turned views rarely make the shortlist, whose ranking follows the look of the place.
+        if let (Some((i, conf)), Some(t)) = (chosen, thumb_ref) {
+            if conf >= self.min_confidence {
+                let taken: Vec<usize> = scored.iter().map(|s| s.0.image).collect();
+                let scene = self.map.images[scored[i].0.image].scene;
+                let turned = self.turned_views(&scored[i].2, scene, seen, &taken)?;
+                let before = scored.len();
+                for (k, id) in turned.into_iter().enumerate() {
+                    // Matched and registered as part of verification (its time counts there).
+                    let matched = Matched::By(&self.cheap);
+                    let mut part_of_verification = StageTimes::default();
+                    let mut c = register(id, hits.len() + k, matched, &mut part_of_verification)?;
+                    let Some(p) = c
+                        .db_from_query
+                        .filter(|_| c.inliers >= self.preset.min_inliers)
+                    else {
+                        continue;
+                    };
+                    let db = &self.map.images[c.image].thumb;
+                    if let Some(r) = refine_dense(t, db, &p, &c.inlier_src, &c.inlier_dst) {
+                        c.db_from_query = Some(r);
+                    }
+                    let w = self.world_from_query(&c).expect("valid");
+                    pool.push((c.image, w, c.inliers));
+                    let e = self.evidence(&c, t, &pool, &hits, q);
+                    scored.push((c, e, w));
+                }
+                if scored.len() > before {
+                    (probabilities, rivals, chosen) = self.decide(&mut scored);
+                }
+            }
         }
-        let probabilities: Vec<f64> = scored
-            .iter()
-            .map(|(_, e, _)| self.calibration.probability(e))
-            .collect();
-        let rivals: Vec<Vec<usize>> = scored
-            .iter()
-            .map(|(_, _, w)| {
-                (0..scored.len())
-                    .filter(|&j| !poses_agree(&scored[j].2, w, 0.5, 10.0))
-                    .collect()
-            })
-            .collect();
-        let inliers: Vec<usize> = scored.iter().map(|(c, _, _)| c.inliers).collect();
-        let chosen = choose(&probabilities, &inliers, &rivals);
+        // The strongest rival turned from the chosen pose by a room's symmetry, for the reason.
+        let turned_rival = chosen.and_then(|(i, _)| {
+            rivals[i]
+                .iter()
+                .map(|&j| {
+                    let deg = scored[i]
+                        .2
+                        .rotation
+                        .angle_to(&scored[j].2.rotation)
+                        .to_degrees();
+                    (deg, probabilities[j])
+                })
+                .filter(|&(deg, p)| deg >= TURNED_MIN_DEG && p >= 0.5)
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+        });
         let verified: Vec<Verified> = scored
             .iter()
             .zip(&probabilities)
@@ -925,8 +1026,13 @@ impl Pipeline {
                 Status::NotLocalized
             },
             reason: (!localized).then(|| {
+                let turned = turned_rival.map_or(String::new(), |(deg, pr)| {
+                    format!(
+                        "; a pose turned by {deg:.0} deg also verifies (probability {pr:.2}): the room looks alike turned round and the map cannot tell the two apart"
+                    )
+                });
                 format!(
-                    "verification: confidence {p:.2} below the threshold {:.2} ({})",
+                    "verification: confidence {p:.2} below the threshold {:.2} ({}){turned}",
                     self.min_confidence,
                     evidence.summary()
                 )
@@ -947,6 +1053,93 @@ impl Pipeline {
             off_track: None,
             keyframe: None,
         })
+    }
+
+    /// Each verified candidate's rivalry (the best view agreement among the candidates whose pose
+    /// disagrees, written into its evidence), calibrated probability and disagreeing rivals, and the
+    /// choice among them ([`choose`]).
+    #[allow(clippy::type_complexity)]
+    fn decide(
+        &self,
+        scored: &mut [(Candidate, Evidence, Isometry3<f64>)],
+    ) -> (Vec<f64>, Vec<Vec<usize>>, Option<(usize, f64)>) {
+        // Ambiguity: the best rival that verifies well with a pose that disagrees (a symmetric room,
+        // a repeated piece of furniture) lowers the confidence of each.
+        let rival_agree: Vec<f64> = scored
+            .iter()
+            .map(|(_, _, w)| {
+                scored
+                    .iter()
+                    .filter(|(_, _, o)| !poses_agree(o, w, 0.5, 10.0))
+                    .map(|(_, e, _)| e.views_agree)
+                    .fold(0.0, f64::max)
+            })
+            .collect();
+        for ((_, e, _), r) in scored.iter_mut().zip(rival_agree) {
+            e.rival_agree = r;
+        }
+        let probabilities: Vec<f64> = scored
+            .iter()
+            .map(|(_, e, _)| self.calibration.probability(e))
+            .collect();
+        let rivals: Vec<Vec<usize>> = scored
+            .iter()
+            .map(|(_, _, w)| {
+                (0..scored.len())
+                    .filter(|&j| !poses_agree(&scored[j].2, w, 0.5, 10.0))
+                    .collect()
+            })
+            .collect();
+        let inliers: Vec<usize> = scored.iter().map(|(c, _, _)| c.inliers).collect();
+        let chosen = choose(&probabilities, &inliers, &rivals);
+        (probabilities, rivals, chosen)
+    }
+
+    /// Up to [`TURNED_CANDIDATES`] map images of `scene` (not in `taken`, within `seen.among`) that
+    /// look at the room of `world_from_query` (OpenCV axes) from a direction turned by at least
+    /// [`TURNED_MIN_DEG`] about the map's up axis, within [`TURNED_RADIUS_M`], the most alike
+    /// (global descriptor) first: where the same room turned round would be seen from.
+    fn turned_views(
+        &self,
+        world_from_query: &Isometry3<f64>,
+        scene: u32,
+        seen: &Seen<'_>,
+        taken: &[usize],
+    ) -> Result<Vec<usize>, PipelineError> {
+        let up = self.map.header.up();
+        let level = |r: &nalgebra::UnitQuaternion<f64>| {
+            let f = r * Vector3::z();
+            let h = f - up * f.dot(&up);
+            (h.norm() > 0.3).then(|| h.normalize())
+        };
+        let Some(forward) = level(&world_from_query.rotation) else {
+            return Ok(Vec::new());
+        };
+        let region = Region::new(world_from_query.translation.vector, TURNED_RADIUS_M)?;
+        let min_cos = TURNED_MIN_DEG.to_radians().cos();
+        let ids: Vec<usize> = self
+            .images_within(&region)
+            .into_iter()
+            .filter(|&j| {
+                let im = &self.map.images[j];
+                im.scene == scene
+                    && !taken.contains(&j)
+                    && seen.among.is_none_or(|a| a.binary_search(&j).is_ok())
+                    && level(
+                        &convert_axes(&im.world_from_camera, self.axes, CameraAxes::OpenCv)
+                            .rotation,
+                    )
+                    .is_some_and(|f| f.dot(&forward) <= min_cos)
+            })
+            .collect();
+        if ids.is_empty() {
+            return Ok(Vec::new());
+        }
+        let hits = self
+            .map
+            .retriever
+            .search_among(seen.desc, TURNED_CANDIDATES, &ids)?;
+        Ok(hits.into_iter().map(|h| h.id).collect())
     }
 
     /// The candidates with a registration, most inliers first, those with at least the preset's
@@ -1054,7 +1247,13 @@ impl Pipeline {
             .iter()
             .filter(|o| poses_agree(&o.1, &world_from_query, 0.5, 10.0))
             .count();
-        e.consensus = agreeing as f64 / independent.len().max(1) as f64;
+        // Other candidates agreeing is no evidence for a pose the dense checks do not support on
+        // their own: views of one wrong place agree with each other (issue 41).
+        e.consensus = if consensus_may_lift(&e) {
+            agreeing as f64 / independent.len().max(1) as f64
+        } else {
+            0.0
+        };
         e.rival_inliers = others
             .iter()
             .filter(|o| !poses_agree(&o.1, &world_from_query, 0.5, 10.0))

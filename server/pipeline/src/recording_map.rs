@@ -436,16 +436,23 @@ pub struct CheckReport {
     /// Every frame, for pictures.
     #[serde(skip)]
     pub per_frame: Vec<CheckedFrame>,
+    /// Every frame's verified candidates, labelled, for the map's own calibration (only when
+    /// [`check`] was given the map's regions).
+    #[serde(skip)]
+    pub answers: Vec<crate::selfcal::Answered>,
 }
 
 /// Localize `frames` ((recording, frame) of `sessions`) against `pipeline`'s map, one at a time and
 /// globally (no prior, no tracking), and compare with the recordings' poses. Unreadable frames and
-/// frames without a pose are passed over. `progress(done, total)` after every frame.
+/// frames without a pose are passed over. With `regions`, each frame's answer is also kept
+/// ([`CheckReport::answers`]) as the in-map pass of the map's own calibration. `progress(done,
+/// total)` after every frame.
 pub fn check(
     pipeline: &Pipeline,
     sessions: &[Session<'_>],
     frames: &[(usize, usize)],
     kind: &str,
+    regions: Option<&crate::selfcal::Regions>,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<CheckReport, PipelineError> {
     let t0 = Instant::now();
@@ -469,6 +476,11 @@ pub fn check(
             intrinsics: s.camera,
         };
         let loc = pipeline.localize_with(&q, &LocalizeOptions::default())?;
+        let position = truth.translation.vector;
+        if let Some(r) = regions.and_then(|r| r.of_position(&pipeline.map, 0, &position)) {
+            out.answers
+                .push(crate::selfcal::answered(&loc, &truth, r, false));
+        }
         out.frames += 1;
         let error_m = loc.pose.map(|p: Isometry3<f64>| {
             let d = (p.translation.vector - truth.translation.vector).norm();

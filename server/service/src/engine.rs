@@ -62,6 +62,12 @@ pub struct LoadedMap {
     pub serial: u64,
     /// Size and modification time of the file when it was read (SIGHUP reloads changed files only).
     pub file_stamp: Option<(u64, std::time::SystemTime)>,
+    /// The LOCALIZED threshold its answers use: `--min-confidence`, or its calibration's.
+    pub min_confidence: f64,
+    /// Where its confidence calibration comes from: the map's own, `--calibration`, or shipped.
+    pub calibration_source: pntr_pipeline::calibration::CalibrationSource,
+    /// True when the map carries its own calibration but changed since it was fitted.
+    pub calibration_stale: bool,
     /// One pipeline per worker (each over that worker's own model sessions).
     pipelines: Vec<Pipeline>,
     /// Declared last, so dropped after the map and the pipelines: gives their memory back to the OS.
@@ -265,14 +271,15 @@ pub struct Engine {
     pub workers: usize,
     /// Queue capacity.
     pub queue: usize,
-    /// The LOCALIZED threshold on the calibrated confidence.
-    pub min_confidence: f64,
+    /// `--min-confidence`: the LOCALIZED threshold for every map instead of its calibration's.
+    min_confidence: Option<f64>,
     /// The convention of answers whose request does not choose one.
     pub frame_convention: crate::proto::FrameConvention,
     runtime: RuntimeOptions,
     models: PathBuf,
     preset_override: Option<String>,
-    calibration: Arc<pntr_pipeline::calibration::Calibration>,
+    /// `--calibration`: one calibration for every map instead of each map's own (or the shipped one).
+    calibration: Option<Arc<pntr_pipeline::calibration::Calibration>>,
     /// Each worker's feature stage per preset key, built once and shared by the maps that use it.
     stages: Mutex<HashMap<StageKey, Vec<FeatureStage>>>,
     serial: AtomicU64,
@@ -332,16 +339,16 @@ impl Engine {
             device: s.device,
             ..RuntimeOptions::default()
         };
-        let calibration = Arc::new(match &s.calibration {
-            Some(p) => {
-                pntr_pipeline::calibration::Calibration::load(p).map_err(|e| e.to_string())?
-            }
-            None => pntr_pipeline::calibration::Calibration::embedded(),
-        });
-        let min_confidence = s.min_confidence.unwrap_or(calibration.threshold);
+        let calibration = match &s.calibration {
+            Some(p) => Some(Arc::new(
+                pntr_pipeline::calibration::Calibration::load(p).map_err(|e| e.to_string())?,
+            )),
+            None => None,
+        };
+        let min_confidence = s.min_confidence;
         tracing::info!(
-            calibration = %s.calibration.as_ref().map_or("embedded".into(), |p| p.display().to_string()),
-            min_confidence,
+            calibration = %s.calibration.as_ref().map_or("each map's own, else the shipped one".into(), |p| p.display().to_string()),
+            min_confidence = ?min_confidence,
             "confidence calibration"
         );
         let (tx, rx) = sync_channel::<Job>(s.queue);
@@ -429,15 +436,30 @@ impl Engine {
         let mut pipelines = Vec::with_capacity(stages.len());
         for stage in stages {
             let p = Pipeline::new(map.clone(), stage, preset.clone())
-                .map_err(|e| PrepareError::Serve(format!("map `{id}`: {e}")))?
-                .with_calibration(self.calibration.clone(), Some(self.min_confidence));
+                .map_err(|e| PrepareError::Serve(format!("map `{id}`: {e}")))?;
+            let p = match &self.calibration {
+                Some(c) => p.with_calibration(c.clone(), self.min_confidence),
+                None => p.with_min_confidence(self.min_confidence),
+            };
             pipelines.push(p);
+        }
+        let (min_confidence, calibration_source) = pipelines
+            .first()
+            .map(|p| (p.min_confidence(), p.calibration().1))
+            .unwrap_or((
+                f64::NAN,
+                pntr_pipeline::calibration::CalibrationSource::Shipped,
+            ));
+        let calibration_stale = map.calibration_is_stale();
+        if calibration_stale {
+            tracing::warn!(map_id = %id, "the map's own calibration was fitted before the map was extended or merged; refit it with `pntr calibrate --db`");
         }
         let extractor_engine = pipelines.first().map_or("", |p| p.stage.extractor.engine());
         let version = MapVersion::of(&map);
         let serial = self.serial.fetch_add(1, Ordering::SeqCst);
         tracing::info!(map_id = %id, version = %version.label, images = map.images.len(),
             file = %path.display(), extractor = %preset.extractor, engine = extractor_engine,
+            calibration = calibration_source.name(), min_confidence,
             seconds = t.elapsed().as_secs_f64(), "map ready");
         Ok(LoadedMap {
             id,
@@ -450,6 +472,9 @@ impl Engine {
             frame: serial,
             serial,
             file_stamp: file_stamp(path),
+            min_confidence,
+            calibration_source,
+            calibration_stale,
             pipelines,
             _release: ReleaseMemory,
         })

@@ -699,7 +699,7 @@ impl LocalizerService {
             } else {
                 Vec::new()
             },
-            min_confidence: engine.min_confidence,
+            min_confidence: lm.min_confidence,
             mode: wire::mode_message(loc.mode) as i32,
             map_version: lm.version.label.clone(),
             // Set at the edge, once the stream's state has taken the map-frame pose.
@@ -962,8 +962,35 @@ impl proto::localizer_server::Localizer for LocalizerService {
             built_at: lm.version.built_at.clone(),
             ros_from_map: Some(wire::MapFrames::of(h).ros_from_map()),
             frame_convention: engine.frame_convention as i32,
+            calibration: Some(calibration_info(&lm)),
         }))
     }
+}
+
+/// What GetMapInfo says about the calibration a loaded map's answers use.
+fn calibration_info(lm: &LoadedMap) -> proto::CalibrationInfo {
+    use pntr_pipeline::calibration::{Calibration, CalibrationSource};
+    let own = lm.map.header.calibration.as_ref();
+    let mut info = proto::CalibrationInfo {
+        source: lm.calibration_source.name().into(),
+        threshold: lm.min_confidence,
+        ..Default::default()
+    };
+    match (lm.calibration_source, own) {
+        (CalibrationSource::Map, Some(c)) => {
+            info.fitted_on = c.calibration.fitted_on.datasets.clone();
+            info.expected_precision = c.expected_precision;
+            info.negatives = c.negatives as u32;
+            info.false_positives = c.false_positives as u32;
+            info.regions = c.regions as u32;
+            info.stale = lm.calibration_stale;
+        }
+        (CalibrationSource::Shipped, _) => {
+            info.fitted_on = Calibration::embedded().fitted_on.datasets;
+        }
+        _ => {}
+    }
+    info
 }
 
 #[cfg(test)]

@@ -276,4 +276,7 @@ def map_info_from_message(m: pb2.MapInfo) -> MapInfo:
         )
         if m.HasField("ros_from_map")
         else ros_from_map_world(m.up_axis or "y"),
+        calibration_source=m.calibration.source if m.HasField("calibration") else "",
+        min_confidence=m.calibration.threshold if m.HasField("calibration") else float("nan"),
+        calibration_stale=m.calibration.stale if m.HasField("calibration") else False,
     )

@@ -209,6 +209,10 @@ class MapInfo:
         version: the map's version (build time and content checksum).
         frame_convention: the server's default answer convention, "map" or "ros".
         ros_from_map: 3x3 rotation from the map's world frame to the ROS z-up frame.
+        calibration_source: the calibration answers use: "map" (the map's own, fitted on its
+            regions held out), "file" (`pntr-server --calibration`) or "shipped".
+        min_confidence: the LOCALIZED threshold answers are held to.
+        calibration_stale: the map changed since its own calibration was fitted.
     """
 
     map_id: str
@@ -229,3 +233,6 @@ class MapInfo:
     version: str = ""
     frame_convention: str = "map"
     ros_from_map: npt.NDArray[np.float64] | None = None
+    calibration_source: str = ""
+    min_confidence: float = float("nan")
+    calibration_stale: bool = False

@@ -1,0 +1,283 @@
+//! A map's own calibration from the command line (`build-db`, `calibrate --db`): frames with poses
+//! from a dataset (its queries) or from recordings (frames the map was not built from), localized
+//! against the whole map and with their own region held out ([`pntr_pipeline::selfcal`]), and the
+//! fitted calibration put into the map's header.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use pntr_dataset::SceneEntry;
+use pntr_pipeline::calibration::{Calibration, MapCalibration};
+use pntr_pipeline::eval::{query_list, QueryViews};
+use pntr_pipeline::map::Map;
+use pntr_pipeline::pipeline::{Pipeline, Query};
+use pntr_pipeline::preset::Preset;
+use pntr_pipeline::recording_map::Session;
+use pntr_pipeline::selfcal::{self, Answered, PosedFrame, Regions};
+use pntr_pipeline::PipelineError;
+use pntr_synth::effects::RobotEffects;
+
+use crate::map_cmd::{bar, feature_stage};
+
+/// Frames used by default (evenly spaced over what there is); each is localized twice.
+pub const DEFAULT_FRAMES: usize = 300;
+
+/// What the self-calibration is given besides the map.
+pub struct Options<'a> {
+    /// Frames used at most (0: all).
+    pub max_frames: usize,
+    /// The base calibration (`--calibration`; the shipped one when `None`).
+    pub base: Option<&'a Path>,
+    /// Folder of the models.
+    pub models: &'a Path,
+    /// ONNX Runtime threads.
+    pub threads: usize,
+    /// Write every frame's answer here (JSON lines), to study the map's look-alikes.
+    pub samples: Option<&'a Path>,
+}
+
+/// One JSON line per frame: `{"held_out", "region", "candidates": [{"right", "evidence"}],
+/// "rivals"}`.
+fn write_samples(path: &Path, answers: &[Answered]) -> Result<()> {
+    let mut text = String::new();
+    for a in answers {
+        let line = serde_json::json!({
+            "held_out": a.held_out,
+            "region": a.region,
+            "candidates": a.samples.candidates.iter().map(|(e, right)| serde_json::json!({"right": right, "evidence": e})).collect::<Vec<_>>(),
+            "rivals": a.samples.rivals,
+        });
+        text += &format!("{line}\n");
+    }
+    crate::map_cmd::write_text(path, &text)
+}
+
+fn base_of(path: Option<&Path>) -> Result<Calibration> {
+    Ok(match path {
+        Some(p) => Calibration::load(p)?,
+        None => Calibration::embedded(),
+    })
+}
+
+/// A pipeline over `map` with `base`'s weights (its threshold does not matter here: every frame's
+/// candidates are kept and scored again when fitting).
+fn pipeline(map: Map, opts: &Options<'_>) -> Result<(Pipeline, Calibration)> {
+    let base = base_of(opts.base)?;
+    let preset: Preset = map.header.preset.clone();
+    let stage = feature_stage(&preset, opts.models, opts.threads)?;
+    let p =
+        Pipeline::new(Arc::new(map), stage, preset)?.with_calibration(Arc::new(base.clone()), None);
+    Ok((p, base))
+}
+
+/// The map back from a pipeline that was its only holder.
+pub fn into_map(p: Pipeline) -> Map {
+    Arc::try_unwrap(p.map).unwrap_or_else(|shared| {
+        panic!(
+            "the self-calibration's pipeline is the map's only holder ({} holders)",
+            Arc::strong_count(&shared)
+        )
+    })
+}
+
+/// [`into_map`] with `calibration` in the map's header.
+fn calibrated(p: Pipeline, calibration: MapCalibration) -> Map {
+    let mut map = into_map(p);
+    map.header.calibration = Some(calibration);
+    map
+}
+
+/// Both passes over `n` frames, with progress bars.
+fn passes(
+    p: &Pipeline,
+    regions: &Regions,
+    n: usize,
+    in_map: Option<Vec<Answered>>,
+    frame: &mut dyn FnMut(usize) -> Result<Option<PosedFrame>, PipelineError>,
+) -> Result<Vec<Answered>> {
+    let mut answers = match in_map {
+        Some(a) => a,
+        None => {
+            let pb = bar(n, "self-calibration: frames against the whole map");
+            let a = selfcal::pass(p, regions, n, false, frame, &mut |d, _| {
+                pb.set_position(d as u64)
+            })?;
+            pb.finish_and_clear();
+            a
+        }
+    };
+    let pb = bar(
+        n,
+        &format!(
+            "self-calibration: frames against the map without their region ({} regions)",
+            regions.count()
+        ),
+    );
+    answers.extend(selfcal::pass(p, regions, n, true, frame, &mut |d, _| {
+        pb.set_position(d as u64)
+    })?);
+    pb.finish_and_clear();
+    Ok(answers)
+}
+
+/// Fit `map`'s own calibration on the queries of `scenes` (the dataset it was built from; every
+/// second frame with a robot camera's effects, so the fit sees the captures robots bring) and
+/// return the map with it. `scenes` must be the map's scenes, in its order.
+pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Result<Map> {
+    let names = map.header.scenes.clone();
+    let (p, base) = pipeline(map, opts)?;
+    let regions = Regions::of_map(&p.map)?;
+    let list = query_list(scenes.iter().copied(), opts.max_frames)?;
+    let fx = RobotEffects::default();
+    let mut views = QueryViews::default();
+    let mut frame = |i: usize| -> Result<Option<PosedFrame>, PipelineError> {
+        let (entry, qi) = &list[i];
+        let Some(scene) = names.iter().position(|s| *s == entry.scene) else {
+            return Ok(None);
+        };
+        let v = views.view(entry, *qi)?;
+        let mut query = Query {
+            rgb: v.rgb,
+            depth: v.depth,
+            intrinsics: v.intrinsics,
+        };
+        if i % 2 == 1 {
+            fx.apply(&mut query.rgb, &mut query.depth, i as u64 + 1);
+        }
+        Ok(Some(PosedFrame {
+            query,
+            world_from_camera: v.world_from_camera,
+            scene: scene as u32,
+        }))
+    };
+    let answers = passes(&p, &regions, list.len(), None, &mut frame)?;
+    if let Some(path) = opts.samples {
+        write_samples(path, &answers)?;
+    }
+    let fitted = selfcal::fit(
+        &base,
+        &p.map,
+        &regions,
+        &answers,
+        &crate::calibrate_cmd::today(),
+    )?;
+    Ok(calibrated(p, fitted))
+}
+
+/// Fit the own calibration of a map built from recordings on `frames` ((session, frame) of
+/// `sessions`, poses in the map's frame), reusing `in_map`, the check's answers of the same frames
+/// when it ran. Returns the map with it.
+pub fn with_recordings(
+    p: Pipeline,
+    opts: &Options<'_>,
+    base: &Calibration,
+    regions: &Regions,
+    sessions: &[Session<'_>],
+    frames: &[(usize, usize)],
+    in_map: Option<Vec<Answered>>,
+) -> Result<Map> {
+    let mut frame = |i: usize| -> Result<Option<PosedFrame>, PipelineError> {
+        let (si, fi) = frames[i];
+        let s = &sessions[si];
+        let Some(truth) = s.recording.world_from_camera(fi) else {
+            return Ok(None);
+        };
+        let Ok((rgb, depth)) = s.recording.load(fi) else {
+            return Ok(None);
+        };
+        Ok(Some(PosedFrame {
+            query: Query {
+                rgb,
+                depth,
+                intrinsics: s.camera,
+            },
+            world_from_camera: truth,
+            scene: 0,
+        }))
+    };
+    let answers = passes(&p, regions, frames.len(), in_map, &mut frame)?;
+    if let Some(path) = opts.samples {
+        write_samples(path, &answers)?;
+    }
+    let fitted = selfcal::fit(
+        base,
+        &p.map,
+        regions,
+        &answers,
+        &crate::calibrate_cmd::today(),
+    )?;
+    Ok(calibrated(p, fitted))
+}
+
+/// A pipeline over a recording map for its check and self-calibration, the base calibration and
+/// the map's regions (`None` when the map has a single place, with the warning why).
+pub fn for_recordings(
+    map: Map,
+    opts: &Options<'_>,
+) -> Result<(Pipeline, Calibration, Option<Regions>, Option<String>)> {
+    let (p, base) = pipeline(map, opts)?;
+    match Regions::of_map(&p.map) {
+        Ok(r) => Ok((p, base, Some(r), None)),
+        Err(PipelineError::Refused(why)) => Ok((p, base, None, Some(why))),
+        Err(e) => Err(e).context("cutting the map into regions"),
+    }
+}
+
+/// What `build-db --json`, `calibrate` and `info` say about a map's calibration: its source, the
+/// threshold, what it was fitted on, what it measured and whether it is stale.
+pub fn summary(map_calibration: Option<&MapCalibration>, stale: bool) -> serde_json::Value {
+    match map_calibration {
+        None => serde_json::json!({
+            "source": "shipped",
+            "threshold": Calibration::embedded().threshold,
+            "fitted_on": Calibration::embedded().fitted_on.datasets,
+        }),
+        Some(c) => serde_json::json!({
+            "source": "map",
+            "method": c.method,
+            "threshold": c.calibration.threshold,
+            "base_threshold": c.base_threshold,
+            "fitted_on": c.calibration.fitted_on.datasets,
+            "date": c.calibration.fitted_on.date,
+            "regions": c.regions,
+            "in_map_frames": c.in_map_queries,
+            "held_out_frames": c.held_out_queries,
+            "held_out_right": c.held_out_right,
+            "negatives": c.negatives,
+            "false_positives_at_base_threshold": c.false_positives_base,
+            "false_positives": c.false_positives,
+            "in_map_recall_at_base_threshold": c.in_map_recall_base,
+            "in_map_recall": c.in_map_recall,
+            "expected_precision": c.expected_precision,
+            "stale": stale,
+        }),
+    }
+}
+
+/// One line for people: where the calibration comes from and what it measured.
+pub fn line(map_calibration: Option<&MapCalibration>, stale: bool) -> String {
+    match map_calibration {
+        None => format!(
+            "calibration: shipped (threshold {:.3})",
+            Calibration::embedded().threshold
+        ),
+        Some(c) => format!(
+            "calibration: the map's own{} (threshold {:.3}, shipped {:.3}; {} regions held out, {} of {} own negatives LOCALIZED, {} at the shipped threshold; in-map recall {:.3}, {:.3} at the shipped threshold; expected precision {:.3})",
+            if stale {
+                ", STALE: the map changed since it was fitted (refit with `pntr calibrate --db`)"
+            } else {
+                ""
+            },
+            c.calibration.threshold,
+            c.base_threshold,
+            c.regions,
+            c.false_positives,
+            c.negatives,
+            c.false_positives_base,
+            c.in_map_recall,
+            c.in_map_recall_base,
+            c.expected_precision
+        ),
+    }
+}
