@@ -85,18 +85,37 @@ fn open(
     args: &BuildArgs,
     trajectory: Option<&Path>,
 ) -> Result<(Recording, Intrinsics)> {
+    open_recording(
+        path,
+        trajectory,
+        &args.topics,
+        args.depth_scale,
+        args.intrinsics.as_deref(),
+    )
+}
+
+/// Open recording `path` (`--sequence`) with its poses from `trajectory` when given, `topics` for a
+/// bag, `depth_scale` units per metre and `intrinsics` (`fx,fy,cx,cy[,...]`) replacing what the
+/// recording says; its camera.
+pub(crate) fn open_recording(
+    path: &Path,
+    trajectory: Option<&Path>,
+    topics: &crate::replay_cmd::TopicArgs,
+    depth_scale: Option<f64>,
+    intrinsics: Option<&str>,
+) -> Result<(Recording, Intrinsics)> {
     let opts = RecordingOptions {
-        topics: args.topics.topics(),
+        topics: topics.topics(),
         trajectory: trajectory.map(Path::to_path_buf),
-        depth_units_per_m: args.depth_scale,
+        depth_units_per_m: depth_scale,
     };
     let rec =
         Recording::open(path, &opts).with_context(|| format!("--sequence {}", path.display()))?;
-    let camera = camera_of(&rec, args.intrinsics.as_deref())?;
+    let camera = camera_of(&rec, intrinsics)?;
     Ok((rec, camera))
 }
 
-fn as_sessions(recs: &[(Recording, Intrinsics)]) -> Vec<Session<'_>> {
+pub(crate) fn as_sessions(recs: &[(Recording, Intrinsics)]) -> Vec<Session<'_>> {
     recs.iter()
         .map(|(recording, camera)| Session {
             recording,

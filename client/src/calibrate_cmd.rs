@@ -25,8 +25,25 @@ use crate::map_cmd;
 #[derive(clap::Args, Debug)]
 pub struct CalibrateArgs {
     /// Dataset whose scenes the map covers (in-map queries with ground truth).
-    #[arg(long)]
-    pub dataset: PathBuf,
+    #[arg(long, required_unless_present = "sequence")]
+    pub dataset: Option<PathBuf>,
+    /// Without `--negatives`, instead of --dataset: recordings whose poses are in `--db`'s frame
+    /// (the map's own recordings), whose frames refit the map's own calibration. Repeatable.
+    #[arg(long, value_name = "DIR|FILE.mcap", conflicts_with_all = ["dataset", "negatives"], requires = "db")]
+    pub sequence: Vec<PathBuf>,
+    /// Poses of each `--sequence` from this TUM trajectory instead of the recording's own (one per
+    /// `--sequence`, in order).
+    #[arg(long, value_name = "FILE.txt", requires = "sequence")]
+    pub trajectory: Vec<PathBuf>,
+    /// The camera of the `--sequence` recordings as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]`.
+    #[arg(long, value_name = "FX,FY,CX,CY", requires = "sequence")]
+    pub intrinsics: Option<String>,
+    /// Depth units per metre of the `--sequence` recordings, replacing what their format says.
+    #[arg(long, value_name = "UNITS_PER_M", requires = "sequence")]
+    pub depth_scale: Option<f64>,
+    /// ROS 2 bag topics of a `--sequence`.
+    #[command(flatten)]
+    pub topics: crate::replay_cmd::TopicArgs,
     /// Only this scene of --dataset.
     #[arg(long)]
     pub scene: Option<String>,
@@ -198,6 +215,9 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let Some(out) = &args.out else {
         anyhow::bail!("--out is required with --negatives (the calibration file to write)");
     };
+    let Some(dataset) = &args.dataset else {
+        anyhow::bail!("--dataset is required with --negatives (the places the map covers)");
+    };
     for (flag, p) in [("--out", Some(out)), ("--samples", args.samples.as_ref())] {
         if let Some(dir) = p
             .and_then(|p| p.parent())
@@ -212,12 +232,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             }
         }
     }
-    let index = DatasetIndex::open(&args.dataset)?;
+    let index = DatasetIndex::open(dataset)?;
     let (map_id, scenes) = map_cmd::select_scenes(&index, args.scene.as_deref())?;
     let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
     let mut neg_indexes = Vec::new();
     for (i, dir) in args.negatives.iter().enumerate() {
-        if same(&args.dataset, dir) {
+        if same(dataset, dir) {
             anyhow::bail!(
                 "--negatives {} is --dataset itself: negatives must be places the map does not cover",
                 dir.display()
@@ -337,7 +357,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     let mut c = calibration::fit(&samples, args.l2, args.target_precision, &preset.name)?;
     c.fitted_on.datasets = vec![format!(
         "in-map {} ({} queries)",
-        args.dataset.display(),
+        dataset.display(),
         inmap.len()
     )];
     c.fitted_on.datasets.extend(negatives);
@@ -372,10 +392,21 @@ fn own(args: &CalibrateArgs) -> Result<()> {
         anyhow::bail!("--camera-dataset goes with --negatives (a calibration file)");
     }
     let out = args.out.clone().unwrap_or_else(|| db.clone());
-    let index = DatasetIndex::open(&args.dataset)?;
     let models = map_cmd::models_dir(args.models.as_deref())?;
     let map =
         map_cmd::load_map(db, args.threads).with_context(|| format!("loading {}", db.display()))?;
+    let opts = crate::selfcal_cmd::Options {
+        max_frames: args.self_calibration_frames,
+        base: args.calibration.as_deref(),
+        models: &models,
+        threads: args.threads,
+        samples: args.samples.as_deref(),
+    };
+    let Some(dataset) = &args.dataset else {
+        let map = with_sequences(map, args, &opts)?;
+        return finish_own(&map, &out);
+    };
+    let index = DatasetIndex::open(dataset)?;
     let scenes: Vec<&SceneEntry> = map
         .header
         .scenes
@@ -384,22 +415,77 @@ fn own(args: &CalibrateArgs) -> Result<()> {
             index.scenes.iter().find(|s| s.name == *name).with_context(|| {
                 format!(
                     "--dataset {} has no scene `{name}`, which map {} holds: give the dataset the map was built from",
-                    args.dataset.display(),
+                    dataset.display(),
                     db.display()
                 )
             })
         })
         .collect::<Result<_>>()?;
-    let opts = crate::selfcal_cmd::Options {
-        max_frames: args.self_calibration_frames,
-        base: args.calibration.as_deref(),
-        models: &models,
-        threads: args.threads,
-        samples: args.samples.as_deref(),
-    };
     let map = crate::selfcal_cmd::with_dataset(map, &scenes, &opts)?;
-    pntr_pipeline::mapfile::save(&map, &out)
-        .with_context(|| format!("writing {}", out.display()))?;
+    finish_own(&map, &out)
+}
+
+/// The map's own calibration refitted on the frames of `--sequence` recordings (poses in the map's
+/// frame) that are not map images, evenly spaced.
+fn with_sequences(
+    map: pntr_pipeline::map::Map,
+    args: &CalibrateArgs,
+    opts: &crate::selfcal_cmd::Options<'_>,
+) -> Result<pntr_pipeline::map::Map> {
+    if !args.trajectory.is_empty() && args.trajectory.len() != args.sequence.len() {
+        anyhow::bail!(
+            "{} --trajectory for {} --sequence: give one per recording, in the same order",
+            args.trajectory.len(),
+            args.sequence.len()
+        );
+    }
+    let recs = args
+        .sequence
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            crate::build_cmd::open_recording(
+                p,
+                args.trajectory.get(i).map(PathBuf::as_path),
+                &args.topics,
+                args.depth_scale,
+                args.intrinsics.as_deref(),
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let sessions = crate::build_cmd::as_sessions(&recs);
+    // Frames that are map images would be answered by themselves: left out (by stamp).
+    let stamps: Vec<f64> = map.images.iter().filter_map(|im| im.stamp).collect();
+    let is_map_image = |t: f64| stamps.iter().any(|s| (s - t).abs() < 1e-6);
+    let frames: Vec<(usize, usize)> = sessions
+        .iter()
+        .enumerate()
+        .flat_map(|(si, s)| {
+            (0..s.recording.len())
+                .filter(|&i| s.recording.world_from_camera(i).is_some())
+                .filter(|&i| !is_map_image(s.recording.timestamp(i)))
+                .map(move |i| (si, i))
+        })
+        .collect();
+    if frames.is_empty() {
+        anyhow::bail!(
+            "the --sequence recordings have no posed frame that is not already a map image"
+        );
+    }
+    let frames = pntr_pipeline::recording_map::evenly(&frames, args.self_calibration_frames);
+    let (pipeline, base, regions, why) = crate::selfcal_cmd::for_recordings(map, opts)?;
+    let Some(regions) = regions else {
+        anyhow::bail!(
+            "{}",
+            why.unwrap_or_else(|| "the map cannot be cut into regions".into())
+        );
+    };
+    crate::selfcal_cmd::with_recordings(pipeline, opts, &base, &regions, &sessions, &frames, None)
+}
+
+/// Write the map with its refitted calibration and print what was fitted.
+fn finish_own(map: &pntr_pipeline::map::Map, out: &std::path::Path) -> Result<()> {
+    pntr_pipeline::mapfile::save(map, out).with_context(|| format!("writing {}", out.display()))?;
     let mut summary = crate::selfcal_cmd::summary(map.header.calibration.as_ref(), false);
     summary["out"] = serde_json::json!(out);
     println!("{}", serde_json::to_string_pretty(&summary)?);

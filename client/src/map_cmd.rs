@@ -695,8 +695,8 @@ fn stability_table(s: &Stability) -> String {
     );
     for (k, c) in s {
         out += &format!(
-            "  {k:<22} {:>5} queries: status changed {}, pose moved {}, became wrong {}, confident wrong {}\n",
-            c.queries, c.status_changed, c.pose_moved, c.became_wrong, c.confident_wrong
+            "  {k:<22} {:>5} queries: status changed {}, pose moved {}, became wrong {}, confident wrong {} (became so {})\n",
+            c.queries, c.status_changed, c.pose_moved, c.became_wrong, c.confident_wrong, c.became_confident_wrong
         );
     }
     out

@@ -170,7 +170,11 @@ fn sessions_extend_and_merge_maps() {
     let sb = build(
         &seq(&second),
         &b,
-        &["--trajectory", moved.to_str().unwrap()],
+        &[
+            "--trajectory",
+            moved.to_str().unwrap(),
+            "--no-self-calibration",
+        ],
     );
     let merged = dir.path().join("merged.pntrmap");
     let m = ok_json(&pntr(&[
@@ -220,6 +224,36 @@ fn sessions_extend_and_merge_maps() {
         })
         .fold(0.0, f64::max);
     assert!(worst < 0.1, "a merged image is {worst:.3} m off");
+
+    // The merged map keeps A's own calibration, stale (fitted on A's images alone); refitting it
+    // on A's own recording, whose poses are in the merged map's frame, makes it current.
+    assert_eq!(s["calibration"]["source"], "map", "{s}");
+    assert_eq!(
+        e["calibration"]["source"], "map",
+        "the extension refits it: {e}"
+    );
+    assert_eq!(e["calibration"]["stale"], false, "{e}");
+    let merged_s = merged.to_str().unwrap();
+    let info = |m: &str| support::ok(&pntr(&["info", "--db", m, "--images"]));
+    assert!(info(merged_s).contains("STALE"), "{}", info(merged_s));
+    let refit = ok_json(&pntr(&[
+        "calibrate",
+        "--db",
+        merged_s,
+        "--sequence",
+        seq(&first).to_str().unwrap(),
+        "--self-calibration-frames",
+        "60",
+        "--models",
+        MODELS,
+    ]));
+    assert_eq!(refit["source"], "map", "{refit}");
+    assert!(refit["held_out_frames"].as_u64().unwrap() > 0, "{refit}");
+    let text = info(merged_s);
+    assert!(
+        !text.contains("STALE") && text.contains("calibration: the map's own"),
+        "{text}"
+    );
 
     // A running server extends its map with a recording on its disk, writes the map's file and
     // serves the new version (`pntr maps extend`, the admin token from PNTR_ADMIN_TOKEN).

@@ -260,6 +260,9 @@ pub struct StabilityCounts {
     pub became_wrong: usize,
     /// Perturbed answers LOCALIZED more than 5 m or 20 degrees off with confidence above 0.9.
     pub confident_wrong: usize,
+    /// Of those, the ones whose query as rendered was not such an answer: a perturbation moved it
+    /// to a confident wrong pose (issue 41's criterion).
+    pub became_confident_wrong: usize,
 }
 
 impl StabilityCounts {
@@ -285,10 +288,12 @@ impl StabilityCounts {
             self.pose_moved += (m > 0.25 || d > 2.0) as usize;
         }
         self.became_wrong += (!wrong(base) && wrong(perturbed)) as usize;
-        self.confident_wrong += (localized(perturbed)
-            && perturbed.confidence > 0.9
-            && error(perturbed).is_none_or(|(m, d)| m > 5.0 || d > 20.0))
-            as usize;
+        let confident_wrong = |a: &Answer| {
+            localized(a) && a.confidence > 0.9 && error(a).is_none_or(|(m, d)| m > 5.0 || d > 20.0)
+        };
+        self.confident_wrong += confident_wrong(perturbed) as usize;
+        self.became_confident_wrong +=
+            (confident_wrong(perturbed) && !confident_wrong(base)) as usize;
     }
 }
 
@@ -956,11 +961,18 @@ mod tests {
         );
         // Out of the map: any LOCALIZED answer is wrong.
         c.add(&at(0.0, 0.0, false, 0.1), &at(0.0, 0.0, true, 0.95), None);
-        assert_eq!(c.queries, 4);
+        // Confidently wrong already as rendered: counted, but not as a perturbation's doing.
+        c.add(
+            &at(9.0, 0.0, true, 0.96),
+            &at(9.0, 0.1, true, 0.97),
+            Some(&truth),
+        );
+        assert_eq!(c.queries, 5);
         assert_eq!(c.status_changed, 2);
         assert_eq!(c.pose_moved, 1);
         assert_eq!(c.became_wrong, 2);
-        assert_eq!(c.confident_wrong, 2);
+        assert_eq!(c.confident_wrong, 3);
+        assert_eq!(c.became_confident_wrong, 2);
     }
 
     #[test]
