@@ -200,6 +200,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         eprintln!("warning: {w}");
     }
     let self_calibrate = !args.no_self_calibration;
+    let mut self_calibration_s = 0.0;
     let (map, check) = if args.no_check && !self_calibrate {
         (map, None)
     } else {
@@ -209,6 +210,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
             models: &models,
             threads: args.threads,
             samples: args.self_calibration_samples.as_deref(),
+            keep_on_refusal: true,
         };
         let (pipeline, base, regions, why) = crate::selfcal_cmd::for_recordings(map, &opts)?;
         let regions = regions.filter(|_| self_calibrate);
@@ -252,6 +254,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
             check = Some(c);
             used = frames;
         }
+        let t_cal = std::time::Instant::now();
         let map = match &regions {
             Some(r) => {
                 // The check's answers are the in-map pass of the same frames.
@@ -268,6 +271,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
             }
             None => crate::selfcal_cmd::into_map(pipeline),
         };
+        self_calibration_s = t_cal.elapsed().as_secs_f64();
         (map, check)
     };
     let t = std::time::Instant::now();
@@ -309,6 +313,9 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
     stage_seconds.insert("write".into(), write_s);
     if let Some(c) = &check {
         stage_seconds.insert("check".into(), c.seconds);
+    }
+    if self_calibration_s > 0.0 {
+        stage_seconds.insert("self_calibration".into(), self_calibration_s);
     }
     let summary = json!({
         "map_id": header.map_id,

@@ -93,7 +93,8 @@ pub struct CalibrateArgs {
     /// Also write every labelled sample here, one JSON object a line (`{"query", "effects", "image",
     /// "chosen", "error_m", "error_deg", "confidence" (the candidate's own probability),
     /// "answer_confidence" (the query's answer), "rivals", "right", "negative", "evidence": {...}}`),
-    /// to study the checks.
+    /// to study the checks. Without --negatives: one line per frame (`{"held_out", "region",
+    /// "candidates": [{"right", "evidence"}], "rivals"}`).
     #[arg(long)]
     pub samples: Option<PathBuf>,
     /// Calibration used while collecting (it picks among candidates and fills `confidence` in
@@ -391,6 +392,11 @@ fn own(args: &CalibrateArgs) -> Result<()> {
     if !args.camera_dataset.is_empty() {
         anyhow::bail!("--camera-dataset goes with --negatives (a calibration file)");
     }
+    if let Some(scene) = &args.scene {
+        anyhow::bail!(
+            "--scene {scene} goes with --negatives: refitting a map's own calibration uses the map's own scenes"
+        );
+    }
     let out = args.out.clone().unwrap_or_else(|| db.clone());
     let models = map_cmd::models_dir(args.models.as_deref())?;
     let map =
@@ -401,6 +407,7 @@ fn own(args: &CalibrateArgs) -> Result<()> {
         models: &models,
         threads: args.threads,
         samples: args.samples.as_deref(),
+        keep_on_refusal: false,
     };
     let Some(dataset) = &args.dataset else {
         let map = with_sequences(map, args, &opts)?;

@@ -204,7 +204,8 @@ pub struct EvalArgs {
     /// comma-separated list of the groups `exposure`, `blur`, `noise`, `jpeg`, `depth`.
     #[arg(long, default_value = "none")]
     pub effects: String,
-    /// Calibration file for the confidence (default: the one shipped in models/, embedded).
+    /// Calibration file for the confidence, for this evaluation (default: the map's own, fitted by
+    /// `build-db`; the one shipped in models/ for a map without one).
     #[arg(long)]
     pub calibration: Option<PathBuf>,
     /// LOCALIZED threshold on the calibrated confidence (default: the calibration's own).
@@ -474,6 +475,7 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
     let models = models_dir(args.models.as_deref())?;
     let map = build_map(&map_id, &scenes, &preset, &models, args.threads)?;
     let out = args.out.as_deref().context("--out is required")?;
+    let t_cal = std::time::Instant::now();
     let map = if args.no_self_calibration {
         map
     } else {
@@ -483,10 +485,12 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
             models: &models,
             threads: args.threads,
             samples: args.self_calibration_samples.as_deref(),
+            keep_on_refusal: true,
         };
         crate::selfcal_cmd::with_dataset(map, &scenes, &opts)
             .context("fitting the map's own calibration (--no-self-calibration skips it)")?
     };
+    let self_calibration_s = t_cal.elapsed().as_secs_f64();
     let t = std::time::Instant::now();
     mapfile::save(&map, out).with_context(|| format!("writing {}", out.display()))?;
     let write_s = t.elapsed().as_secs_f64();
@@ -501,6 +505,7 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
         "heap_bytes": map.heap_bytes(),
         "build_seconds": map.header.build_seconds,
         "write_seconds": write_s,
+        "self_calibration_seconds": self_calibration_s,
         "calibration": crate::selfcal_cmd::summary(map.header.calibration.as_ref(), false),
     });
     if args.json {
@@ -897,6 +902,18 @@ pub fn eval(args: &EvalArgs) -> Result<()> {
         args.calibration.as_deref(),
         args.min_confidence,
     )?;
+    let source = match pipeline.calibration().1 {
+        pntr_pipeline::calibration::CalibrationSource::Map => "the map's own".to_string(),
+        pntr_pipeline::calibration::CalibrationSource::Shipped => "the shipped one".to_string(),
+        pntr_pipeline::calibration::CalibrationSource::File => args
+            .calibration
+            .as_deref()
+            .map_or_else(|| "a file".into(), |p| p.display().to_string()),
+    };
+    eprintln!(
+        "calibration: {source}, LOCALIZED threshold {:.3}",
+        pipeline.min_confidence()
+    );
     let opts = EvalOptions {
         legacy: args.legacy_metric,
         max_queries: args.queries,

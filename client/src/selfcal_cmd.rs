@@ -35,6 +35,9 @@ pub struct Options<'a> {
     pub threads: usize,
     /// Write every frame's answer here (JSON lines), to study the map's look-alikes.
     pub samples: Option<&'a Path>,
+    /// When the map cannot be calibrated from these frames (a single place, frames that are not
+    /// the map's): keep the map as it is with a warning (`build-db`) rather than fail (`calibrate`).
+    pub keep_on_refusal: bool,
 }
 
 /// One JSON line per frame: `{"held_out", "region", "candidates": [{"right", "evidence"}],
@@ -127,7 +130,14 @@ fn passes(
 pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Result<Map> {
     let names = map.header.scenes.clone();
     let (p, base) = pipeline(map, opts)?;
-    let regions = Regions::of_map(&p.map)?;
+    let regions = match Regions::of_map(&p.map) {
+        Ok(r) => r,
+        Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
+            eprintln!("warning: the map keeps the shipped calibration: {why}");
+            return Ok(into_map(p));
+        }
+        Err(e) => return Err(e.into()),
+    };
     let list = query_list(scenes.iter().copied(), opts.max_frames)?;
     let fx = RobotEffects::default();
     let mut views = QueryViews::default();
@@ -155,13 +165,20 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
     if let Some(path) = opts.samples {
         write_samples(path, &answers)?;
     }
-    let fitted = selfcal::fit(
+    let fitted = match selfcal::fit(
         &base,
         &p.map,
         &regions,
         &answers,
         &crate::calibrate_cmd::today(),
-    )?;
+    ) {
+        Ok(f) => f,
+        Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
+            eprintln!("warning: the map keeps the shipped calibration: {why}");
+            return Ok(into_map(p));
+        }
+        Err(e) => return Err(e.into()),
+    };
     Ok(calibrated(p, fitted))
 }
 
@@ -200,13 +217,20 @@ pub fn with_recordings(
     if let Some(path) = opts.samples {
         write_samples(path, &answers)?;
     }
-    let fitted = selfcal::fit(
+    let fitted = match selfcal::fit(
         base,
         &p.map,
         regions,
         &answers,
         &crate::calibrate_cmd::today(),
-    )?;
+    ) {
+        Ok(f) => f,
+        Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
+            eprintln!("warning: the map keeps the shipped calibration: {why}");
+            return Ok(into_map(p));
+        }
+        Err(e) => return Err(e.into()),
+    };
     Ok(calibrated(p, fitted))
 }
 

@@ -225,17 +225,25 @@ fn sessions_extend_and_merge_maps() {
         .fold(0.0, f64::max);
     assert!(worst < 0.1, "a merged image is {worst:.3} m off");
 
-    // The merged map keeps A's own calibration, stale (fitted on A's images alone); refitting it
-    // on A's own recording, whose poses are in the merged map's frame, makes it current.
-    assert_eq!(s["calibration"]["source"], "map", "{s}");
-    assert_eq!(
-        e["calibration"]["source"], "map",
-        "the extension refits it: {e}"
-    );
-    assert_eq!(e["calibration"]["stale"], false, "{e}");
+    // A map of one place has no region to hold out and keeps the shipped calibration; one of
+    // several fits its own (the extension again). A merged map keeps A's, stale (fitted on A's
+    // images alone); refitting it on A's own recording, whose poses are in the merged map's frame,
+    // makes it current.
+    let own_when_places = |v: &serde_json::Value| {
+        let want = if v["places"].as_u64().unwrap() >= 2 {
+            "map"
+        } else {
+            "shipped"
+        };
+        assert_eq!(v["calibration"]["source"], want, "{v}");
+    };
+    own_when_places(&s);
+    own_when_places(&e);
     let merged_s = merged.to_str().unwrap();
     let info = |m: &str| support::ok(&pntr(&["info", "--db", m, "--images"]));
-    assert!(info(merged_s).contains("STALE"), "{}", info(merged_s));
+    if s["calibration"]["source"] == "map" {
+        assert!(info(merged_s).contains("STALE"), "{}", info(merged_s));
+    }
     let refit = ok_json(&pntr(&[
         "calibrate",
         "--db",

@@ -264,6 +264,26 @@ fn a_map_carries_its_own_calibration() {
         support::map_info(&copy, &[])["calibration"],
         info["calibration"]
     );
+    // Another apartment's queries (same scene name) are not the map's frames: refused, naming the
+    // likely mistake, and the map is left as it was.
+    let other = dir.path().join("other");
+    support::synth(&other, "4", "3", &["--seed", "23"]);
+    let before = std::fs::read(&db).unwrap();
+    let out = pntr(&[
+        "calibrate",
+        "--db",
+        db.to_str().unwrap(),
+        "--dataset",
+        other.to_str().unwrap(),
+        "--models",
+        MODELS,
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("not of this map"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read(&db).unwrap(), before, "the map is unchanged");
     // Without a map to refit or negatives to fit on, it says what to give.
     let err = String::from_utf8_lossy(
         &pntr(&["calibrate", "--dataset", root_s, "--models", MODELS]).stderr,

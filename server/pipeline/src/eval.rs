@@ -164,6 +164,8 @@ pub struct EvalReport {
     pub precision: BTreeMap<String, f64>,
     /// LOCALIZED answers more than (5 m, 20 deg) off: the confident wrong poses.
     pub localized_wrong: usize,
+    /// Of those, the ones with confidence above 0.9 (issue 41's worst failure).
+    pub localized_wrong_above_0_9: usize,
     /// Out-of-map queries (`--negatives`), when given.
     pub negatives: Option<NegativesReport>,
     /// Calibration of `confidence` against "within (1 m, 10 deg)" over every answer with a pose
@@ -684,6 +686,11 @@ pub fn run_observed(
             .flatten()
             .filter(|e| !(e.0 <= 5.0 && e.1 <= 20.0))
             .count(),
+        localized_wrong_above_0_9: scored
+            .iter()
+            .filter(|s| s.2 && s.0 > 0.9)
+            .filter(|s| s.1.is_some_and(|e| !(e.0 <= 5.0 && e.1 <= 20.0)))
+            .count(),
         negatives: (!opts.negatives.is_empty()).then(|| NegativesReport {
             queries: negatives.len(),
             localized: negatives.iter().filter(|n| n.1).count(),
@@ -859,8 +866,8 @@ pub fn table(report: &EvalReport) -> String {
         );
     }
     s += &format!(
-        "precision of LOCALIZED answers: (1m, 10deg) {:.4} (5m, 20deg) {:.4}; {} LOCALIZED more than 5 m / 20 deg off\n",
-        report.precision["1m_10deg"], report.precision["5m_20deg"], report.localized_wrong
+        "precision of LOCALIZED answers: (1m, 10deg) {:.4} (5m, 20deg) {:.4}; {} LOCALIZED more than 5 m / 20 deg off ({} with confidence above 0.9)\n",
+        report.precision["1m_10deg"], report.precision["5m_20deg"], report.localized_wrong, report.localized_wrong_above_0_9
     );
     if let Some(n) = &report.negatives {
         s += &format!(

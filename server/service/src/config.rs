@@ -130,7 +130,8 @@ pub struct Args {
     /// TLS private key (PEM); needs --tls-cert.
     #[arg(long, env = "PNTR_TLS_KEY")]
     pub tls_key: Option<PathBuf>,
-    /// Confidence calibration file from `pntr calibrate` [default: the one shipped in models/,
+    /// Confidence calibration file from `pntr calibrate`, for every map [default: each map's own,
+    /// fitted by `pntr build-db`, else the one shipped in models/,
     /// embedded in the binary].
     #[arg(long, env = "PNTR_CALIBRATION")]
     pub calibration: Option<PathBuf>,
@@ -289,7 +290,7 @@ pub struct Settings {
     pub admin_token: Option<String>,
     /// TLS certificate chain and key (PEM files).
     pub tls: Option<(PathBuf, PathBuf)>,
-    /// Confidence calibration file (`None`: the embedded default).
+    /// Confidence calibration file for every map (`None`: each map's own, else the embedded default).
     pub calibration: Option<PathBuf>,
     /// LOCALIZED threshold on the confidence (`None`: the calibration's own).
     pub min_confidence: Option<f64>,

@@ -459,7 +459,7 @@ impl Engine {
         let serial = self.serial.fetch_add(1, Ordering::SeqCst);
         tracing::info!(map_id = %id, version = %version.label, images = map.images.len(),
             file = %path.display(), extractor = %preset.extractor, engine = extractor_engine,
-            calibration = calibration_source.name(), min_confidence,
+            calibration = calibration_source.name(), min_confidence, calibration_stale,
             seconds = t.elapsed().as_secs_f64(), "map ready");
         Ok(LoadedMap {
             id,
