@@ -21,9 +21,17 @@ fn synth(root: &Path, seed: &str, extra: &[&str]) {
     mapping_drive(root, ("4", "4"), seed, "300", extra);
 }
 
-/// A map of the sequence `seq` without its check, with `extra` arguments: the build's summary.
+/// A map of the sequence `seq` without its check (its own calibration from 40 frames), with `extra`
+/// arguments: the build's summary.
 fn build(seq: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
-    let source = ["--sequence", seq.to_str().unwrap(), "--no-check", "--json"];
+    let source = [
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--no-check",
+        "--self-calibration-frames",
+        "40",
+        "--json",
+    ];
     serde_json::from_str(&build_db(out, &[&source[..], extra].concat())).unwrap()
 }
 

@@ -31,9 +31,16 @@ fn to_bag(seq: &Path, out: &Path, extra: &[&str]) {
 /// A map's images by stamp (ms): (translation, rotation w x y z).
 type Images = BTreeMap<i64, (Vec<f64>, Vec<f64>)>;
 
-/// Build a map (no check) and list its images: stamp -> (translation, rotation w x y z).
+/// Build a map (no check, the shipped calibration: this file is about reading bags) and list its
+/// images: stamp -> (translation, rotation w x y z).
 fn build(seq: &Path, map: &Path, extra: &[&str]) -> (serde_json::Value, Images) {
-    let source = ["--sequence", seq.to_str().unwrap(), "--no-check", "--json"];
+    let source = [
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--no-check",
+        "--no-self-calibration",
+        "--json",
+    ];
     let s: serde_json::Value =
         serde_json::from_str(&build_db(map, &[&source[..], extra].concat())).unwrap();
     let images = map_images(map)
