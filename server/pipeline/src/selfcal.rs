@@ -318,8 +318,7 @@ fn scored(calibration: &Calibration, a: &Answered) -> (f64, bool) {
 }
 
 /// Fit `map`'s own calibration from its frames' answers, starting from `base` (the shipped
-/// calibration unless the user gave another). Two candidates, each judged on answers it was not
-/// fitted on:
+/// calibration unless the user gave another). Two candidates:
 ///
 /// - `threshold`: `base`'s weights, the threshold raised ([`threshold`]);
 /// - `weights+threshold`, when the map gives enough samples (at least [`MIN_REFIT_REGIONS`]
