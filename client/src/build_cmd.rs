@@ -204,14 +204,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
     let (map, check) = if args.no_check && !self_calibrate {
         (map, None)
     } else {
-        let opts = crate::selfcal_cmd::Options {
-            max_frames: args.self_calibration_frames,
-            base: None,
-            models: &models,
-            threads: args.threads,
-            samples: args.self_calibration_samples.as_deref(),
-            keep_on_refusal: true,
-        };
+        let opts = crate::selfcal_cmd::Options::of_build(args, &models);
         let (pipeline, base, regions, why) = crate::selfcal_cmd::for_recordings(map, &opts)?;
         let regions = regions.filter(|_| self_calibrate);
         if let (true, Some(why)) = (self_calibrate, &why) {

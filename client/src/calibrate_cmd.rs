@@ -145,20 +145,11 @@ fn collect(
                 continue;
             }
         };
-        let mut group = QuerySamples::default();
-        for c in &l.verified {
-            group.rivals.push(
-                c.rivals
-                    .iter()
-                    .filter_map(|r| l.verified.iter().position(|o| o.image == *r))
-                    .collect(),
-            );
-        }
+        // Labels as the map's own calibration gives them (right within 1 m, 10 deg).
+        let group =
+            pntr_pipeline::selfcal::samples_of(&l, (!negative).then_some(&v.world_from_camera));
         for c in &l.verified {
             let (dt, dr) = pose_error(&c.pose, &v.world_from_camera, false);
-            group
-                .candidates
-                .push((c.evidence, !negative && dt <= 1.0 && dr <= 10.0));
             notes.push(serde_json::json!({
                 "query": p.query_id(*qi),
                 "effects": effects.is_some(),

@@ -479,14 +479,7 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
     let map = if args.no_self_calibration {
         map
     } else {
-        let opts = crate::selfcal_cmd::Options {
-            max_frames: args.self_calibration_frames,
-            base: None,
-            models: &models,
-            threads: args.threads,
-            samples: args.self_calibration_samples.as_deref(),
-            keep_on_refusal: true,
-        };
+        let opts = crate::selfcal_cmd::Options::of_build(args, &models);
         crate::selfcal_cmd::with_dataset(map, &scenes, &opts)
             .context("fitting the map's own calibration (--no-self-calibration skips it)")?
     };

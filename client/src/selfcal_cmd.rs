@@ -56,6 +56,21 @@ fn write_samples(path: &Path, answers: &[Answered]) -> Result<()> {
     crate::map_cmd::write_text(path, &text)
 }
 
+impl<'a> Options<'a> {
+    /// What `build-db` gives: its `--self-calibration-*` arguments, the shipped base, and a
+    /// refusal that keeps the map as built.
+    pub fn of_build(args: &'a crate::map_cmd::BuildArgs, models: &'a Path) -> Self {
+        Self {
+            max_frames: args.self_calibration_frames,
+            base: None,
+            models,
+            threads: args.threads,
+            samples: args.self_calibration_samples.as_deref(),
+            keep_on_refusal: true,
+        }
+    }
+}
+
 fn base_of(path: Option<&Path>) -> Result<Calibration> {
     Ok(match path {
         Some(p) => Calibration::load(p)?,
@@ -162,24 +177,7 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
         }))
     };
     let answers = passes(&p, &regions, list.len(), None, &mut frame)?;
-    if let Some(path) = opts.samples {
-        write_samples(path, &answers)?;
-    }
-    let fitted = match selfcal::fit(
-        &base,
-        &p.map,
-        &regions,
-        &answers,
-        &crate::calibrate_cmd::today(),
-    ) {
-        Ok(f) => f,
-        Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
-            eprintln!("warning: the map keeps the shipped calibration: {why}");
-            return Ok(into_map(p));
-        }
-        Err(e) => return Err(e.into()),
-    };
-    Ok(calibrated(p, fitted))
+    fitted(p, opts, &base, &regions, &answers)
 }
 
 /// Fit the own calibration of a map built from recordings on `frames` ((session, frame) of
@@ -214,24 +212,35 @@ pub fn with_recordings(
         }))
     };
     let answers = passes(&p, regions, frames.len(), in_map, &mut frame)?;
+    fitted(p, opts, base, regions, &answers)
+}
+
+/// The samples written when asked, the calibration fitted on `answers` ([`selfcal::fit`]) and the
+/// map back with it; a refusal keeps the map as it is with a warning when `opts` says so.
+fn fitted(
+    p: Pipeline,
+    opts: &Options<'_>,
+    base: &Calibration,
+    regions: &Regions,
+    answers: &[Answered],
+) -> Result<Map> {
     if let Some(path) = opts.samples {
-        write_samples(path, &answers)?;
+        write_samples(path, answers)?;
     }
-    let fitted = match selfcal::fit(
+    match selfcal::fit(
         base,
         &p.map,
         regions,
-        &answers,
+        answers,
         &crate::calibrate_cmd::today(),
     ) {
-        Ok(f) => f,
+        Ok(f) => Ok(calibrated(p, f)),
         Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
             eprintln!("warning: the map keeps the shipped calibration: {why}");
-            return Ok(into_map(p));
+            Ok(into_map(p))
         }
-        Err(e) => return Err(e.into()),
-    };
-    Ok(calibrated(p, fitted))
+        Err(e) => Err(e.into()),
+    }
 }
 
 /// A pipeline over a recording map for its check and self-calibration, the base calibration and
