@@ -11,6 +11,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
+use pntr_core::{convert_axes, CameraAxes};
 use pntr_dataset::{DatasetIndex, SceneEntry};
 use pntr_pipeline::calibration::{self, Calibration, QuerySamples};
 use pntr_pipeline::eval::{pose_error, query_list, QueryViews};
@@ -145,11 +146,17 @@ fn collect(
                 continue;
             }
         };
+        // The dataset's poses have Habitat camera axes; the candidates', the map's (a map built from
+        // a recording has OpenCV axes).
+        let truth = convert_axes(
+            &v.world_from_camera,
+            CameraAxes::Habitat,
+            pipeline.map.header.axes(),
+        );
         // Labels as the map's own calibration gives them (right within 1 m, 10 deg).
-        let group =
-            pntr_pipeline::selfcal::samples_of(&l, (!negative).then_some(&v.world_from_camera));
+        let group = pntr_pipeline::selfcal::samples_of(&l, (!negative).then_some(&truth));
         for c in &l.verified {
-            let (dt, dr) = pose_error(&c.pose, &v.world_from_camera, false);
+            let (dt, dr) = pose_error(&c.pose, &truth, false);
             notes.push(serde_json::json!({
                 "query": p.query_id(*qi),
                 "effects": effects.is_some(),

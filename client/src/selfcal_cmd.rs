@@ -7,6 +7,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
+use pntr_core::{convert_axes, CameraAxes};
 use pntr_dataset::SceneEntry;
 use pntr_pipeline::calibration::{Calibration, MapCalibration};
 use pntr_pipeline::eval::{query_list, QueryViews};
@@ -155,6 +156,7 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
     };
     let list = query_list(scenes.iter().copied(), opts.max_frames)?;
     let fx = RobotEffects::default();
+    let axes = p.map.header.axes();
     let mut views = QueryViews::default();
     let mut frame = |i: usize| -> Result<Option<PosedFrame>, PipelineError> {
         let (entry, qi) = &list[i];
@@ -172,7 +174,8 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
         }
         Ok(Some(PosedFrame {
             query,
-            world_from_camera: v.world_from_camera,
+            // Habitat camera axes in the dataset, the map's in the answers.
+            world_from_camera: convert_axes(&v.world_from_camera, CameraAxes::Habitat, axes),
             scene: scene as u32,
         }))
     };

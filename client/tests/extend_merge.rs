@@ -270,6 +270,27 @@ fn sessions_extend_and_merge_maps() {
         !text.contains("STALE") && text.contains("calibration: the map's own"),
         "{text}"
     );
+    // A calibration fitted for the drive's map on the same apartment's dataset and another's: the
+    // dataset's poses have Habitat camera axes, the map's OpenCV ones (compared as they are, every
+    // in-map answer was 180 degrees off and the fit found no right answer to fit).
+    let fitted = dir.path().join("fitted-calibration.json");
+    let from_dataset = ok_json(&pntr(&[
+        "calibrate",
+        "--db",
+        a.to_str().unwrap(),
+        "--dataset",
+        first.to_str().unwrap(),
+        "--negatives",
+        elsewhere.to_str().unwrap(),
+        "--out",
+        fitted.to_str().unwrap(),
+        "--models",
+        MODELS,
+    ]));
+    assert!(
+        from_dataset["positives"].as_u64().unwrap() >= 5,
+        "{from_dataset}"
+    );
 
     // A running server extends its map with a recording on its disk, writes the map's file and
     // serves the new version (`pntr maps extend`, the admin token from PNTR_ADMIN_TOKEN).
