@@ -330,6 +330,7 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
         "up_axis": header.up_axis,
         "up_axis_inferred": report.up_axis_inferred,
         "stage_seconds": stage_seconds,
+        "self_calibration_seconds": self_calibration_s,
         "sequences": args.sequence.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
         "check": check.as_ref().map(serde_json::to_value).transpose()?,
         "calibration": crate::selfcal_cmd::summary(header.calibration.as_ref(), stale),

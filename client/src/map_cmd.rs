@@ -79,8 +79,9 @@ pub struct BuildArgs {
     /// Keep the shipped confidence calibration instead of fitting the map's own. By default the
     /// map is cut into regions and frames with known poses (the dataset's queries, or the
     /// recording's frames the map was not built from) are localized against the whole map and with
-    /// their own region held out; the LOCALIZED threshold is raised until the map's own look-alikes
-    /// (the held-out frames it places wrongly) are refused, and stored in the map.
+    /// their own region held out; the LOCALIZED threshold is raised until at most 1 % of the map's
+    /// own look-alikes (the held-out frames it places wrongly) stay LOCALIZED, as long as at most 1 %
+    /// of the frames answered right are given up, and stored in the map.
     #[arg(long)]
     pub no_self_calibration: bool,
     /// Frames the map's own calibration localizes, evenly spaced (0 = all); each is localized

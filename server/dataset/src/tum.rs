@@ -243,6 +243,12 @@ impl TumSequence {
     /// that is not `fx fy cx cy [k1 k2 p1 p2 [k3]]`, or no colour frame with a depth frame within
     /// [`MAX_PAIR_GAP_S`].
     pub fn open(root: &Path) -> Result<Self, DatasetError> {
+        if !root.exists() {
+            return Err(layout(
+                root,
+                "no such file or folder (expected a TUM RGB-D sequence folder, a ROS 2 bag folder or an .mcap file)",
+            ));
+        }
         if !root.is_dir() {
             return Err(layout(
                 root,

@@ -1072,7 +1072,7 @@ impl Pipeline {
                 });
                 let shape = if shape_only(&evidence) {
                     format!(
-                        "; the pose fits the map's shape but not its look (grey agreement within tiles {:.2}, below {:.2}): a place shaped alike, or a view with no texture to compare",
+                        "; the pose fits the map's shape but not its look (grey agreement within tiles {:.2} at best over the matched and nearby views, below {:.2}): a place shaped alike, or a view with no texture to compare",
                         evidence.local_gray.max(evidence.views_local_gray),
                         MIN_LOCAL_GRAY
                     )
