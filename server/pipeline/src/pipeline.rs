@@ -151,7 +151,7 @@ pub const SHAPE_ONLY_MAX_PROBABILITY: f64 = 0.3;
 /// boxes of the same size) gives such poses, and depth and view agreement lift them to
 /// probabilities they do not have (issue 41; BENCHMARKS.md, "Shape alone and more turned views").
 pub fn shape_only(e: &Evidence) -> bool {
-    e.local_gray.max(e.views_local_gray) < MIN_LOCAL_GRAY
+    e.best_local_gray() < MIN_LOCAL_GRAY
 }
 
 /// The probability the pipeline gives a verified candidate with evidence `e`: `calibration`'s, at
@@ -1073,7 +1073,7 @@ impl Pipeline {
                 let shape = if shape_only(&evidence) {
                     format!(
                         "; the pose fits the map's shape but not its look (grey agreement within tiles {:.2} at best over the matched and nearby views, below {:.2}): a place shaped alike, or a view with no texture to compare",
-                        evidence.local_gray.max(evidence.views_local_gray),
+                        evidence.best_local_gray(),
                         MIN_LOCAL_GRAY
                     )
                 } else {

@@ -748,6 +748,12 @@ impl Evidence {
         ]
     }
 
+    /// Grey agreement within tiles at best over the matched view ([`Evidence::local_gray`]) and the
+    /// nearby ones ([`Evidence::views_local_gray`]), -1..1.
+    pub fn best_local_gray(&self) -> f64 {
+        self.local_gray.max(self.views_local_gray)
+    }
+
     /// The registration's inlier count, from [`Evidence::log_inliers`].
     pub fn inliers(&self) -> usize {
         (self.log_inliers.exp() - 1.0).round().max(0.0) as usize
