@@ -26,15 +26,12 @@ fn camera_of(rec: &Recording, intrinsics: Option<&str>) -> Result<Intrinsics> {
         });
     };
     let m = crate::localize_cmd::parse_intrinsics(&[text.to_string()])?;
-    let (width, height) = (0..rec.len().min(50))
-        .find_map(|i| rec.load(i).ok())
-        .map(|(rgb, _)| (rgb.width, rgb.height))
-        .with_context(|| {
-            format!(
-                "{}: none of the first frames could be read",
-                rec.path.display()
-            )
-        })?;
+    let (width, height) = rec.image_size().with_context(|| {
+        format!(
+            "{}: none of the first frames could be read",
+            rec.path.display()
+        )
+    })?;
     let mut k = Intrinsics {
         fx: m.fx,
         fy: m.fy,
@@ -104,14 +101,18 @@ pub(crate) fn open_recording(
     depth_scale: Option<f64>,
     intrinsics: Option<&str>,
 ) -> Result<(Recording, Intrinsics)> {
+    let (depth_intrinsics, colour_from_depth) = topics.depth_camera()?;
     let opts = RecordingOptions {
         topics: topics.topics(),
         trajectory: trajectory.map(Path::to_path_buf),
         depth_units_per_m: depth_scale,
+        depth_intrinsics,
+        colour_from_depth,
     };
-    let rec =
+    let mut rec =
         Recording::open(path, &opts).with_context(|| format!("--sequence {}", path.display()))?;
     let camera = camera_of(&rec, intrinsics)?;
+    rec.set_colour_camera(camera);
     Ok((rec, camera))
 }
 

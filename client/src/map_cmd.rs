@@ -28,7 +28,8 @@ pub struct BuildArgs {
     pub dataset: Option<PathBuf>,
     /// A robot's recording to build the map from instead: a TUM RGB-D folder (rgb.txt, depth.txt,
     /// groundtruth.txt, calibration.txt) or a ROS 2 bag (a rosbag2 folder with metadata.yaml and its
-    /// split .mcap files, or one `.mcap`). Repeat it for several sessions
+    /// split .mcap files, or one `.mcap`) or a 7-Scenes folder (frame-NNNNNN.color.png|jpg,
+    /// .depth.png, .pose.txt; see --depth-to-colour). Repeat it for several sessions
     /// whose poses share one frame. Keyframes become the map's images; poses use the optical camera
     /// axes (the TUM and ROS convention) and the map keeps them.
     #[arg(long, value_name = "DIR|FILE.mcap")]

@@ -33,7 +33,8 @@ pub struct ReplayArgs {
     #[command(flatten)]
     pub connect: ConnectArgs,
     /// The recorded drive: a folder in the TUM RGB-D layout (rgb.txt, depth.txt, optional
-    /// groundtruth.txt and calibration.txt), or a ROS 2 bag (a folder with metadata.yaml, or `.mcap`).
+    /// groundtruth.txt and calibration.txt), a ROS 2 bag (a folder with metadata.yaml, or `.mcap`),
+    /// or a folder in the 7-Scenes layout (frame-NNNNNN.color|depth|pose files).
     #[arg(long)]
     pub sequence: PathBuf,
     /// ROS 2 bag topics.
@@ -119,9 +120,79 @@ pub struct TopicArgs {
     /// ROS 2 bag: the camera's optical frame in TF (default: the colour images' frame_id).
     #[arg(long)]
     pub camera_frame: Option<String>,
+    /// Depth from a separate depth camera (not registered to colour): its `fx,fy,cx,cy` (its image
+    /// size is the depth images'). pntr registers each depth image to the colour camera. A 7-Scenes
+    /// folder's camera-intrinsics.txt is taken when this is not given.
+    #[arg(long, value_name = "FX,FY,CX,CY")]
+    pub depth_intrinsics: Option<String>,
+    /// The depth camera's offset: `tx,ty,tz[,qx,qy,qz,qw]` (metres; quaternion x, y, z, w) taking a
+    /// point in the depth camera's optical frame to the colour camera's (a calibration's "depth to
+    /// colour" extrinsics; 7-Scenes' Kinect: -0.0256,0.0001,0.0020).
+    #[arg(
+        long,
+        value_name = "TX,TY,TZ[,QX,QY,QZ,QW]",
+        allow_hyphen_values = true
+    )]
+    pub depth_to_colour: Option<String>,
 }
 
+/// A separate depth camera's `fx, fy, cx, cy` and `colour_from_depth`, each when given.
+pub type DepthCameraOptions = (Option<[f64; 4]>, Option<Isometry3<f64>>);
+
 impl TopicArgs {
+    /// The reader's options for a separate depth camera: `--depth-intrinsics` and
+    /// `--depth-to-colour`, parsed.
+    pub fn depth_camera(&self) -> Result<DepthCameraOptions> {
+        let numbers = |flag: &str, s: &str| -> Result<Vec<f64>> {
+            s.split([',', ' '])
+                .filter(|w| !w.is_empty())
+                .map(|w| {
+                    w.parse::<f64>()
+                        .ok()
+                        .filter(|x| x.is_finite())
+                        .with_context(|| format!("{flag}: `{w}` is not a number"))
+                })
+                .collect()
+        };
+        let k = match self.depth_intrinsics.as_deref() {
+            None => None,
+            Some(s) => match numbers("--depth-intrinsics", s)?[..] {
+                [fx, fy, cx, cy] if fx > 0.0 && fy > 0.0 => Some([fx, fy, cx, cy]),
+                _ => bail!(
+                    "--depth-intrinsics {s}: give fx,fy,cx,cy (pixels, positive focal lengths)"
+                ),
+            },
+        };
+        let e = match self.depth_to_colour.as_deref() {
+            None => None,
+            Some(s) => {
+                let v = numbers("--depth-to-colour", s)?;
+                let t = nalgebra::Translation3::new(
+                    *v.first().unwrap_or(&0.0),
+                    *v.get(1).unwrap_or(&0.0),
+                    *v.get(2).unwrap_or(&0.0),
+                );
+                let q = match v.len() {
+                    3 => nalgebra::UnitQuaternion::identity(),
+                    7 => {
+                        let q = nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]);
+                        let n = q.norm();
+                        if (n - 1.0).abs() > 1e-3 {
+                            bail!("--depth-to-colour {s}: the quaternion's norm is {n:.4}, not 1");
+                        }
+                        nalgebra::UnitQuaternion::from_quaternion(q)
+                    }
+                    _ => bail!("--depth-to-colour {s}: give tx,ty,tz or tx,ty,tz,qx,qy,qz,qw"),
+                };
+                if t.vector.norm() > 0.5 {
+                    bail!("--depth-to-colour {s}: the cameras would be {:.2} m apart; the offset is in metres (a centimetre offset is 0.025, not 25)", t.vector.norm());
+                }
+                Some(Isometry3::from_parts(t, q))
+            }
+        };
+        Ok((k, e))
+    }
+
     /// The reader's topics.
     pub fn topics(&self) -> Topics {
         Topics {
@@ -137,10 +208,13 @@ impl TopicArgs {
 
 /// The recorded drive `--sequence` names, with the bag topics and depth unit the flags give.
 fn open_recording(args: &ReplayArgs) -> Result<Recording> {
+    let (depth_intrinsics, colour_from_depth) = args.topics.depth_camera()?;
     let opts = RecordingOptions {
         topics: args.topics.topics(),
         trajectory: None,
         depth_units_per_m: args.depth_scale,
+        depth_intrinsics,
+        colour_from_depth,
     };
     Ok(Recording::open(&args.sequence, &opts)?)
 }
@@ -159,6 +233,48 @@ struct Answered {
     position_sigma_m: Option<f64>,
     latency_ms: f64,
     stages: Vec<(String, f64)>,
+}
+
+/// Thresholds of the pose recalls replay reports: (metres, degrees) and their JSON keys. (5 cm, 5 deg)
+/// and (10 cm, 5 deg) are what 7-Scenes and 12-Scenes papers report; (0.25 m, 2 deg) HPointLoc's.
+const RECALL_BOUNDS: [(&str, f64, f64); 3] = [
+    ("5cm_5deg", 0.05, 5.0),
+    ("10cm_5deg", 0.10, 5.0),
+    ("25cm_2deg", 0.25, 2.0),
+];
+
+/// Recalls over the frames with ground truth (a frame not LOCALIZED counts as a miss), median errors
+/// of the LOCALIZED ones, and how many of those are more than 0.5 m or 10 deg off (wrong).
+fn pose_accuracy(out: &[Answered]) -> serde_json::Value {
+    let with_truth = out.iter().filter(|a| a.truth.is_some()).count();
+    let errors: Vec<(f64, f64)> = out
+        .iter()
+        .filter_map(|a| {
+            let (e, t) = (a.estimate?, a.truth?);
+            Some((
+                (e.translation.vector - t.translation.vector).norm(),
+                e.rotation.angle_to(&t.rotation).to_degrees(),
+            ))
+        })
+        .collect();
+    let recall: serde_json::Map<String, serde_json::Value> = RECALL_BOUNDS
+        .iter()
+        .map(|&(key, m, deg)| {
+            let n = errors.iter().filter(|&&(e, d)| e <= m && d <= deg).count();
+            (key.to_string(), json!(n as f64 / with_truth.max(1) as f64))
+        })
+        .collect();
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied()
+    };
+    json!({
+        "recall": recall,
+        "median_error_m": median(errors.iter().map(|e| e.0).collect()),
+        "median_error_deg": median(errors.iter().map(|e| e.1).collect()),
+        "localized_over_0_5m_or_10deg": errors.iter().filter(|&&(e, d)| e > 0.5 || d > 10.0).count(),
+        "frames_with_ground_truth": with_truth,
+    })
 }
 
 /// One JSON line per answered frame; errors are geodesic (rotation) and Euclidean (translation)
@@ -244,7 +360,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         }
     }
     let effects = crate::map_cmd::effects(&args.effects)?;
-    let seq =
+    let mut seq =
         open_recording(args).with_context(|| format!("--sequence {}", args.sequence.display()))?;
     let camera = match (&args.intrinsics, seq.intrinsics()) {
         (Some(s), _) => crate::localize_cmd::parse_intrinsics(std::slice::from_ref(s))?,
@@ -256,6 +372,27 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 .unwrap_or_else(|| "no calibration.txt or camera info".into())
         ),
     };
+    if seq.has_depth_camera() {
+        let (width, height) = seq.image_size().with_context(|| {
+            format!(
+                "{}: none of the first frames could be read",
+                args.sequence.display()
+            )
+        })?;
+        let mut k = pntr_core::Intrinsics {
+            fx: camera.fx,
+            fy: camera.fy,
+            cx: camera.cx,
+            cy: camera.cy,
+            width,
+            height,
+            distortion: [0.0; 5],
+        };
+        for (d, v) in k.distortion.iter_mut().zip(&camera.distortion) {
+            *d = *v;
+        }
+        seq.set_colour_camera(k);
+    }
     for w in seq.warnings() {
         eprintln!("warning: {w}");
     }
@@ -509,6 +646,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         "max_error_m": errors.max_error_m,
         "frames_over_1m": errors.over_1m,
         "frames_with_ground_truth": errors.compared,
+        "accuracy": pose_accuracy(&out),
         "modes": modes,
         "prior": if args.no_prior { "none (relocalize every frame)".to_string() }
             else if let Some(r) = args.prior_radius { format!("previous answer, {r} m radius, and the stream's tracking") }

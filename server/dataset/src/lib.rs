@@ -27,11 +27,13 @@
 //!   OpenCV axes is an explicit call into `pntr_core`.
 
 pub mod bag;
+pub mod depth_camera;
 mod error;
 mod last_words;
 pub mod layout;
 mod reader;
 pub mod recording;
+pub mod sevenscenes;
 pub mod tf;
 pub mod tum;
 mod writer;

@@ -11,6 +11,8 @@ use nalgebra::Isometry3;
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 
 use crate::bag::{Bag, Topics};
+use crate::depth_camera::{register_depth, DepthCamera};
+use crate::sevenscenes::{is_seven_scenes, SevenScenes};
 use crate::tum::{Trajectory, TumSequence};
 use crate::DatasetError;
 
@@ -24,11 +26,18 @@ pub struct RecordingOptions {
     pub trajectory: Option<PathBuf>,
     /// Units per metre of integer depth, replacing what the format says (TUM 5000, ROS 16UC1 1000).
     pub depth_units_per_m: Option<f64>,
+    /// The depth camera's `fx, fy, cx, cy` when the depth images are not registered to colour (its
+    /// image size is the depth images'); a 7-Scenes folder's `camera-intrinsics.txt` when not given.
+    pub depth_intrinsics: Option<[f64; 4]>,
+    /// The depth camera's offset: a point in its optical frame to the colour camera's (identity when
+    /// only `depth_intrinsics` is given).
+    pub colour_from_depth: Option<Isometry3<f64>>,
 }
 
 enum Source {
     Tum(TumSequence),
     Bag(Box<Bag>),
+    SevenScenes(SevenScenes),
 }
 
 /// An opened recording: frames in time order, each with its stamp, pose (when known) and images.
@@ -38,6 +47,10 @@ pub struct Recording {
     source: Source,
     trajectory: Option<Trajectory>,
     depth_units_per_m: Option<f64>,
+    /// A separate depth camera: `fx, fy, cx, cy` and `colour_from_depth`.
+    depth_camera: Option<([f64; 4], Isometry3<f64>)>,
+    /// The colour camera depth is registered to ([`Recording::set_colour_camera`]).
+    colour: Option<Intrinsics>,
 }
 
 impl std::fmt::Debug for Recording {
@@ -78,6 +91,12 @@ impl Recording {
                 b.depth_units_per_m = u;
             }
             Source::Bag(Box::new(b))
+        } else if !path.join("rgb.txt").is_file() && is_seven_scenes(path) {
+            let mut s = SevenScenes::open(path)?;
+            if let Some(u) = opts.depth_units_per_m {
+                s.depth_units_per_m = u;
+            }
+            Source::SevenScenes(s)
         } else {
             let mut s = TumSequence::open(path)?;
             if let Some(u) = opts.depth_units_per_m {
@@ -95,11 +114,38 @@ impl Recording {
             Some(t) => Some(Trajectory::read(t)?),
             None => None,
         };
+        let own_depth_k = match &source {
+            Source::SevenScenes(s) => s.intrinsics.map(|k| [k.fx, k.fy, k.cx, k.cy]),
+            _ => None,
+        };
+        let depth_k = opts.depth_intrinsics.or(own_depth_k);
+        if let Some(k) = opts.depth_intrinsics {
+            if !k.iter().all(|x| x.is_finite()) || k[0] <= 0.0 || k[1] <= 0.0 {
+                return Err(DatasetError::Layout {
+                    path: path.to_path_buf(),
+                    problem: format!("the depth camera's intrinsics must be finite with positive focal lengths, not {k:?}"),
+                });
+            }
+        }
+        if opts.colour_from_depth.is_some() && depth_k.is_none() {
+            return Err(DatasetError::Layout {
+                path: path.to_path_buf(),
+                problem: "a depth-to-colour offset needs the depth camera's intrinsics too (--depth-intrinsics fx,fy,cx,cy)".into(),
+            });
+        }
+        let depth_camera = depth_k.map(|k| {
+            (
+                k,
+                opts.colour_from_depth.unwrap_or_else(Isometry3::identity),
+            )
+        });
         Ok(Self {
             path: path.to_path_buf(),
             source,
             trajectory,
             depth_units_per_m: opts.depth_units_per_m,
+            depth_camera,
+            colour: None,
         })
     }
 
@@ -108,7 +154,20 @@ impl Recording {
         match &self.source {
             Source::Tum(s) => s.frames.len(),
             Source::Bag(b) => b.len(),
+            Source::SevenScenes(s) => s.frames.len(),
         }
+    }
+
+    /// Whether depth comes from a separate depth camera that [`Recording::load`] registers to the
+    /// colour camera ([`crate::depth_camera`]).
+    pub fn has_depth_camera(&self) -> bool {
+        self.depth_camera.is_some()
+    }
+
+    /// The colour camera that frames' depth is registered to (the recording's own or the user's):
+    /// needed before [`Recording::load`] when [`Recording::has_depth_camera`].
+    pub fn set_colour_camera(&mut self, colour: Intrinsics) {
+        self.colour = Some(colour);
     }
 
     /// True without frames.
@@ -121,6 +180,8 @@ impl Recording {
         match &self.source {
             Source::Tum(s) => s.intrinsics,
             Source::Bag(b) => b.intrinsics,
+            // camera-intrinsics.txt is the depth camera's (the poses' and depth's), not colour's.
+            Source::SevenScenes(_) => None,
         }
     }
 
@@ -134,6 +195,7 @@ impl Recording {
     pub fn camera_problem(&self) -> Option<String> {
         match &self.source {
             Source::Tum(_) => None,
+            Source::SevenScenes(_) => Some("a 7-Scenes folder names only its depth camera (camera-intrinsics.txt), not the colour camera (7-Scenes' Kinect: 525,525,320,240)".into()),
             Source::Bag(b) => b.camera_problem.clone(),
         }
     }
@@ -141,7 +203,7 @@ impl Recording {
     /// Why some frames have no pose (a bag's first failed TF or pose look-up), when some have none.
     pub fn pose_problem(&self) -> Option<String> {
         match &self.source {
-            Source::Tum(_) => None,
+            Source::Tum(_) | Source::SevenScenes(_) => None,
             Source::Bag(b) => b.pose_problem.clone(),
         }
     }
@@ -150,6 +212,10 @@ impl Recording {
     pub fn warnings(&self) -> Vec<String> {
         match &self.source {
             Source::Tum(_) => Vec::new(),
+            Source::SevenScenes(_) if self.depth_camera.is_some_and(|(_, e)| e == Isometry3::identity()) => vec![
+                "the depth camera's offset to the colour camera is not given (--depth-to-colour): depth is registered with the two cameras' intrinsics alone; 7-Scenes' Kinect: --depth-to-colour -0.0256,0.0001,0.0020".into(),
+            ],
+            Source::SevenScenes(_) => Vec::new(),
             Source::Bag(b) => b.warnings.clone(),
         }
     }
@@ -159,6 +225,7 @@ impl Recording {
         match &self.source {
             Source::Tum(s) => s.frames[i].timestamp,
             Source::Bag(b) => b.timestamp(i),
+            Source::SevenScenes(s) => s.timestamp(i),
         }
     }
 
@@ -171,15 +238,71 @@ impl Recording {
         match &self.source {
             Source::Tum(s) => s.frames[i].world_from_camera,
             Source::Bag(b) => b.ground_truth(i),
+            // The layout's poses are the depth camera's: the colour camera's is one offset away.
+            Source::SevenScenes(s) => {
+                s.frames[i]
+                    .world_from_camera
+                    .map(|w| match &self.depth_camera {
+                        Some((_, colour_from_depth)) => w * colour_from_depth.inverse(),
+                        None => w,
+                    })
+            }
         }
     }
 
-    /// Decode frame `i`: colour, and depth in metres (0 = missing). Errors name the file.
+    /// Decode frame `i`: colour, and depth in metres (0 = missing), registered to the colour image
+    /// when the depth comes from a separate depth camera. Errors name the file; with a depth camera,
+    /// also when the colour camera was not set ([`Recording::set_colour_camera`]) or the depth image
+    /// does not have the depth camera's size.
     pub fn load(&self, i: usize) -> Result<(RgbImage, DepthMap), DatasetError> {
-        match &self.source {
+        let (rgb, depth) = match &self.source {
             Source::Tum(s) => s.load(i),
             Source::Bag(b) => b.load(i),
+            Source::SevenScenes(s) => s.load(i),
+        }?;
+        let Some((k, colour_from_depth)) = self.depth_camera else {
+            return Ok((rgb, depth));
+        };
+        let problem = |p: String| DatasetError::Layout {
+            path: self.path.clone(),
+            problem: format!("frame {i}: {p}"),
+        };
+        let colour = self.colour.ok_or_else(|| {
+            problem("depth from a separate depth camera needs the colour camera (--intrinsics) to be registered to".into())
+        })?;
+        if (colour.width, colour.height) != (rgb.width, rgb.height) {
+            return Err(problem(format!(
+                "the colour image is {}x{} but the colour camera is {}x{}",
+                rgb.width, rgb.height, colour.width, colour.height
+            )));
         }
+        let camera = DepthCamera {
+            intrinsics: Intrinsics {
+                fx: k[0],
+                fy: k[1],
+                cx: k[2],
+                cy: k[3],
+                width: depth.width,
+                height: depth.height,
+                distortion: [0.0; 5],
+            },
+            colour_from_depth,
+        };
+        let depth = register_depth(&depth, &camera, &colour).map_err(problem)?;
+        Ok((rgb, depth))
+    }
+
+    /// The colour image's size of the first readable frame among the first 50.
+    pub fn image_size(&self) -> Option<(u32, u32)> {
+        (0..self.len().min(50)).find_map(|i| {
+            let (rgb, _) = match &self.source {
+                Source::Tum(s) => s.load(i),
+                Source::Bag(b) => b.load(i),
+                Source::SevenScenes(s) => s.load(i),
+            }
+            .ok()?;
+            Some((rgb.width, rgb.height))
+        })
     }
 
     /// A short name for ids and reports: the folder's or file's name without extension.
