@@ -770,7 +770,8 @@ impl Pipeline {
     /// re-anchoring frame): when the keyframe also registers and the two poses disagree (0.5 m, 10
     /// deg), the camera cannot have jumped, so odometry answers and the map answer goes along as a
     /// challenger (`off_track`: two confident ones that agree move the track); otherwise the map
-    /// answer stands and the frame becomes the anchored keyframe.
+    /// answer and the track are fused by their covariances ([`odometry::fuse`]) and the frame
+    /// becomes the anchored keyframe at the fused pose.
     fn settle(
         &self,
         loc: Localization,
@@ -780,6 +781,7 @@ impl Pipeline {
     ) -> Result<Localization, PipelineError> {
         if let (Some(key), true, Some(pose)) = (&opts.keyframe, opts.map_first, loc.pose) {
             let mut times = loc.times;
+            let mut loc = loc;
             if let Ok(hop) = self.odometry_answer(key, frame, opts, &mut times, t0)? {
                 let hop_pose = hop.pose.expect("odometry answers are LOCALIZED");
                 if !poses_agree(&hop_pose, &pose, 0.5, 10.0) {
@@ -790,6 +792,18 @@ impl Pipeline {
                         off_track: Some((pose, loc.confidence)),
                         ..hop
                     });
+                }
+                // The map fix and the track agree: each moves the other by its certainty
+                // ([`odometry::fuse`]), so a fix with a handful of inliers (a wide baseline, a
+                // look-alike part of the view) cannot drag a well-supported track by its own
+                // error (real Kinect frames: BENCHMARKS.md, "Real recordings").
+                let covs = (loc.covariance.as_deref(), hop.covariance.as_deref());
+                if let (Some(cov), Some(track_cov)) = covs {
+                    if let Some((p, c)) = odometry::fuse(&pose, cov, &hop_pose, track_cov) {
+                        loc.pose = Some(p);
+                        loc.estimate = Some(p);
+                        loc.covariance = Some(Box::new(c));
+                    }
                 }
             }
             let loc = Localization { times, ..loc };
