@@ -49,7 +49,7 @@ enum Command {
     Localize(localize_cmd::LocalizeArgs),
     /// Load-test a running pntr-server with a dataset's query frames.
     Bench(bench_cmd::BenchArgs),
-    /// Stream a recorded drive (TUM RGB-D folder or ROS 2 bag) through a running pntr-server's
+    /// Stream a recorded drive (TUM RGB-D folder, ROS 2 bag or 7-Scenes folder) through a running pntr-server's
     /// LocalizeStream and measure the trajectory (ATE, RPE), the share localized and the latency.
     Replay(replay_cmd::ReplayArgs),
     /// List the scenes and Points of a dataset and check that every file reads, or describe a map

@@ -53,7 +53,8 @@ pub struct ReplayArgs {
     /// Also send each frame an explicit prior of this radius, metres, around the previous answer.
     #[arg(long, value_name = "METRES", conflicts_with = "no_prior")]
     pub prior_radius: Option<f64>,
-    /// The camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]` when the sequence has no calibration.txt.
+    /// The colour camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]` when the sequence names none (no
+    /// calibration.txt or camera info; a 7-Scenes folder never does: 525,525,320,240 for its Kinect).
     #[arg(long, value_name = "FX,FY,CX,CY")]
     pub intrinsics: Option<String>,
     /// Camera effects applied to every frame before it is sent: `none`, `robot` (exposure, gamma,
@@ -185,7 +186,7 @@ impl TopicArgs {
                     _ => bail!("--depth-to-colour {s}: give tx,ty,tz or tx,ty,tz,qx,qy,qz,qw"),
                 };
                 if t.vector.norm() > 0.5 {
-                    bail!("--depth-to-colour {s}: the cameras would be {:.2} m apart; the offset is in metres (a centimetre offset is 0.025, not 25)", t.vector.norm());
+                    bail!("--depth-to-colour {s}: the cameras would be {:.2} m apart; the offset is in metres (2.56 cm is 0.0256)", t.vector.norm());
                 }
                 Some(Isometry3::from_parts(t, q))
             }
