@@ -380,18 +380,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 args.sequence.display()
             )
         })?;
-        let mut k = pntr_core::Intrinsics {
-            fx: camera.fx,
-            fy: camera.fy,
-            cx: camera.cx,
-            cy: camera.cy,
-            width,
-            height,
-            distortion: [0.0; 5],
-        };
-        for (d, v) in k.distortion.iter_mut().zip(&camera.distortion) {
-            *d = *v;
-        }
+        let k = pntr_service::decode::intrinsics(Some(&camera), width, height)
+            .map_err(|e| anyhow::anyhow!("--intrinsics: {}", e.message()))?;
         seq.set_colour_camera(k);
     }
     for w in seq.warnings() {

@@ -255,11 +255,7 @@ impl Recording {
     /// also when the colour camera was not set ([`Recording::set_colour_camera`]) or the depth image
     /// does not have the depth camera's size.
     pub fn load(&self, i: usize) -> Result<(RgbImage, DepthMap), DatasetError> {
-        let (rgb, depth) = match &self.source {
-            Source::Tum(s) => s.load(i),
-            Source::Bag(b) => b.load(i),
-            Source::SevenScenes(s) => s.load(i),
-        }?;
+        let (rgb, depth) = self.load_as_recorded(i)?;
         let Some((k, colour_from_depth)) = self.depth_camera else {
             return Ok((rgb, depth));
         };
@@ -292,15 +288,19 @@ impl Recording {
         Ok((rgb, depth))
     }
 
+    /// Frame `i` as the recording holds it: depth in the depth camera's pixels when it has one.
+    fn load_as_recorded(&self, i: usize) -> Result<(RgbImage, DepthMap), DatasetError> {
+        match &self.source {
+            Source::Tum(s) => s.load(i),
+            Source::Bag(b) => b.load(i),
+            Source::SevenScenes(s) => s.load(i),
+        }
+    }
+
     /// The colour image's size of the first readable frame among the first 50.
     pub fn image_size(&self) -> Option<(u32, u32)> {
         (0..self.len().min(50)).find_map(|i| {
-            let (rgb, _) = match &self.source {
-                Source::Tum(s) => s.load(i),
-                Source::Bag(b) => b.load(i),
-                Source::SevenScenes(s) => s.load(i),
-            }
-            .ok()?;
+            let (rgb, _) = self.load_as_recorded(i).ok()?;
             Some((rgb.width, rgb.height))
         })
     }
