@@ -396,6 +396,7 @@ fn localizes_against_a_real_server() {
         assert!(status == "LOCALIZED" || status == "NOT_LOCALIZED", "{q}");
         if status != "LOCALIZED" {
             assert!(!q["reason"].as_str().unwrap().is_empty(), "{q}");
+            assert!(!q["cause"].as_str().unwrap().is_empty(), "{q}");
             continue;
         }
         // The reported errors are those of the reported pose against the file's ground truth.
@@ -566,6 +567,7 @@ def summary(a):
          "min_confidence": a.min_confidence, "request_id": a.request_id, "map_id": a.map_id,
          "reason": a.reason, "stage_ms": a.stage_ms, "matched_image_id": a.matched_image_id}
     if a.localized:
+        assert a.cause == "", a.cause
         assert isinstance(a.pose, np.ndarray) and a.pose.shape == (4, 4) and a.pose.dtype == np.float64
         assert not a.pose.flags.writeable
         r["pose"] = a.pose.tolist()
@@ -574,6 +576,7 @@ def summary(a):
             r["covariance"] = a.covariance.tolist()
     else:
         assert a.pose is None and a.reason
+        assert a.cause in ("NO_MATCH", "UNVERIFIED", "LOOK_ALIKE", "OUTSIDE_MAP", "BAD_INPUT"), a.cause
     return r
 
 with pc.Client(addr, token=token, timeout_s=120) as c:

@@ -73,7 +73,8 @@ pub struct CalibrateArgs {
     #[arg(long, default_value_t = crate::selfcal_cmd::DEFAULT_FRAMES, value_name = "N")]
     pub self_calibration_frames: usize,
     /// Preset: fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
-    /// xfeat-mnn-int8, xfeat-mnn-bf16 (default: the map's own, or `xfeat-mnn` when building).
+    /// xfeat-mnn-int8, xfeat-mnn-bf16, xfeat-mnn-qvga, xfeat-mnn-bf16-qvga (default: the map's own,
+    /// or `xfeat-mnn` when building).
     #[arg(long)]
     pub preset: Option<String>,
     /// In-map queries used, evenly spaced (0 = all).

@@ -233,6 +233,7 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
             "map_id": r.map_id,
             "map_version": r.map_version,
             "reason": r.reason,
+            "cause": wire::cause_label(r.cause),
             "stage_ms": timings,
             "frame_convention": wire::convention_name(r.frame_convention),
             "pose": pose.map(|p| {
@@ -257,7 +258,7 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
         r.map_id, r.map_version, r.confidence, r.min_confidence, r.inliers
     );
     if !r.reason.is_empty() {
-        println!("reason: {}", r.reason);
+        println!("reason ({}): {}", wire::cause_label(r.cause), r.reason);
     }
     if let Some(p) = pose {
         let [w, x, y, z] = pntr_core::pose::canonical_wxyz(&p.rotation);

@@ -117,7 +117,9 @@ pub struct BuildArgs {
     )]
     pub extend: Option<PathBuf>,
     /// Preset (fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
-    /// xfeat-mnn-int8, xfeat-mnn-bf16).
+    /// xfeat-mnn-int8, xfeat-mnn-bf16, xfeat-mnn-qvga, xfeat-mnn-bf16-qvga). The `-qvga` ones
+    /// describe a recording's frames at 320x240 (a 640x480 or 1280x720 camera then costs the
+    /// server about what a 256x256 frame does, for some accuracy: docs/mapping.md).
     #[arg(long, default_value = DEFAULT_PRESET)]
     pub preset: String,
     /// Folder of the ONNX models.
@@ -161,7 +163,8 @@ pub struct EvalArgs {
     #[arg(long)]
     pub tls_ca: Option<PathBuf>,
     /// Preset: fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
-    /// xfeat-mnn-int8, xfeat-mnn-bf16 (default: the map's own, or `xfeat-mnn` when building).
+    /// xfeat-mnn-int8, xfeat-mnn-bf16, xfeat-mnn-qvga, xfeat-mnn-bf16-qvga (default: the map's own,
+    /// or `xfeat-mnn` when building).
     #[arg(long)]
     pub preset: Option<String>,
     /// Reproduce the published evaluation's folded, convention-mismatched angle (labelled in the output).

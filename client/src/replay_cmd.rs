@@ -77,7 +77,7 @@ pub struct ReplayArgs {
     /// this folder.
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
-    /// Also write one JSON line per frame (timestamp, status, mode, reason, confidence, inliers,
+    /// Also write one JSON line per frame (timestamp, status, mode, reason, cause, confidence, inliers,
     /// matched image, position standard deviation from the covariance, latency, and with ground truth the translation and rotation errors): what
     /// answered each frame, and why a frame was not localized.
     #[arg(long, value_name = "OUT.jsonl")]
@@ -228,6 +228,7 @@ struct Answered {
     mode: String,
     status: String,
     reason: String,
+    cause: &'static str,
     confidence: f64,
     inliers: u32,
     matched_image_id: String,
@@ -295,6 +296,7 @@ fn frames_log(out: &[Answered]) -> String {
             "status": a.status,
             "mode": a.mode,
             "reason": a.reason,
+            "cause": a.cause,
             "confidence": a.confidence,
             "inliers": a.inliers,
             "matched_image_id": a.matched_image_id,
@@ -566,6 +568,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 .map(|m| m.as_str_name().to_string())
                 .unwrap_or_else(|_| "UNKNOWN".into()),
             reason: r.reason.clone(),
+            cause: pntr_service::wire::cause_label(r.cause),
             confidence: r.confidence,
             inliers: r.inliers,
             matched_image_id: r.matched_image_id.clone(),

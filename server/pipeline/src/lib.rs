@@ -33,6 +33,7 @@
 pub mod alias;
 pub mod calibration;
 pub mod camera;
+pub mod coverage;
 pub mod depth_noise;
 pub mod eval;
 pub mod keyframes;

@@ -35,6 +35,7 @@ use serde::Serialize;
 use crate::alias::resolve;
 use crate::calibration::{choose, Calibration, CalibrationSource};
 use crate::camera::to_map_scale;
+use crate::coverage::Coverage;
 use crate::depth_noise::RangeBounds;
 use crate::map::Map;
 use crate::odometry::{self, Keyframe};
@@ -190,6 +191,56 @@ pub enum Status {
     NotLocalized,
 }
 
+/// Why a frame is NOT_LOCALIZED, as a bounded set a robot's supervisor can act on (the reason
+/// says it in words): the proto's `NotLocalizedCause` and the `cause` label of the server's
+/// NOT_LOCALIZED counter.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+pub enum Cause {
+    /// No candidate registered with enough inliers: nothing in view matched the map.
+    NoMatch,
+    /// A pose registered but its calibrated confidence stayed below the threshold.
+    Unverified,
+    /// A pose verified but another is as plausible: a look-alike place, the room turned round, or
+    /// (in a stream) a map answer where the tracked camera cannot have gone.
+    LookAlike,
+    /// The camera is where the map does not reach (the reason begins with
+    /// [`OUTSIDE_MAP_PREFIX`]).
+    OutsideMap,
+    /// The frame could not have been localized against any map: fewer keypoints on valid depth
+    /// than a pose needs.
+    BadInput,
+}
+
+impl Cause {
+    /// The name used in the proto and as a metrics label (`NO_MATCH`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Cause::NoMatch => "NO_MATCH",
+            Cause::Unverified => "UNVERIFIED",
+            Cause::LookAlike => "LOOK_ALIKE",
+            Cause::OutsideMap => "OUTSIDE_MAP",
+            Cause::BadInput => "BAD_INPUT",
+        }
+    }
+
+    /// Every cause, in the proto's order.
+    pub const ALL: [Cause; 5] = [
+        Cause::NoMatch,
+        Cause::Unverified,
+        Cause::LookAlike,
+        Cause::OutsideMap,
+        Cause::BadInput,
+    ];
+}
+
+/// A tracked pose whose view the map explains less than this share of ([`Coverage::explained`]) is
+/// outside the mapped area.
+pub const MIN_EXPLAINED: f64 = 0.2;
+
+/// How the reason of a [`Cause::OutsideMap`] answer begins (a contract: supervisors match on it).
+pub const OUTSIDE_MAP_PREFIX: &str = "outside the mapped area:";
+
 /// Seconds spent in each stage of one query.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
 pub struct StageTimes {
@@ -217,6 +268,8 @@ pub struct Localization {
     pub status: Status,
     /// Why it is NOT_LOCALIZED.
     pub reason: Option<String>,
+    /// The reason's kind ([`Cause`]); `None` when LOCALIZED.
+    pub cause: Option<Cause>,
     /// `world_from_camera` of the query (map frame, map camera axes); `None` unless localized.
     pub pose: Option<Isometry3<f64>>,
     /// The best pose found, even when verification rejected it (for evaluation and diagnostics).
@@ -350,6 +403,8 @@ pub struct Pipeline {
     shortlist: Shortlist,
     /// Camera axes of the map's poses and of the answers ([`crate::map::MapHeader::axes`]).
     axes: CameraAxes,
+    /// The map's surfaces, made when a tracked pose is first judged ([`Pipeline::coverage`]).
+    coverage: std::sync::OnceLock<Coverage>,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -421,6 +476,7 @@ impl Pipeline {
             point_views,
             map_focal_px,
             map_pixels,
+            coverage: std::sync::OnceLock::new(),
             pose_index,
             shortlist,
         })
@@ -645,6 +701,7 @@ impl Pipeline {
                 reason: Some(format!(
                     "tracking: {why} (send relocalize to accept a jump)"
                 )),
+                cause: Some(Cause::LookAlike),
                 pose: None,
                 off_track: loc
                     .pose
@@ -676,6 +733,7 @@ impl Pipeline {
         };
         Ok(Localization {
             reason,
+            cause: loc.cause.or(Some(Cause::NoMatch)),
             times,
             ..loc
         })
@@ -704,14 +762,32 @@ impl Pipeline {
             Ok(found) => found,
             Err(why) => return Ok(Err(why)),
         };
-        times.total = t0.elapsed().as_secs_f64();
         let keyframe = opts.want_keyframe.then(|| {
             odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
         });
+        // Odometry can carry the pose where the map does not reach: there nothing confirms it and
+        // a look-alike room is the next map answer, so the frame is not LOCALIZED; the chain goes
+        // on (the keyframe) so the stream knows where the camera went and when it comes back.
+        let explained = self
+            .coverage()
+            .explained(thumb, &convert_axes(&pose, self.axes, CameraAxes::OpenCv));
+        let outside = explained.filter(|&share| share < MIN_EXPLAINED);
+        times.total = t0.elapsed().as_secs_f64();
         Ok(Ok(Localization {
-            status: Status::Localized,
-            reason: None,
-            pose: Some(pose),
+            status: if outside.is_some() {
+                Status::NotLocalized
+            } else {
+                Status::Localized
+            },
+            reason: outside.map(|share| {
+                format!(
+                    "{OUTSIDE_MAP_PREFIX} odometry carried the camera where the map's images did not see: {:.0}% of the view's depth lies on surfaces the map holds (at least {:.0}% needed); the stream keeps track of the camera and answers again when it is back in the mapped area",
+                    share * 100.0,
+                    MIN_EXPLAINED * 100.0
+                )
+            }),
+            cause: outside.map(|_| Cause::OutsideMap),
+            pose: outside.is_none().then_some(pose),
             estimate: Some(pose),
             confidence: key.confidence,
             evidence: Some(hop.evidence),
@@ -782,8 +858,10 @@ impl Pipeline {
         if let (Some(key), true, Some(pose)) = (&opts.keyframe, opts.map_first, loc.pose) {
             let mut times = loc.times;
             let mut loc = loc;
-            if let Ok(hop) = self.odometry_answer(key, frame, opts, &mut times, t0)? {
-                let hop_pose = hop.pose.expect("odometry answers are LOCALIZED");
+            let hop = self.odometry_answer(key, frame, opts, &mut times, t0)?;
+            // A hop the map's surfaces do not explain cannot outweigh a verified map answer.
+            if let Some(hop) = hop.ok().filter(|h| h.status == Status::Localized) {
+                let hop_pose = hop.pose.expect("LOCALIZED odometry answers have a pose");
                 if !poses_agree(&hop_pose, &pose, 0.5, 10.0) {
                     // The refused map answer still challenges the track: a chain that slipped
                     // onto a wrong pose is moved when confident map answers keep agreeing with
@@ -810,6 +888,12 @@ impl Pipeline {
             return Ok(self.with_keyframe(loc, frame, opts));
         }
         Ok(self.with_keyframe(loc, frame, opts))
+    }
+
+    /// The map's surfaces ([`Coverage::of_map`]), made on first use.
+    pub fn coverage(&self) -> &Coverage {
+        self.coverage
+            .get_or_init(|| Coverage::of_map(&self.map, self.axes))
     }
 
     /// `loc` with the keyframe a stream tracks from next: this frame, at its verified map pose.
@@ -1030,6 +1114,8 @@ impl Pipeline {
             })
             .collect();
         // The answer's covariance is part of verification's work (its aliasing search).
+        // The chosen pose's own probability, before its rivals were weighed.
+        let own = chosen.map_or(0.0, |(i, _)| probabilities[i]);
         let best = chosen.map(|(i, conf)| {
             let (c, e, _) = scored.swap_remove(i);
             let covariance = thumb_ref.and_then(|t| self.covariance(&c, t));
@@ -1039,15 +1125,28 @@ impl Pipeline {
         times.total = t0.elapsed().as_secs_f64();
         let top = hits.first().map(|h| h.id);
         let Some((c, evidence, p, covariance)) = best else {
+            // A frame with fewer keypoints on valid depth than a pose needs could not have been
+            // localized against any map: say so, apart from a view the map does not match.
+            let usable = q_pts.iter().filter(|p| p.is_some()).count();
+            let starved = usable < self.preset.min_inliers && !hits.is_empty();
             return Ok(Localization {
                 status: Status::NotLocalized,
                 reason: Some(match fewest {
+                    _ if starved => format!(
+                        "input: only {usable} keypoints lie on valid depth, fewer than the {} a pose needs (a dark, blank or blurred image, or no depth under its texture)",
+                        self.preset.min_inliers
+                    ),
                     Some(n) => format!(
                         "registration: {n} inliers at best, fewer than {}",
                         self.preset.min_inliers
                     ),
                     None if hits.is_empty() => "the map is empty".into(),
                     None => "registration: no candidate gave a valid registration".into(),
+                }),
+                cause: Some(if starved {
+                    Cause::BadInput
+                } else {
+                    Cause::NoMatch
                 }),
                 pose: None,
                 estimate: None,
@@ -1099,6 +1198,15 @@ impl Pipeline {
                     evidence.summary()
                 )
             }),
+            // A pose that verified on its own but lost to a rival (a look-alike place, the room
+            // turned round) is a look-alike; one that never verified is unverified.
+            cause: (!localized).then_some(
+                if turned_rival.is_some() || own >= self.min_confidence {
+                    Cause::LookAlike
+                } else {
+                    Cause::Unverified
+                },
+            ),
             pose: localized.then_some(estimate),
             estimate: Some(estimate),
             confidence: p,

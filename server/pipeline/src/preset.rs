@@ -69,7 +69,18 @@ pub struct Preset {
     /// this field); 0 keeps the fixed bound alone.
     #[serde(default = "default_depth_noise_sigmas")]
     pub depth_noise_sigmas: f64,
+    /// Working resolution of a map built from recordings, pixels: a frame with more pixels is
+    /// resampled to this many (aspect ratio kept, [`crate::camera::to_map_scale`]) before it is
+    /// judged and described, and every query follows the map's scale on the server, so a 640x480 or
+    /// 1280x720 camera costs about what this many pixels cost. 0 (the default, also for maps written
+    /// before this field) keeps the camera's own resolution. Only map building reads it: serving a
+    /// map with another preset keeps the scale the map was built at.
+    #[serde(default)]
+    pub max_image_pixels: usize,
 }
+
+/// [`Preset::max_image_pixels`] of the `-qvga` presets: 320x240, about a 256x256 frame's cost.
+pub const QVGA_PIXELS: usize = 320 * 240;
 
 /// [`Preset::depth_noise_sigmas`] of every built-in preset, and of maps written before the field.
 pub const DEFAULT_DEPTH_NOISE_SIGMAS: f64 = 3.0;
@@ -79,7 +90,7 @@ fn default_depth_noise_sigmas() -> f64 {
 }
 
 /// Names of the built-in presets.
-pub const PRESETS: [&str; 9] = [
+pub const PRESETS: [&str; 11] = [
     "fast",
     "fast-norerank",
     "fast-icp",
@@ -89,6 +100,8 @@ pub const PRESETS: [&str; 9] = [
     "xfeat-mnn",
     "xfeat-mnn-int8",
     "xfeat-mnn-bf16",
+    "xfeat-mnn-qvga",
+    "xfeat-mnn-bf16-qvga",
 ];
 
 /// The default preset: the best trade-off measured (BENCHMARKS.md, "Pipeline presets"): on the synthetic
@@ -116,6 +129,7 @@ impl Preset {
             solver: Solver::Teaser,
             min_inliers: 12,
             depth_noise_sigmas: DEFAULT_DEPTH_NOISE_SIGMAS,
+            max_image_pixels: 0,
         };
         Ok(match name {
             "fast" => base,
@@ -161,6 +175,17 @@ impl Preset {
                 matcher: "mnn".into(),
                 ..base
             },
+            "xfeat-mnn-qvga" => Self {
+                matcher: "mnn".into(),
+                max_image_pixels: QVGA_PIXELS,
+                ..base
+            },
+            "xfeat-mnn-bf16-qvga" => Self {
+                extractor: "xfeat-bf16".into(),
+                matcher: "mnn".into(),
+                max_image_pixels: QVGA_PIXELS,
+                ..base
+            },
             other => {
                 return Err(PipelineError::Config(format!(
                     "unknown preset `{other}`; presets: {}",
@@ -173,11 +198,15 @@ impl Preset {
     /// The preset whose confidence calibration scores this one's answers: its own name, except
     /// `xfeat-mnn-int8` and `xfeat-mnn-bf16`, which run `xfeat-mnn`'s pipeline with the int8 or the
     /// bf16 backbone and are scored by `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md,
-    /// "int8 XFeat", "bf16 XFeat on OpenVINO"). One way only: a calibration fitted for either still
-    /// warns when loaded for `xfeat-mnn`, since nothing measured that direction.
+    /// "int8 XFeat", "bf16 XFeat on OpenVINO"), and the `-qvga` presets, which are those pipelines
+    /// on images of at most [`QVGA_PIXELS`] (the same as theirs on frames that small, such as
+    /// HPointLoc's 256x256). One way only: a calibration fitted for any of them still warns when
+    /// loaded for `xfeat-mnn`, since nothing measured that direction.
     pub fn calibration_preset(&self) -> &str {
         match self.name.as_str() {
-            "xfeat-mnn-int8" | "xfeat-mnn-bf16" => "xfeat-mnn",
+            "xfeat-mnn-int8" | "xfeat-mnn-bf16" | "xfeat-mnn-qvga" | "xfeat-mnn-bf16-qvga" => {
+                "xfeat-mnn"
+            }
             name => name,
         }
     }
@@ -327,6 +356,11 @@ mod tests {
         assert_eq!(bf16.feature_config(PathBuf::new()).extractor, "xfeat-bf16");
         assert_eq!(bf16.map_feature_config(PathBuf::new()).extractor, "xfeat");
         assert_eq!(bf16.calibration_preset(), "xfeat-mnn");
+        let qvga = Preset::named("xfeat-mnn-bf16-qvga").unwrap();
+        assert_eq!(qvga.feature_config(PathBuf::new()).extractor, "xfeat-bf16");
+        assert_eq!(qvga.max_image_pixels, QVGA_PIXELS);
+        assert_eq!(qvga.calibration_preset(), "xfeat-mnn");
+        qvga.serves(&Preset::named("xfeat-mnn").unwrap()).unwrap();
         let fast = Preset::named("fast").unwrap();
         assert_eq!(fast.map_extractor(), "xfeat");
         assert_eq!(fast.calibration_preset(), "fast");

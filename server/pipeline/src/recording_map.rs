@@ -61,14 +61,22 @@ pub struct BuildReport {
     pub base_images: usize,
 }
 
-/// The camera a distorted `camera`'s frames are undistorted to (same size and focal length), and
-/// the undistorted frame.
+/// The frame as the map describes it, and its camera: undistorted when `camera` is distorted (same
+/// focal length), and resampled to `max_pixels` pixels (aspect ratio kept) when it has more
+/// ([`Preset::max_image_pixels`]; 0 keeps every size).
 fn rectified(
     rgb: RgbImage,
     depth: DepthMap,
     camera: &Intrinsics,
+    max_pixels: usize,
 ) -> (RgbImage, DepthMap, Intrinsics) {
-    if !camera.is_distorted() {
+    let pixels = camera.width as f64 * camera.height as f64;
+    let scale = if max_pixels > 0 && pixels > max_pixels as f64 {
+        (max_pixels as f64 / pixels).sqrt()
+    } else {
+        1.0
+    };
+    if !camera.is_distorted() && scale == 1.0 {
         return (rgb, depth, *camera);
     }
     let q = Query {
@@ -76,9 +84,8 @@ fn rectified(
         depth,
         intrinsics: *camera,
     };
-    let focal = (camera.fx * camera.fy).sqrt();
-    let pixels = camera.width as f64 * camera.height as f64;
-    let r = crate::camera::to_map_scale(&q, focal, pixels)
+    let focal = (camera.fx * camera.fy).sqrt() * scale;
+    let r = crate::camera::to_map_scale(&q, focal, pixels * scale * scale)
         .query
         .into_owned();
     (r.rgb, r.depth, r.intrinsics)
@@ -136,7 +143,7 @@ pub fn build(
         &mut builder,
         &mut selector,
         sessions,
-        CameraAxes::OpenCv,
+        (CameraAxes::OpenCv, preset.max_image_pixels),
         &mut report,
         progress,
     )?;
@@ -232,12 +239,14 @@ pub fn extend(
         up_axis: base.header.up_axis.clone(),
         ..BuildReport::default()
     };
+    // The map's own working resolution, so the new images share its scale.
+    let max_pixels = base.header.preset.max_image_pixels;
     let mut builder = MapBuilder::extending(base, preset, stage)?;
     let (seconds, _, _) = collect(
         &mut builder,
         &mut selector,
         sessions,
-        axes,
+        (axes, max_pixels),
         &mut report,
         progress,
     )?;
@@ -274,7 +283,7 @@ fn collect(
     builder: &mut MapBuilder<'_>,
     selector: &mut Selector,
     sessions: &[Session<'_>],
-    axes: CameraAxes,
+    (axes, max_pixels): (CameraAxes, usize),
     report: &mut BuildReport,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<([f64; 3], Vector3<f64>, usize), PipelineError> {
@@ -347,7 +356,7 @@ fn collect(
             down_sum += pose.rotation * Vector3::y();
             posed += 1;
             let t = Instant::now();
-            let (rgb, depth, camera) = rectified(rgb, depth, &s.camera);
+            let (rgb, depth, camera) = rectified(rgb, depth, &s.camera, max_pixels);
             let verdict = selector.judge(&rgb, &depth, &camera, &pose);
             seconds[1] += t.elapsed().as_secs_f64();
             match verdict {

@@ -193,6 +193,18 @@ fn count(status: &'static str, code: Code, map_id: &str) {
         .increment(1);
 }
 
+/// Count an answer: LOCALIZED, or NOT_LOCALIZED with its `cause` label
+/// ([`pntr_pipeline::pipeline::Cause::name`]).
+fn count_answer(r: &proto::LocalizeResponse, map_id: &str) {
+    if r.status == proto::Status::Localized as i32 {
+        count("LOCALIZED", Code::Ok, map_id);
+    } else {
+        let cause = wire::cause_name(r.cause);
+        metrics::counter!(REQUESTS_TOTAL, "status" => "NOT_LOCALIZED", "code" => "OK", "cause" => cause, "map_id" => map_id.to_string())
+            .increment(1);
+    }
+}
+
 /// The map id a call names: the message's field, else the `x-pntr-map-id` metadata (set by clients
 /// for proxies that route by map), else empty (the server's only map).
 fn map_id_of(field: &str, meta: &MetadataMap) -> String {
@@ -288,6 +300,14 @@ pub const RECONFIRM_AFTER_S: f64 = 1.0;
 /// chain's length is bounded too: [`pntr_pipeline::odometry::MAX_PATH_M`]).
 pub const ODOMETRY_MAX_AGE_S: f64 = 60.0;
 
+/// A map fix with at least this many inliers establishes a stream's track at once; a weaker one
+/// (a look-alike room matches a few features, rarely many) waits for a later map fix along the
+/// camera's motion to agree: the next re-anchoring, [`REANCHOR_AFTER_S`] later, from a view the
+/// camera has moved on to (issue 49: two agreeing 14-18-inlier fixes of a look-alike room 7.8 m
+/// away once carried a stream for 7.5 s; re-anchoring after 0.2 s instead, while the camera still
+/// saw what the look-alike matched, established it again).
+pub const STRONG_FIX_INLIERS: u32 = 40;
+
 /// What a stream remembers between frames: where its last LOCALIZED answer put the camera, whether
 /// that fix is confirmed, the keyframe the next frame registers against ([`pntr_pipeline::odometry`])
 /// and when the chain was last verified against the map. A global fix is confirmed only by a second
@@ -312,6 +332,10 @@ struct Track {
     map_tried_at: Option<Instant>,
     /// Calibrated confidence of the map fix the track rests on.
     confidence: f64,
+    /// Whether the track's answers are reported LOCALIZED: it rests on a strong map fix
+    /// ([`STRONG_FIX_INLIERS`]) or on a map fix that agreed with the confirmed track carried there
+    /// (a re-anchoring). Until then the stream tracks but answers NOT_LOCALIZED (UNVERIFIED).
+    established: bool,
     /// The last map answer that verified, was more confident than the track, and was refused for
     /// lying outside the track's bounds.
     challenger: Option<Challenger>,
@@ -337,6 +361,10 @@ struct Followup {
     odometry: bool,
     /// The map's answer refused for lying outside the track's bounds: pose (map frame) and confidence.
     off_track: Option<(Isometry3<f64>, f64)>,
+    /// Where odometry put the camera when that was outside the mapped area (NOT_LOCALIZED, cause
+    /// OUTSIDE_MAP): the track follows it (map frame), so a look-alike room elsewhere stays off
+    /// track and the stream answers again when the camera is back in the map.
+    dead_reckoned: Option<Isometry3<f64>>,
     /// [`LoadedMap::frame`] and [`LoadedMap::serial`] of the map that answered.
     frame: u64,
     serial: u64,
@@ -358,7 +386,7 @@ impl Track {
     /// LOCALIZED: the last fix stays).
     fn after(previous: Option<&Track>, r: &proto::LocalizeResponse, f: Followup) -> Option<Self> {
         if r.status != proto::Status::Localized as i32 {
-            return None;
+            return previous.and_then(|p| p.dead_reckoned(r, f));
         }
         let pose = wire::pose(r.pose.as_ref())?;
         let position_m = pose.translation.vector;
@@ -396,6 +424,12 @@ impl Track {
             } else {
                 previous.is_none_or(|p| p.confirmed)
             },
+            established: if f.odometry {
+                previous.is_some_and(|p| p.established)
+            } else {
+                r.inliers >= STRONG_FIX_INLIERS
+                    || (recent && agrees && previous.is_some_and(|p| p.confirmed))
+            },
             keyframe: f.keyframe,
             anchored_at: match previous {
                 Some(p) if f.odometry && same_map => p.anchored_at,
@@ -409,6 +443,32 @@ impl Track {
                 .filter(|_| same_map)
                 .and_then(|p| p.challenger)
                 .filter(|c| c.at.elapsed().as_secs_f64() <= RECONFIRM_AFTER_S),
+        })
+    }
+
+    /// The track moved to where odometry put the camera outside the mapped area (`f.dead_reckoned`,
+    /// answer `r` NOT_LOCALIZED), keeping its confirmation, its anchoring time (the chain's age
+    /// bounds how far it is followed) and the fix's confidence; `None` for any other refusal (the
+    /// last fix stays).
+    fn dead_reckoned(&self, r: &proto::LocalizeResponse, f: Followup) -> Option<Track> {
+        let pose = f.dead_reckoned?;
+        if r.map_id != self.map_id || f.serial != self.serial {
+            return None;
+        }
+        Some(Track {
+            map_id: self.map_id.clone(),
+            frame: self.frame,
+            serial: self.serial,
+            position_m: pose.translation.vector,
+            rotation: pose.rotation,
+            at: Instant::now(),
+            confirmed: self.confirmed,
+            established: self.established,
+            keyframe: f.keyframe,
+            anchored_at: self.anchored_at,
+            map_tried_at: self.map_tried_at,
+            confidence: self.confidence,
+            challenger: self.challenger,
         })
     }
 
@@ -451,6 +511,7 @@ impl Track {
             rotation: c.rotation,
             at: now,
             confirmed: true,
+            established: true,
             keyframe: None,
             anchored_at: now,
             map_tried_at: None,
@@ -473,6 +534,7 @@ impl Track {
         }
         let anchor_age_s = self.anchored_at.elapsed().as_secs_f64();
         let elapsed_s = self.at.elapsed().as_secs_f64();
+
         Tracking {
             stream: true,
             region: tracking_region(self.position_m, elapsed_s),
@@ -512,6 +574,7 @@ impl LocalizerService {
         tracking: Tracking,
     ) -> Result<(proto::LocalizeResponse, Followup), Status> {
         let mut in_flight = InFlight::new();
+        let stream = tracking.stream;
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
         let result = self
             .run(msg, map, deadline, tracking, span.clone(), &mut in_flight)
@@ -519,10 +582,9 @@ impl LocalizerService {
             .await;
         let _entered = span.enter();
         match &result {
-            Ok((r, _)) if r.status == proto::Status::Localized as i32 => {
-                in_flight.count("LOCALIZED", Code::Ok)
-            }
-            Ok(_) => in_flight.count("NOT_LOCALIZED", Code::Ok),
+            // A stream's answer is counted once its state has settled it (`count_answer`).
+            Ok(_) if stream => in_flight.counted = true,
+            Ok((r, _)) => count_answer(r, &in_flight.map_id),
             Err(e) => {
                 in_flight.count("ERROR", e.code());
                 if e.code() == Code::Internal {
@@ -704,6 +766,7 @@ impl LocalizerService {
             map_version: lm.version.label.clone(),
             // Set at the edge, once the stream's state has taken the map-frame pose.
             frame_convention: proto::FrameConvention::Map as i32,
+            cause: wire::cause_message(loc.cause.filter(|_| !localized)) as i32,
         };
         if let Some((live, rgb, k)) = &watched {
             let covariance = frames.covariance_to_ros(&response.covariance);
@@ -733,18 +796,44 @@ impl LocalizerService {
                 truth: None,
             });
         }
+        let outside_map = !localized
+            && loc.odometry
+            && loc.cause == Some(pntr_pipeline::pipeline::Cause::OutsideMap);
         let followup = Followup {
             convention,
             frames,
-            keyframe: loc.keyframe.clone().filter(|_| localized),
+            keyframe: loc.keyframe.clone().filter(|_| localized || outside_map),
             odometry: loc.odometry,
             off_track: loc.off_track,
+            dead_reckoned: loc.estimate.filter(|_| outside_map),
             frame: lm.frame,
             serial: lm.serial,
         };
         release(lm);
         Ok((response, followup))
     }
+}
+
+/// Turn a LOCALIZED stream answer of a track that is not established ([`Track::established`]) into
+/// NOT_LOCALIZED (cause UNVERIFIED), saying what it waits for.
+fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
+    if r.status != proto::Status::Localized as i32 {
+        return;
+    }
+    r.status = proto::Status::NotLocalized as i32;
+    r.cause = proto::NotLocalizedCause::Unverified as i32;
+    r.reason = format!(
+        "re-acquiring: the stream's map fix had fewer than {STRONG_FIX_INLIERS} inliers, so it is followed but not answered until a later map fix along the camera's motion agrees with it (a look-alike room rarely does); {}",
+        if t.confirmed {
+            "two fixes agree, waiting for the map to re-anchor the track"
+        } else {
+            "waiting for a second fix"
+        }
+    );
+    r.pose = None;
+    r.covariance.clear();
+    r.matched_image_id.clear();
+    r.matched_point = 0;
 }
 
 /// Drop a request's hold on its map; when it was the last (the map was replaced or unloaded while
@@ -872,6 +961,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         }
                     }
                     // A relocalizing frame is localized globally, as a unary call would be.
+                    let relocalize = msg.relocalize;
                     let tracking = match &mut track {
                         _ if msg.relocalize => Tracking::default(),
                         Some(t) => {
@@ -915,6 +1005,12 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 track = Some(moved);
                             }
                         }
+                        // A track that is not established yet tracks but does not answer (a
+                        // relocalizing frame is answered as a unary call would be).
+                        if let Some(t) = track.as_ref().filter(|t| !t.established && !relocalize) {
+                            provisional(&mut r, t);
+                        }
+                        count_answer(&r, &r.map_id);
                         // The track keeps map-frame poses; the caller gets its convention.
                         wire::answer_in(&mut r, convention, frames);
                         r
@@ -1174,6 +1270,76 @@ mod tests {
         let mut refused = answer(5.0, proto::Mode::Global);
         refused.status = proto::Status::NotLocalized as i32;
         assert!(Track::after(Some(&kept), &refused, odometry(false)).is_none());
+    }
+
+    #[test]
+    fn weak_fixes_are_followed_but_answered_only_once_the_map_agrees_again() {
+        let fix = |x: f64, inliers: u32, mode: proto::Mode| proto::LocalizeResponse {
+            inliers,
+            confidence: 0.9,
+            ..answer(x, mode)
+        };
+        let map_fix = Followup::default();
+        let hop = || Followup {
+            odometry: true,
+            ..Followup::default()
+        };
+        // A strong first fix answers at once.
+        let strong = Track::after(None, &fix(0.0, 120, proto::Mode::Global), map_fix).unwrap();
+        assert!(strong.established);
+        // Two weak fixes that agree (a look-alike room agrees with itself) are tracked, not answered.
+        let first = Track::after(
+            None,
+            &fix(0.0, 18, proto::Mode::Global),
+            Followup::default(),
+        )
+        .unwrap();
+        let second = Track::after(
+            Some(&first),
+            &fix(0.2, 14, proto::Mode::Global),
+            Followup::default(),
+        )
+        .unwrap();
+        assert!(second.confirmed && !second.established);
+        let carried =
+            Track::after(Some(&second), &fix(0.3, 150, proto::Mode::Tracking), hop()).unwrap();
+        assert!(
+            carried.confirmed && !carried.established,
+            "odometry adds no map evidence"
+        );
+        let mut r = fix(0.3, 150, proto::Mode::Tracking);
+        provisional(&mut r, &carried);
+        assert_eq!(r.status, proto::Status::NotLocalized as i32);
+        assert_eq!(r.cause, proto::NotLocalizedCause::Unverified as i32);
+        assert!(
+            r.pose.is_none() && r.reason.starts_with("re-acquiring:"),
+            "{r:?}"
+        );
+        // A later map fix that agrees with the confirmed track carried there establishes it.
+        let anchored = Track::after(
+            Some(&carried),
+            &fix(0.35, 20, proto::Mode::Tracking),
+            Followup::default(),
+        )
+        .unwrap();
+        assert!(anchored.established);
+        let on =
+            Track::after(Some(&anchored), &fix(0.4, 90, proto::Mode::Tracking), hop()).unwrap();
+        assert!(on.established, "odometry keeps it");
+        // Outside the mapped area the track follows odometry's pose without answering ...
+        let mut outside = fix(2.0, 80, proto::Mode::Tracking);
+        outside.status = proto::Status::NotLocalized as i32;
+        outside.pose = None;
+        let dead = Followup {
+            odometry: true,
+            dead_reckoned: Some(Isometry3::translation(2.0, 0.0, 0.0)),
+            ..Followup::default()
+        };
+        let followed = Track::after(Some(&on), &outside, dead).unwrap();
+        assert_eq!(followed.position_m.x, 2.0);
+        assert!(followed.established && followed.anchored_at == on.anchored_at);
+        // ... and any other refusal leaves the last fix.
+        assert!(Track::after(Some(&followed), &outside, Followup::default()).is_none());
     }
 
     #[test]

@@ -4,7 +4,7 @@
 //! server of the process; later servers in the same process (tests) share it. `/metrics` is served by
 //! a few lines of hyper on a listener the server binds itself, so `--metrics-addr 127.0.0.1:0` works
 //! and the bound port can be reported. Labels carry only stage names, status names, gRPC code names
-//! and map ids: nothing from a request's content.
+//! map ids and the bounded NOT_LOCALIZED causes: nothing from a request's content.
 
 use std::net::SocketAddr;
 use std::sync::OnceLock;
@@ -13,6 +13,7 @@ use std::time::Duration;
 use http_body_util::Full;
 use hyper::body::Bytes;
 use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
+use pntr_pipeline::pipeline::Cause;
 use pntr_pipeline::prior::Mode;
 use tokio::net::TcpListener;
 
@@ -21,7 +22,9 @@ use tokio::net::TcpListener;
 pub const STAGE_DURATION: &str = "pntr_stage_duration_seconds";
 /// Counter of finished requests (`status` = LOCALIZED, NOT_LOCALIZED or ERROR; `code` = gRPC code;
 /// `map_id` = the map that answered, empty when the request was refused before a map was resolved,
-/// so the label takes only the ids of maps the server has held).
+/// so the label takes only the ids of maps the server has held; NOT_LOCALIZED answers also carry
+/// `cause` = NO_MATCH, UNVERIFIED, LOOK_ALIKE, OUTSIDE_MAP or BAD_INPUT, the answer's
+/// `NotLocalizedCause`).
 pub const REQUESTS_TOTAL: &str = "pntr_requests_total";
 /// Gauge of requests being handled (queued or running).
 pub const IN_FLIGHT: &str = "pntr_in_flight_requests";
@@ -90,8 +93,10 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
 /// Register a map's answer series at 0 (so rates and alerts see them before its first request),
 /// leaving counts already made under that id as they are (a replaced map keeps its id's series).
 pub fn register_map(map_id: &str) {
-    for status in ["LOCALIZED", "NOT_LOCALIZED"] {
-        metrics::counter!(REQUESTS_TOTAL, "status" => status, "code" => "OK", "map_id" => map_id.to_string())
+    metrics::counter!(REQUESTS_TOTAL, "status" => "LOCALIZED", "code" => "OK", "map_id" => map_id.to_string())
+        .increment(0);
+    for cause in Cause::ALL {
+        metrics::counter!(REQUESTS_TOTAL, "status" => "NOT_LOCALIZED", "code" => "OK", "cause" => cause.name(), "map_id" => map_id.to_string())
             .increment(0);
     }
     for mode in [Mode::Global, Mode::Prior, Mode::Tracking] {

@@ -8,6 +8,7 @@ use pntr_core::pose::{
     canonical_wxyz, map_to_ros, ros_from_map_world, ros_to_map, rotate_covariance, UpAxis,
 };
 use pntr_core::{CameraAxes, DepthMap, Intrinsics, RgbImage};
+use pntr_pipeline::pipeline::Cause;
 use pntr_pipeline::prior::{Mode, Region};
 
 use crate::proto;
@@ -40,6 +41,39 @@ pub fn mode_message(m: Mode) -> proto::Mode {
         Mode::Global => proto::Mode::Global,
         Mode::Prior => proto::Mode::Prior,
         Mode::Tracking => proto::Mode::Tracking,
+    }
+}
+
+/// The wire form of why a frame is NOT_LOCALIZED (`None`: LOCALIZED, UNSPECIFIED).
+pub fn cause_message(c: Option<Cause>) -> proto::NotLocalizedCause {
+    match c {
+        None => proto::NotLocalizedCause::Unspecified,
+        Some(Cause::NoMatch) => proto::NotLocalizedCause::NoMatch,
+        Some(Cause::Unverified) => proto::NotLocalizedCause::Unverified,
+        Some(Cause::LookAlike) => proto::NotLocalizedCause::LookAlike,
+        Some(Cause::OutsideMap) => proto::NotLocalizedCause::OutsideMap,
+        Some(Cause::BadInput) => proto::NotLocalizedCause::BadInput,
+    }
+}
+
+/// The `cause` label of a NOT_LOCALIZED answer's wire `cause` ([`Cause::name`]); an unset one (a
+/// NOT_LOCALIZED answer made before its cause was known) counts as `NO_MATCH`.
+pub fn cause_name(wire: i32) -> &'static str {
+    match proto::NotLocalizedCause::try_from(wire) {
+        Ok(proto::NotLocalizedCause::Unverified) => Cause::Unverified.name(),
+        Ok(proto::NotLocalizedCause::LookAlike) => Cause::LookAlike.name(),
+        Ok(proto::NotLocalizedCause::OutsideMap) => Cause::OutsideMap.name(),
+        Ok(proto::NotLocalizedCause::BadInput) => Cause::BadInput.name(),
+        _ => Cause::NoMatch.name(),
+    }
+}
+
+/// How clients show a wire `cause`: its name (`NO_MATCH`, ..., `OUTSIDE_MAP`), or "" when unset
+/// (LOCALIZED) or unknown to this build.
+pub fn cause_label(wire: i32) -> &'static str {
+    match proto::NotLocalizedCause::try_from(wire) {
+        Ok(proto::NotLocalizedCause::Unspecified) | Err(_) => "",
+        Ok(c) => c.as_str_name(),
     }
 }
 

@@ -1,7 +1,8 @@
 //! The `pntr-server` binary itself: refuses bad settings with exit code 2, prints the bound ports on
 //! one stdout line, bounds the streams of one connection, closes connections whose peer stopped
 //! answering keep-alive PINGs, serves a map with another preset of the same descriptors (`--preset`),
-//! and on SIGTERM refuses new requests, finishes the ones it holds and exits 0.
+//! says why a frame is NOT_LOCALIZED (its cause, in the answer and the metrics), and on SIGTERM
+//! refuses new requests, finishes the ones it holds and exits 0.
 
 use std::net::SocketAddr;
 use std::process::Command;
@@ -357,4 +358,58 @@ fn keepalive_pings_close_connections_whose_peer_is_gone() {
     let (_server, addr, _) = spawn(&db, &["--keepalive-interval-s", "0"]);
     let (pinged, closed) = silent_http2_peer(addr, Duration::from_secs(3));
     assert!(!pinged && !closed, "pinged {pinged}, closed {closed}");
+}
+
+#[test]
+fn not_localized_answers_say_their_cause_in_the_answer_and_the_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let (db, query) = common::demo_map(dir.path());
+    let (_server, addr, metrics) = spawn(&db, &[]);
+    let url = format!("http://{addr}");
+    runtime().block_on(wait_serving(&url));
+    // The map's own view, and the same frame with depth on a 4x4 corner only: no pose can be had
+    // from it (too few keypoints on valid depth), whatever the map.
+    let mut starved = query.depth.clone();
+    let w = starved.width as usize;
+    for (i, d) in starved.data.iter_mut().enumerate() {
+        if !(i % w < 4 && i / w < 4) {
+            *d = 0.0;
+        }
+    }
+    let (good, bad) = runtime().block_on(async {
+        let mut c = LocalizerClient::connect(url).await.unwrap();
+        let good = c
+            .localize(wire::raw_request(&query.rgb, &query.depth, None))
+            .await
+            .unwrap()
+            .into_inner();
+        let bad = c
+            .localize(wire::raw_request(&query.rgb, &starved, None))
+            .await
+            .unwrap()
+            .into_inner();
+        (good, bad)
+    });
+    use pntr_service::proto::{NotLocalizedCause, Status};
+    // A LOCALIZED answer has no cause; a NOT_LOCALIZED one always has one.
+    assert_eq!(
+        good.status == Status::Localized as i32,
+        good.cause == NotLocalizedCause::Unspecified as i32,
+        "{good:?}"
+    );
+    assert_eq!(bad.status, Status::NotLocalized as i32, "{bad:?}");
+    assert_eq!(bad.cause, NotLocalizedCause::BadInput as i32, "{bad:?}");
+    assert!(bad.reason.starts_with("input: only "), "{}", bad.reason);
+    let text = scrape(metrics);
+    let counted = |cause: &str| {
+        text.lines()
+            .find(|l| {
+                l.starts_with("pntr_requests_total{")
+                    && l.contains("status=\"NOT_LOCALIZED\"")
+                    && l.contains(&format!("cause=\"{cause}\""))
+            })
+            .and_then(|l| l.rsplit(' ').next())
+            .and_then(|v| v.parse::<f64>().ok())
+    };
+    assert_eq!(counted("BAD_INPUT"), Some(1.0), "{text}");
 }

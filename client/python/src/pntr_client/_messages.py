@@ -244,6 +244,7 @@ def answer_from_response(resp: pb2.LocalizeResponse) -> Answer:
         matched_point=resp.matched_point,
         retrieved_image_ids=tuple(resp.retrieved_image_ids),
         frame_convention=frame_convention_name(resp.frame_convention),
+        cause="" if resp.cause == 0 else _enum_name(pb2.NotLocalizedCause, resp.cause),
     )
 
 

@@ -136,6 +136,10 @@ class Answer:
         retrieved_image_ids: retrieval candidates, best first.
         frame_convention: "map" (pose and covariance in the map's own frame and camera axes) or
             "ros" (z-up map frame, optical camera axes: map_from_camera_optical), as the server says.
+        cause: why the frame is NOT_LOCALIZED, one of "NO_MATCH", "UNVERIFIED", "LOOK_ALIKE",
+            "OUTSIDE_MAP" (the camera is where the map does not reach; `reason` then begins with
+            "outside the mapped area:") and "BAD_INPUT"; empty when LOCALIZED or from a server that
+            does not report it.
     """
 
     status: str
@@ -153,6 +157,7 @@ class Answer:
     matched_point: int = 0
     retrieved_image_ids: tuple[str, ...] = field(default_factory=tuple)
     frame_convention: str = "map"
+    cause: str = ""
 
     def __post_init__(self) -> None:
         if self.pose is not None:

@@ -175,7 +175,8 @@ def _rpc_error(e: PntrError, addr: str, what: str) -> CliError:
 
 def _fmt(r: dict[str, Any]) -> str:
     if r["status"] != "LOCALIZED":
-        return f"{r['status']}  ({r['reason']})"
+        cause = f"{r['cause']}: " if r.get("cause") else ""
+        return f"{r['status']}  ({cause}{r['reason']})"
     t, q = r["translation"], r["rotation_wxyz"]
     return (
         f"LOCALIZED  t=({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) "
@@ -227,6 +228,7 @@ def run(args: argparse.Namespace) -> None:
                     "query": qid,
                     "status": a.status,
                     "reason": a.reason,
+                    "cause": a.cause,
                     "confidence": a.confidence,
                     "inliers": a.inliers,
                     "matched_image_id": a.matched_image_id,
