@@ -1,13 +1,14 @@
 //! A stream's frames registered against its keyframe (`pntr_pipeline::odometry`), on a generated drive
 //! with the committed models: the tracked drive stays localized and accurate between map views, and a
-//! keyframe that does not fit the frame never produces a pose.
+//! keyframe that does not fit the frame never produces a pose, and odometry carried where the map's
+//! images never looked is outside the mapped area.
 
 use std::sync::Arc;
 
 use nalgebra::Vector3;
 use pntr_dataset::tum::TumSequence;
 use pntr_pipeline::odometry::{self, Keyframe};
-use pntr_pipeline::pipeline::{Localization, Pipeline, Query, Status};
+use pntr_pipeline::pipeline::{Cause, Localization, Pipeline, Query, Status, OUTSIDE_MAP_PREFIX};
 use pntr_pipeline::preset::Preset;
 use pntr_pipeline::prior::{tracking_heading, LocalizeOptions, Mode, Region};
 
@@ -182,6 +183,67 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
             "seed {seed}: {:?}",
             loc.reason
         );
+        // Odometry that carries the camera where the map's images never looked is not LOCALIZED:
+        // the keyframe of a frame before the end, moved 30 m (beyond the apartment), tracks that
+        // frame there. The answer is outside the mapped area, with the pose kept as the estimate
+        // and the keyframe handed on so a stream can follow the camera; unmoved, it is LOCALIZED.
+        let (ki, kf) = keyframes
+            .iter()
+            .rev()
+            .find(|(i, _)| *i < end)
+            .map(|(i, k)| {
+                (
+                    *i,
+                    Keyframe {
+                        latest: None,
+                        ..(**k).clone()
+                    },
+                )
+            })
+            .unwrap();
+        let shift = nalgebra::Isometry3::translation(30.0, 0.0, 0.0);
+        let moved = Keyframe {
+            world_from_camera: shift * kf.world_from_camera,
+            ..kf.clone()
+        };
+        let there = truth(ki).translation.vector + Vector3::new(30.0, 0.0, 0.0);
+        let follow = |keyframe: Keyframe, at: Vector3<f64>| LocalizeOptions {
+            keyframe: Some(Arc::new(keyframe)),
+            want_keyframe: true,
+            ..LocalizeOptions::tracking(Region::new(at, 1.0).unwrap())
+        };
+        let loc = pipeline
+            .localize_with(&query(&seq, ki), &follow(moved, there))
+            .unwrap();
+        assert_eq!(loc.status, Status::NotLocalized, "seed {seed}");
+        assert_eq!(
+            loc.cause,
+            Some(Cause::OutsideMap),
+            "seed {seed}: {:?}",
+            loc.reason
+        );
+        let reason = loc.reason.as_deref().unwrap();
+        assert!(reason.starts_with(OUTSIDE_MAP_PREFIX), "{reason}");
+        assert!(
+            loc.odometry && loc.pose.is_none() && loc.keyframe.is_some(),
+            "seed {seed}"
+        );
+        let followed = loc.estimate.expect("the followed pose").translation.vector;
+        assert!(
+            (followed - there).norm() < 0.25,
+            "seed {seed}: {followed:?}"
+        );
+        let loc = pipeline
+            .localize_with(&query(&seq, ki), &follow(kf, truth(ki).translation.vector))
+            .unwrap();
+        assert_eq!(
+            loc.status,
+            Status::Localized,
+            "seed {seed}: {:?}",
+            loc.reason
+        );
+        assert!(loc.cause.is_none());
+
         // Without a keyframe nothing is registered against one; unary calls get no keyframe back.
         let loc = pipeline
             .localize_with(&query(&seq, end), &LocalizeOptions::default())
