@@ -218,8 +218,29 @@ fn summary_json(s: &Summary) -> serde_json::Value {
             "boxes": sc.boxes,
             "size_m": [sc.size_m.0, sc.size_m.1],
             "sequence_frames": sc.sequence_frames,
+            "mapping_run_seconds": sc.mapping_run_seconds,
         })).collect::<Vec<_>>(),
+        "warnings": warnings(s),
     })
+}
+
+/// What the user should know about the run: a mapping run that `--trajectory-seconds` cut before it
+/// visited every Point (a map built from it leaves part of the apartment out).
+fn warnings(s: &Summary) -> Vec<String> {
+    s.scenes
+        .iter()
+        .filter_map(|sc| {
+            let whole = sc.mapping_run_seconds?;
+            let drawn = sc.sequence_frames as f64 / pntr_synth::trajectory::DEFAULT_RATE_HZ;
+            (whole > drawn + 1e-6).then(|| {
+                format!(
+                    "{}: the mapping run needs {whole:.1} s to visit every Point, and --trajectory-seconds cut it at {drawn:.1} s: a map built from it leaves part of the apartment out (give --trajectory-seconds {} for the whole run)",
+                    sc.name,
+                    whole.ceil()
+                )
+            })
+        })
+        .collect()
 }
 
 fn print_summary(s: &Summary) {
@@ -265,6 +286,9 @@ fn print_summary(s: &Summary) {
 pub fn run(args: &SynthArgs) -> Result<()> {
     let cfg = config(args)?;
     let summary = generate(&cfg, &args.out)?;
+    for w in warnings(&summary) {
+        eprintln!("warning: {w}");
+    }
     if args.json {
         println!("{}", serde_json::to_string_pretty(&summary_json(&summary))?);
     } else {

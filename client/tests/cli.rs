@@ -544,3 +544,51 @@ fn a_closed_stdout_ends_pntr_quietly() {
         );
     }
 }
+
+#[test]
+fn synth_warns_when_trajectory_seconds_cut_a_mapping_run() {
+    let run = |seconds: &str| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = pntr(&[
+            "synth",
+            "--out",
+            dir.path().to_str().unwrap(),
+            "--points-per-scene",
+            "2",
+            "--queries-per-point",
+            "1",
+            "--seed",
+            "4",
+            "--trajectory-seconds",
+            seconds,
+            "--mapping-run",
+            "--json",
+        ]);
+        let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+        (ok_json(&out), stderr)
+    };
+    // Two seconds cannot visit two Points and turn a circle at each: said on stderr and in the JSON.
+    let (cut, stderr) = run("2");
+    let whole = cut["scenes"][0]["mapping_run_seconds"].as_f64().unwrap();
+    assert!(whole > 2.0, "{cut}");
+    let warnings = cut["warnings"].as_array().unwrap();
+    assert_eq!(warnings.len(), 1, "{cut}");
+    let w = warnings[0].as_str().unwrap();
+    assert!(
+        w.contains("cut it at 2.0 s") && w.contains("--trajectory-seconds"),
+        "{w}"
+    );
+    assert!(
+        stderr.contains("warning: synth000: the mapping run needs"),
+        "{stderr}"
+    );
+    // Enough seconds: the whole run is drawn and nothing is said.
+    let (whole_run, stderr) = run(&format!("{}", whole.ceil() + 5.0));
+    assert!(
+        whole_run["warnings"].as_array().unwrap().is_empty(),
+        "{whole_run}"
+    );
+    assert!(!stderr.contains("warning:"), "{stderr}");
+    let frames = whole_run["scenes"][0]["sequence_frames"].as_u64().unwrap() as f64;
+    assert!((frames / 10.0 - whole).abs() < 0.11, "{whole_run}");
+}

@@ -112,6 +112,9 @@ pub struct SceneSummary {
     pub size_m: (f32, f32),
     /// Frames of the drive written to `sequences/<scene>/` (0 without `trajectory_seconds`).
     pub sequence_frames: usize,
+    /// For a mapping run, the seconds the whole run takes (every Point visited and turned at):
+    /// more than `trajectory_seconds` means the drive was cut before it covered the apartment.
+    pub mapping_run_seconds: Option<f64>,
 }
 
 /// What a synthesis run produced.
@@ -364,9 +367,9 @@ pub fn synthesize(
             source,
         })?;
         let _ = std::fs::remove_dir_all(&old);
-        let sequence_frames = match cfg.trajectory_seconds {
+        let (sequence_frames, mapping_run_seconds) = match cfg.trajectory_seconds {
             Some(seconds) => render_drive(cfg, root, si, ps, &renderer, seconds, &count)?,
-            None => 0,
+            None => (0, None),
         };
         summaries.push(SceneSummary {
             name: name.clone(),
@@ -378,6 +381,7 @@ pub fn synthesize(
             boxes: ps.scene.boxes.len(),
             size_m: (ps.scene.width_m, ps.scene.depth_m),
             sequence_frames,
+            mapping_run_seconds,
         });
     }
     Ok(Summary {
@@ -392,7 +396,7 @@ pub fn synthesize(
 pub const SEQUENCES_DIR: &str = "sequences";
 
 /// Render the drive of scene `si` and write it to `root/sequences/<scene>/` (TUM layout); returns the
-/// number of frames.
+/// number of frames and, for a mapping run, the seconds the whole run takes uncapped.
 fn render_drive(
     cfg: &SynthConfig,
     root: &Path,
@@ -401,7 +405,7 @@ fn render_drive(
     renderer: &Renderer,
     seconds: f64,
     on_frame: &(dyn Fn() + Sync),
-) -> Result<usize, SynthError> {
+) -> Result<(usize, Option<f64>), SynthError> {
     if !(seconds.is_finite() && seconds > 0.0) {
         return Err(SynthError::Config(format!(
             "trajectory seconds must be positive, not {seconds}"
@@ -415,6 +419,19 @@ fn render_drive(
     } else {
         trajectory::plan_drive_on
     };
+    // The whole mapping run, uncapped (planning only), to tell whether `seconds` cut it.
+    let mapping_run_seconds = cfg.mapping_run.then(|| {
+        let whole = trajectory::plan_mapping_run(
+            &ps.scene,
+            &ps.points,
+            1e6,
+            trajectory::DEFAULT_RATE_HZ,
+            trajectory::DEFAULT_SPEED_MPS,
+            &mut rng.clone(),
+            cfg.route_seed,
+        );
+        whole.len() as f64 / trajectory::DEFAULT_RATE_HZ
+    });
     let drive = plan(
         &ps.scene,
         &ps.points,
@@ -457,7 +474,7 @@ fn render_drive(
         source,
     })?;
     pntr_dataset::tum::write_sequence(&dir, &frames, &cfg.query_camera)?;
-    Ok(frames.len())
+    Ok((frames.len(), mapping_run_seconds))
 }
 
 /// Frames the drives of a run will render (for progress bars).
