@@ -282,10 +282,10 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
     let stale = map.calibration_is_stale();
     let header = map.header.clone();
     if let (Some(dir), Some(c)) = (&args.plot, &check) {
-        let frames: Vec<([f64; 3], Option<f64>)> = c
+        let frames: Vec<crate::plot::CheckedPoint> = c
             .per_frame
             .iter()
-            .map(|f| (f.position_m, f.error_m))
+            .map(|f| (f.position_m, f.error_m, f.outside_map))
             .collect();
         let title = format!(
             "{}: {images} map images; {} frames checked ({}), {:.1}% localized",
@@ -369,12 +369,13 @@ pub fn build_from_recordings(args: &BuildArgs) -> Result<()> {
     );
     if let Some(c) = &check {
         println!(
-            "check ({}): {} frames, {:.1}% localized, ATE {:.3} m, {} more than 1 m off",
+            "check ({}): {} frames, {:.1}% localized, ATE {:.3} m, {} more than 1 m off, {} outside what the map covers",
             c.kind,
             c.frames,
             100.0 * c.localized_share,
             c.ate_rmse_m,
-            c.frames_over_1m
+            c.frames_over_1m,
+            c.frames_outside_map
         );
     }
     println!(

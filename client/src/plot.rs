@@ -903,12 +903,16 @@ pub fn ground_of(up: &str) -> (usize, usize) {
 }
 
 /// A class of checked frames: legend text, colour, and which errors (`None`: not localized) it holds.
-type CheckClass = (&'static str, RGBColor, fn(Option<f64>) -> bool);
+/// A checked frame: recorded position, position error when LOCALIZED, and whether the map's
+/// surfaces leave its view unexplained (outside the mapped area).
+pub type CheckedPoint = ([f64; 3], Option<f64>, bool);
+
+type CheckClass = (&'static str, RGBColor, fn(&CheckedPoint) -> bool);
 
 /// `map_check`: see [`check_plot`].
 fn check_figure(
     map: &[[f64; 3]],
-    frames: &[([f64; 3], Option<f64>)],
+    frames: &[CheckedPoint],
     ground: (usize, usize),
     title: &str,
 ) -> Figure {
@@ -917,18 +921,23 @@ fn check_figure(
         .copied()
         .chain(frames.iter().map(|f| f.0))
         .collect();
-    let classes: [CheckClass; 4] = [
-        ("within 0.25 m", RGBColor(0, 150, 60), |e| {
-            e.is_some_and(|e| e <= 0.25)
+    let classes: [CheckClass; 5] = [
+        ("within 0.25 m", RGBColor(0, 150, 60), |f| {
+            f.1.is_some_and(|e| e <= 0.25)
         }),
-        ("0.25-1 m off", RGBColor(230, 140, 0), |e| {
-            e.is_some_and(|e| e > 0.25 && e <= 1.0)
+        ("0.25-1 m off", RGBColor(230, 140, 0), |f| {
+            f.1.is_some_and(|e| e > 0.25 && e <= 1.0)
         }),
-        ("more than 1 m off", RED, |e| e.is_some_and(|e| e > 1.0)),
+        ("more than 1 m off", RED, |f| f.1.is_some_and(|e| e > 1.0)),
         (
             "not localized (drive here again)",
             RGBColor(120, 0, 160),
-            |e| e.is_none(),
+            |f| f.1.is_none() && !f.2,
+        ),
+        (
+            "not localized, outside the map (the map never saw this view)",
+            RGBColor(60, 150, 230),
+            |f| f.1.is_none() && f.2,
         ),
     ];
     let mut series = vec![Series::labelled(
@@ -938,7 +947,7 @@ fn check_figure(
         on_ground(map, ground),
     )];
     for (label, colour, pick) in classes {
-        let at = on_ground(frames.iter().filter(|f| pick(f.1)).map(|f| &f.0), ground);
+        let at = on_ground(frames.iter().filter(|f| pick(f)).map(|f| &f.0), ground);
         series.push(Series::labelled(
             format!("{label}: {}", at.len()),
             colour,
@@ -951,10 +960,11 @@ fn check_figure(
 
 /// Write `map_check.png` / `.svg` into `dir`: the map's camera positions from above (ground plane
 /// `ground`, indices of x, y, z) and each checked frame at its recorded position, coloured by how far
-/// its answer was off (`None`: not localized), so a team sees where to drive again.
+/// its answer was off (`None`: not localized; grey where the map's surfaces do not explain the view,
+/// a part the map does not cover), so a team sees where to drive again.
 pub fn check_plot(
     map: &[[f64; 3]],
-    frames: &[([f64; 3], Option<f64>)],
+    frames: &[CheckedPoint],
     ground: (usize, usize),
     dir: &Path,
     title: &str,
@@ -1299,10 +1309,16 @@ mod tests {
                 errors: usize::from(c == 8),
             })
             .collect();
-        let frames: Vec<([f64; 3], Option<f64>)> = path
+        let frames: Vec<CheckedPoint> = path
             .iter()
             .enumerate()
-            .map(|(i, p)| (*p, (i % 7 != 0).then_some(0.1 * (i % 15) as f64)))
+            .map(|(i, p)| {
+                (
+                    *p,
+                    (i % 7 != 0).then_some(0.1 * (i % 15) as f64),
+                    i % 14 == 0,
+                )
+            })
             .collect();
         let refs: Vec<&QueryOutcome> = queries.iter().collect();
         for fig in [

@@ -127,6 +127,11 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
         s2["check"]["localized_share"].as_f64().unwrap() >= 0.9,
         "{s2}"
     );
+    // The drive the map was built from lies inside what the map covers.
+    assert!(
+        s2["check"]["frames_outside_map"].as_u64().unwrap() <= 3,
+        "{s2}"
+    );
     let n2 = s2["images"].as_u64().unwrap() as usize;
     assert!(
         n2 * 10 >= images * 9 && n2 * 10 <= images * 11,

@@ -422,6 +422,10 @@ pub struct CheckedFrame {
     pub position_m: [f64; 3],
     /// Position error of the answer, metres, when LOCALIZED.
     pub error_m: Option<f64>,
+    /// The map's surfaces explain less than [`crate::pipeline::MIN_EXPLAINED`] of the frame's depth
+    /// at its recorded pose ([`crate::coverage::Coverage::explained`]): a part of the drive the map
+    /// does not cover, where a stream answers OUTSIDE_MAP.
+    pub outside_map: bool,
 }
 
 /// How frames the map was not built from localize against it.
@@ -438,6 +442,9 @@ pub struct CheckReport {
     pub frames_over_1m: usize,
     /// LOCALIZED frames more than 10 degrees off.
     pub frames_over_10deg: usize,
+    /// Frames whose view, at the recording's pose, the map's surfaces do not explain
+    /// ([`CheckedFrame::outside_map`]): the parts of the drive the map does not cover.
+    pub frames_outside_map: usize,
     /// What the frames were: `between keyframes` (the easy case) or `another recording`.
     pub kind: String,
     /// Seconds the check took.
@@ -484,6 +491,13 @@ pub fn check(
             depth,
             intrinsics: s.camera,
         };
+        // Recordings' poses are of the optical camera, in the map's world frame.
+        let thumb = crate::verify::Thumb::new(&q.rgb, &q.depth, &q.intrinsics);
+        let outside_map = pipeline
+            .coverage()
+            .explained(&thumb, &truth)
+            .is_some_and(|share| share < crate::pipeline::MIN_EXPLAINED);
+        out.frames_outside_map += outside_map as usize;
         let loc = pipeline.localize_with(&q, &LocalizeOptions::default())?;
         let position = truth.translation.vector;
         if let Some(r) = regions.and_then(|r| r.of_position(&pipeline.map, 0, &position)) {
@@ -503,6 +517,7 @@ pub fn check(
         out.per_frame.push(CheckedFrame {
             position_m: truth.translation.vector.into(),
             error_m,
+            outside_map,
         });
     }
     out.localized_share = localized as f64 / out.frames.max(1) as f64;
