@@ -315,6 +315,7 @@ pub const STRONG_FIX_INLIERS: u32 = 40;
 /// look-alike answer cannot start tracking in the wrong place; answers found by tracking or a prior
 /// inherit it. One keyframe and the last frame tracked from it (about 1 MB each with XFeat) per open
 /// stream, freed with the stream.
+#[derive(Clone)]
 struct Track {
     map_id: String,
     /// [`LoadedMap::frame`] of the map the track's poses are in.
@@ -456,19 +457,11 @@ impl Track {
             return None;
         }
         Some(Track {
-            map_id: self.map_id.clone(),
-            frame: self.frame,
-            serial: self.serial,
             position_m: pose.translation.vector,
             rotation: pose.rotation,
             at: Instant::now(),
-            confirmed: self.confirmed,
-            established: self.established,
             keyframe: f.keyframe,
-            anchored_at: self.anchored_at,
-            map_tried_at: self.map_tried_at,
-            confidence: self.confidence,
-            challenger: self.challenger,
+            ..self.clone()
         })
     }
 

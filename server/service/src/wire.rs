@@ -56,15 +56,13 @@ pub fn cause_message(c: Option<Cause>) -> proto::NotLocalizedCause {
     }
 }
 
-/// The `cause` label of a NOT_LOCALIZED answer's wire `cause` ([`Cause::name`]); an unset one (a
-/// NOT_LOCALIZED answer made before its cause was known) counts as `NO_MATCH`.
+/// The `cause` label of a NOT_LOCALIZED answer's wire `cause` ([`Cause::name`], which is the proto
+/// value's name); an unset one (a NOT_LOCALIZED answer made before its cause was known) counts as
+/// `NO_MATCH`.
 pub fn cause_name(wire: i32) -> &'static str {
-    match proto::NotLocalizedCause::try_from(wire) {
-        Ok(proto::NotLocalizedCause::Unverified) => Cause::Unverified.name(),
-        Ok(proto::NotLocalizedCause::LookAlike) => Cause::LookAlike.name(),
-        Ok(proto::NotLocalizedCause::OutsideMap) => Cause::OutsideMap.name(),
-        Ok(proto::NotLocalizedCause::BadInput) => Cause::BadInput.name(),
-        _ => Cause::NoMatch.name(),
+    match cause_label(wire) {
+        "" => Cause::NoMatch.name(),
+        name => name,
     }
 }
 
@@ -314,5 +312,21 @@ pub fn prior_to_map(
     let back = ros_from_map_world(frames.up).inverse();
     if let Some(c) = rotate_covariance(&prior.covariance, &back) {
         prior.covariance = c;
+    }
+}
+
+#[cfg(test)]
+mod cause_tests {
+    use super::*;
+
+    #[test]
+    fn every_cause_keeps_its_name_on_the_wire_and_in_the_metrics() {
+        for c in Cause::ALL {
+            let wire = cause_message(Some(c)) as i32;
+            assert_eq!(cause_label(wire), c.name());
+            assert_eq!(cause_name(wire), c.name());
+        }
+        assert_eq!(cause_label(cause_message(None) as i32), "");
+        assert_eq!(cause_name(0), "NO_MATCH");
     }
 }
