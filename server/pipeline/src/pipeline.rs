@@ -403,8 +403,9 @@ pub struct Pipeline {
     shortlist: Shortlist,
     /// Camera axes of the map's poses and of the answers ([`crate::map::MapHeader::axes`]).
     axes: CameraAxes,
-    /// The map's surfaces, made when a tracked pose is first judged ([`Pipeline::coverage`]).
-    coverage: std::sync::OnceLock<Coverage>,
+    /// The map's surfaces, made once when first needed ([`Pipeline::coverage`]) and shared by the
+    /// pipelines of one map ([`Pipeline::sharing_coverage`]).
+    coverage: Arc<std::sync::OnceLock<Coverage>>,
 }
 
 impl std::fmt::Debug for Pipeline {
@@ -476,7 +477,7 @@ impl Pipeline {
             point_views,
             map_focal_px,
             map_pixels,
-            coverage: std::sync::OnceLock::new(),
+            coverage: Arc::default(),
             pose_index,
             shortlist,
         })
@@ -890,10 +891,29 @@ impl Pipeline {
         Ok(self.with_keyframe(loc, frame, opts))
     }
 
-    /// The map's surfaces ([`Coverage::of_map`]), made on first use.
+    /// The map's surfaces ([`Coverage::of_map`]), made on first use (or by [`Self::coverage_maker`]).
     pub fn coverage(&self) -> &Coverage {
         self.coverage
             .get_or_init(|| Coverage::of_map(&self.map, self.axes))
+    }
+
+    /// This pipeline sharing `other`'s coverage (the same map's: one set of voxels, made once, for
+    /// all the workers' pipelines).
+    pub fn sharing_coverage(self, other: &Pipeline) -> Self {
+        Self {
+            coverage: Arc::clone(&other.coverage),
+            ..self
+        }
+    }
+
+    /// A job that makes the map's coverage ahead of its first use (time grows with the map: about
+    /// 0.2 s for 550 images), for a background thread, so a stream's first tracked frame does not
+    /// wait for it; a frame that needs it sooner waits for the job instead of repeating it.
+    pub fn coverage_maker(&self) -> impl FnOnce() + Send + 'static {
+        let (cell, map, axes) = (Arc::clone(&self.coverage), Arc::clone(&self.map), self.axes);
+        move || {
+            cell.get_or_init(|| Coverage::of_map(&map, axes));
+        }
     }
 
     /// `loc` with the keyframe a stream tracks from next: this frame, at its verified map pose.

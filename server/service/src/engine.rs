@@ -441,7 +441,19 @@ impl Engine {
                 Some(c) => p.with_calibration(c.clone(), self.min_confidence),
                 None => p.with_min_confidence(self.min_confidence),
             };
+            let p = match pipelines.first() {
+                Some(first) => p.sharing_coverage(first),
+                None => p,
+            };
             pipelines.push(p);
+        }
+        // The map's coverage (what a stream's tracked pose is judged by) is made in the
+        // background, so the first tracked frame does not wait for it.
+        if let Some(first) = pipelines.first() {
+            let make = first.coverage_maker();
+            let _ = std::thread::Builder::new()
+                .name("pntr-coverage".into())
+                .spawn(make);
         }
         let (min_confidence, calibration_source) = pipelines
             .first()

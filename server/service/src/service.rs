@@ -816,7 +816,7 @@ fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
     r.status = proto::Status::NotLocalized as i32;
     r.cause = proto::NotLocalizedCause::Unverified as i32;
     r.reason = format!(
-        "re-acquiring: the stream's map fix had fewer than {STRONG_FIX_INLIERS} inliers, so it is followed but not answered until a later map fix along the camera's motion agrees with it (a look-alike room rarely does); {}",
+        "re-acquiring: the stream's map fix had fewer than {STRONG_FIX_INLIERS} inliers, so it is followed but not answered until a later map fix along the camera's motion agrees with it (a look-alike room often does not); {}",
         if t.confirmed {
             "two fixes agree, waiting for the map to re-anchor the track"
         } else {
