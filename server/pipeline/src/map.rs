@@ -57,6 +57,10 @@ pub struct MapImage {
     pub camera: Intrinsics,
     /// Reduced depth and grey for verification ([`crate::verify::Thumb`], about 12 KiB).
     pub thumb: Thumb,
+    /// Finer depth for the dense refinement ([`crate::refine::fine_depth`]): cameras of focal
+    /// length 256 px and more (160 x 120 samples, about 56 KiB, for a VGA camera); `None` for
+    /// smaller ones and in maps of format 4 and older, whose refinement aligns [`Self::thumb`].
+    pub fine: Option<Thumb>,
 }
 
 impl MapImage {
@@ -86,6 +90,7 @@ impl MapImage {
             + self.descriptors.len() * 2
             + self.binary.len() * 32
             + self.thumb.heap_bytes()
+            + self.fine.as_ref().map_or(0, Thumb::heap_bytes)
     }
 }
 
@@ -531,6 +536,7 @@ impl<'a> MapBuilder<'a> {
             image_size: f.image_size,
             camera: k,
             thumb: Thumb::new(v.rgb, v.depth, &k),
+            fine: crate::refine::fine_depth(v.rgb, v.depth, &k),
         });
         Ok(())
     }

@@ -9,7 +9,8 @@
 //!         3D points, instances, and since version 2 the verification thumbnail: u32 width, u32 height,
 //!         f64 fx fy cx cy, u16 depth in mm, u8 grey), and since version 3 the image's camera: f64 fx fy
 //!         cx cy, f64 k1 k2 p1 p2 k3, u32 width, u32 height (version 2 images take the header's camera),
-//!         and since version 4 the recording's stamp: f64 seconds, NaN for none
+//!         and since version 4 the recording's stamp: f64 seconds, NaN for none, and since version 5
+//!         the refinement's finer depth: u8 0 (none) or 1, then a thumbnail as above
 //!   RETR  the retrieval stage (codebook or vocabulary, and the faiss index or BoW vectors)
 //!   END!  empty: a file without it was cut short
 //! ```
@@ -34,7 +35,7 @@ use crate::PipelineError;
 
 const MAGIC: &[u8; 8] = b"PNTRMAP\0";
 /// The map format version this build writes.
-pub const FORMAT_VERSION: u32 = 4;
+pub const FORMAT_VERSION: u32 = 5;
 /// The oldest map format version this build reads (version 2 lacks per-image cameras).
 pub const OLDEST_READABLE_VERSION: u32 = 2;
 
@@ -103,7 +104,24 @@ fn encode_image(im: &MapImage, w: &mut Writer) {
     for i in &im.instances {
         w.u32(*i);
     }
-    let t = &im.thumb;
+    encode_thumb(w, &im.thumb);
+    let k = &im.camera;
+    for v in [k.fx, k.fy, k.cx, k.cy].iter().chain(&k.distortion) {
+        w.f64(*v);
+    }
+    w.u32(k.width);
+    w.u32(k.height);
+    w.f64(im.stamp.unwrap_or(f64::NAN));
+    match &im.fine {
+        Some(t) => {
+            w.raw(&[1]);
+            encode_thumb(w, t);
+        }
+        None => w.raw(&[0]),
+    }
+}
+
+fn encode_thumb(w: &mut Writer, t: &Thumb) {
     w.u32(t.width);
     w.u32(t.height);
     for v in [
@@ -118,13 +136,6 @@ fn encode_image(im: &MapImage, w: &mut Writer) {
         w.raw(&d.to_le_bytes());
     }
     w.raw(&t.gray);
-    let k = &im.camera;
-    for v in [k.fx, k.fy, k.cx, k.cy].iter().chain(&k.distortion) {
-        w.f64(*v);
-    }
-    w.u32(k.width);
-    w.u32(k.height);
-    w.f64(im.stamp.unwrap_or(f64::NAN));
 }
 
 fn decode_image(
@@ -212,6 +223,15 @@ fn decode_image(
     } else {
         None
     };
+    let fine = if version >= 5 {
+        match r.take(1).map_err(e)?[0] {
+            0 => None,
+            1 => Some(decode_thumb(&mut r).map_err(|m| format!("{what} ({id}): fine depth: {m}"))?),
+            other => return Err(format!("{what} ({id}): fine depth flag {other} (0 or 1)")),
+        }
+    } else {
+        None
+    };
     r.finish().map_err(e)?;
     if keypoints.iter().flatten().any(|x: &f32| !x.is_finite()) {
         return Err(format!("{what} ({id}): a keypoint is not finite"));
@@ -232,6 +252,7 @@ fn decode_image(
         image_size,
         camera,
         thumb,
+        fine,
     })
 }
 

@@ -41,7 +41,7 @@ use crate::map::Map;
 use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
-use crate::refine::refine_dense;
+use crate::refine::{fine_depth, polish, refine_dense};
 use crate::shortlist::{automatic_depth, Shortlist, Shortlisted, FINAL_KEYPOINTS};
 
 /// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
@@ -1137,7 +1137,8 @@ impl Pipeline {
         // The chosen pose's own probability, before its rivals were weighed.
         let own = chosen.map_or(0.0, |(i, _)| probabilities[i]);
         let best = chosen.map(|(i, conf)| {
-            let (c, e, _) = scored.swap_remove(i);
+            let (mut c, e, _) = scored.swap_remove(i);
+            self.polish(q, &mut c);
             let covariance = thumb_ref.and_then(|t| self.covariance(&c, t));
             (c, e, conf, covariance)
         });
@@ -1334,6 +1335,25 @@ impl Pipeline {
 
     /// The candidates with a registration, most inliers first, those with at least the preset's
     /// `min_inliers` (at most [`VERIFY_CANDIDATES`]), and the inliers of the weakest registration.
+    /// The chosen candidate's pose polished with the finer depth of the query and of its map view,
+    /// where the map has it ([`crate::map::MapImage::fine`], [`polish`]). After the decision, so
+    /// that which answers are LOCALIZED stays what verification decided on the thumbnails: aligned
+    /// on the finer depth before verification, wrong wide-baseline registrations slid along a
+    /// kitchen's cabinets into agreement and were LOCALIZED 0.3-0.5 m off (BENCHMARKS.md, "Real
+    /// recordings").
+    fn polish(&self, q: &Query, c: &mut Candidate) {
+        let Some(db) = &self.map.images[c.image].fine else {
+            return;
+        };
+        let Some(p) = c.db_from_query else { return };
+        let Some(query) = fine_depth(&q.rgb, &q.depth, &q.intrinsics) else {
+            return;
+        };
+        if let Some(r) = polish(&query, db, &p, &c.inlier_src, &c.inlier_dst) {
+            c.db_from_query = Some(r);
+        }
+    }
+
     fn registered(&self, done: Vec<Candidate>) -> (Vec<Candidate>, Option<usize>) {
         let mut valid: Vec<Candidate> = done
             .into_iter()

@@ -478,6 +478,7 @@ mod tests {
                 },
                 &pntr_core::Intrinsics::hpointloc(),
             ),
+            fine: None,
         }
     }
 

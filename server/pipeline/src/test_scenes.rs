@@ -18,6 +18,40 @@ pub(crate) fn noisy_room_view(
     k_per_m2: f64,
     seed: u64,
 ) -> Thumb {
+    let (rgb, depth) = room_frame(
+        room_from_camera,
+        &Intrinsics::hpointloc(),
+        k_per_m2,
+        seed,
+        &[],
+    );
+    Thumb::new(&rgb, &depth, &Intrinsics::hpointloc())
+}
+
+/// Boxes (min and max corners, room frame, metres) on the floor, walls and ceiling of
+/// [`room_view`]'s room: detail smaller than a thumbnail's block, as a kitchen's cabinets and
+/// appliances are for a VGA camera.
+pub(crate) const CLUTTER: [([f64; 3], [f64; 3]); 8] = [
+    ([-1.5, 0.6, 3.0], [-1.1, 1.2, 3.4]),
+    ([0.5, 0.8, 2.5], [0.8, 1.2, 2.8]),
+    ([-0.6, -0.8, 3.7], [-0.2, -0.4, 4.0]),
+    ([0.9, -0.2, 3.8], [1.3, 0.1, 4.0]),
+    ([1.7, -0.6, 1.5], [2.0, -0.2, 2.0]),
+    ([-2.0, 0.0, 2.2], [-1.8, 0.3, 2.6]),
+    ([-0.2, 0.9, 1.8], [0.1, 1.2, 2.1]),
+    ([0.0, -1.5, 2.5], [0.4, -1.3, 2.9]),
+];
+
+/// The frame camera `k` at `room_from_camera` takes inside [`room_view`]'s room with `boxes` in
+/// it (min and max corners, e.g. [`CLUTTER`]), with [`noisy_room_view`]'s depth noise: flat grey
+/// colour and the depth.
+pub(crate) fn room_frame(
+    room_from_camera: &Isometry3<f64>,
+    k: &Intrinsics,
+    k_per_m2: f64,
+    seed: u64,
+    boxes: &[([f64; 3], [f64; 3])],
+) -> (RgbImage, DepthMap) {
     let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
     let mut uniform = move || {
         state ^= state << 13;
@@ -25,7 +59,6 @@ pub(crate) fn noisy_room_view(
         state ^= state << 17;
         ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
     };
-    let k = Intrinsics::hpointloc();
     let (w, h) = (k.width, k.height);
     let mut depth = vec![0f32; (w * h) as usize];
     for r in 0..h {
@@ -49,6 +82,24 @@ pub(crate) fn noisy_room_view(
                     }
                 }
             }
+            for (lo, hi) in boxes {
+                // Slabs: the ray is inside the box between the largest entry and smallest exit.
+                let (mut near, mut far) = (f64::NEG_INFINITY, f64::INFINITY);
+                for a in 0..3 {
+                    if d[a].abs() <= 1e-12 {
+                        if o[a] < lo[a] || o[a] > hi[a] {
+                            far = f64::NEG_INFINITY;
+                        }
+                        continue;
+                    }
+                    let (t0, t1) = ((lo[a] - o[a]) / d[a], (hi[a] - o[a]) / d[a]);
+                    near = near.max(t0.min(t1));
+                    far = far.min(t0.max(t1));
+                }
+                if near <= far && near > 1e-6 && near < best {
+                    best = near;
+                }
+            }
             // `t` scales the camera ray whose z is 1, so it is the planar depth.
             let gauss =
                 (-2.0 * uniform().ln()).sqrt() * (2.0 * std::f64::consts::PI * uniform()).cos();
@@ -56,5 +107,5 @@ pub(crate) fn noisy_room_view(
         }
     }
     let rgb = RgbImage::new(w, h, vec![128; (w * h * 3) as usize]).unwrap();
-    Thumb::new(&rgb, &DepthMap::from_metres(w, h, depth).unwrap(), &k)
+    (rgb, DepthMap::from_metres(w, h, depth).unwrap())
 }

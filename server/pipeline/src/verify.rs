@@ -58,7 +58,13 @@ impl Thumb {
         } else {
             1
         };
-        let s = by_focal.max(side.div_ceil(MAX_THUMB_SIDE));
+        Self::reduced(rgb, depth, k, by_focal.max(side.div_ceil(MAX_THUMB_SIDE)))
+    }
+
+    /// The reduction of [`Thumb::new`] by blocks of `s` x `s` pixels (`s` >= 1): the block's median
+    /// valid depth and mean grey, the intrinsics scaled to the thumbnail's pixels.
+    pub fn reduced(rgb: &RgbImage, depth: &DepthMap, k: &Intrinsics, s: u32) -> Self {
+        let s = s.max(1);
         let (w, h) = ((rgb.width / s).max(1), (rgb.height / s).max(1));
         let half = (s as f64 - 1.0) / 2.0;
         let intrinsics = Intrinsics {
