@@ -44,6 +44,25 @@ use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
 use crate::refine::{fine_depth, polish, refine_dense};
 use crate::shortlist::{automatic_depth, Shortlist, Shortlisted, FINAL_KEYPOINTS};
 
+/// Nearest and farthest a map fix may lie from a tracked pose and still be fused with it, metres.
+pub const FUSION_GATE_MIN_M: f64 = 0.1;
+/// See [`FUSION_GATE_MIN_M`].
+pub const FUSION_GATE_MAX_M: f64 = 0.5;
+
+/// How far, metres, a map fix may lie from the tracked pose of the same frame and still be fused
+/// with it ([`odometry::fuse`]): three standard deviations of the track's position
+/// (`track_covariance`, ROS order, with its drift: [`odometry::with_drift`]), within
+/// [`FUSION_GATE_MIN_M`] and [`FUSION_GATE_MAX_M`] (the latter also without a covariance). A fix
+/// farther off is a challenger, not a correction: fused, a look-alike fix 0.44 m from a track
+/// certain to 5 cm still moved it by 5.6 cm, and its neighbours stayed 4-7 cm off (real Kinect
+/// frames, BENCHMARKS.md, "Real recordings").
+pub fn fusion_gate_m(track_covariance: Option<&[f64; 36]>) -> f64 {
+    track_covariance.map_or(FUSION_GATE_MAX_M, |c| {
+        let sigma = (c[0] + c[7] + c[14]).max(0.0).sqrt();
+        (3.0 * sigma).clamp(FUSION_GATE_MIN_M, FUSION_GATE_MAX_M)
+    })
+}
+
 /// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
 /// turned more than it can have (`pose`: `world_from_camera`, map frame, map axes).
 fn off_track(pose: &Isometry3<f64>, opts: &LocalizeOptions) -> Option<String> {
@@ -792,7 +811,9 @@ impl Pipeline {
             estimate: Some(pose),
             confidence: key.confidence,
             evidence: Some(hop.evidence),
-            covariance: hop.covariance.map(Box::new),
+            covariance: hop
+                .covariance
+                .map(|c| Box::new(odometry::with_drift(&c, hop.path_m))),
             verified: Vec::new(),
             inliers: hop.inliers,
             correspondences: hop.pairs,
@@ -844,9 +865,9 @@ impl Pipeline {
     }
 
     /// A LOCALIZED map answer `loc` of a tracked stream whose keyframe was not tried yet (a
-    /// re-anchoring frame): when the keyframe also registers and the two poses disagree (0.5 m, 10
-    /// deg), the camera cannot have jumped, so odometry answers and the map answer goes along as a
-    /// challenger (`off_track`: two confident ones that agree move the track); otherwise the map
+    /// re-anchoring frame): when the keyframe also registers and the two poses disagree (by more
+    /// than [`fusion_gate_m`] or 10 deg), the camera cannot have jumped, so odometry answers and
+    /// the map answer goes along as a challenger (`off_track`: two confident ones that agree move the track); otherwise the map
     /// answer and the track are fused by their covariances ([`odometry::fuse`]) and the frame
     /// becomes the anchored keyframe at the fused pose.
     fn settle(
@@ -863,7 +884,12 @@ impl Pipeline {
             // A hop the map's surfaces do not explain cannot outweigh a verified map answer.
             if let Some(hop) = hop.ok().filter(|h| h.status == Status::Localized) {
                 let hop_pose = hop.pose.expect("LOCALIZED odometry answers have a pose");
-                if !poses_agree(&hop_pose, &pose, 0.5, 10.0) {
+                if !poses_agree(
+                    &hop_pose,
+                    &pose,
+                    fusion_gate_m(hop.covariance.as_deref()),
+                    10.0,
+                ) {
                     // The refused map answer still challenges the track: a chain that slipped
                     // onto a wrong pose is moved when confident map answers keep agreeing with
                     // each other against it (the service's challenge rule).
@@ -1659,6 +1685,32 @@ pub fn check_query(q: &Query) -> Result<(), PipelineError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_fix_is_fused_within_three_sigmas_of_the_track_and_its_bounds() {
+        let isotropic = |sigma_m: f64| {
+            let mut c = [0.0; 36];
+            for i in 0..3 {
+                c[i * 7] = sigma_m * sigma_m / 3.0;
+            }
+            c
+        };
+        // A track certain to a centimetre still fuses fixes 10 cm off; one widened by its drift
+        // to 5 cm takes them to 15 cm; none beyond half a metre, as without a covariance.
+        assert!((fusion_gate_m(Some(&isotropic(0.01))) - FUSION_GATE_MIN_M).abs() < 1e-12);
+        assert!((fusion_gate_m(Some(&isotropic(0.05))) - 0.15).abs() < 1e-9);
+        assert_eq!(fusion_gate_m(Some(&isotropic(1.0))), FUSION_GATE_MAX_M);
+        assert_eq!(fusion_gate_m(None), FUSION_GATE_MAX_M);
+        // The look-alike fix of the real kitchen: 0.44 m from a track of 5 cm is a challenger.
+        let track = Isometry3::identity();
+        let fix = Isometry3::translation(0.44, 0.0, 0.0);
+        assert!(!poses_agree(
+            &track,
+            &fix,
+            fusion_gate_m(Some(&isotropic(0.05))),
+            10.0
+        ));
+    }
 
     /// A pose whose depths agree with the map everywhere but whose grey levels agree in no tile is
     /// capped below any threshold, whatever the model says; with grey agreement it keeps the
