@@ -590,3 +590,76 @@ pub fn load(
         checksum: content,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_scenes::room_view;
+
+    /// One map image with two keypoints, its thumbnail, and a finer depth when `fine`.
+    fn image(fine: bool) -> MapImage {
+        let thumb = room_view(&Isometry3::identity());
+        MapImage {
+            id: "scene/point0/db0".into(),
+            scene: 0,
+            point: 0,
+            world_from_camera: Isometry3::translation(1.0, 2.0, 3.0),
+            stamp: Some(12.5),
+            keypoints: vec![[10.0, 20.0], [30.5, 40.25]],
+            scores: vec![0.5, 0.25],
+            descriptors: vec![f16::from_f32(0.5); 2 * 4],
+            dim: 4,
+            binary: Vec::new(),
+            points: vec![[0.1, 0.2, 1.5], [f32::NAN; 3]],
+            instances: vec![0, 7],
+            image_size: (256, 256),
+            camera: pntr_core::Intrinsics::hpointloc(),
+            fine: fine.then(|| thumb.clone()),
+            thumb,
+        }
+    }
+
+    fn encoded(im: &MapImage) -> Vec<u8> {
+        let mut w = Writer::new();
+        encode_image(im, &mut w);
+        w.bytes
+    }
+
+    /// Compares by the fields that NaN points leave comparable.
+    fn same(a: &MapImage, b: &MapImage) {
+        assert_eq!(a.id, b.id);
+        assert_eq!(a.world_from_camera, b.world_from_camera);
+        assert_eq!(a.stamp, b.stamp);
+        assert_eq!(a.keypoints, b.keypoints);
+        assert_eq!(a.thumb, b.thumb);
+        assert_eq!(a.fine, b.fine);
+        assert_eq!(a.camera, b.camera);
+    }
+
+    #[test]
+    fn the_finer_depth_round_trips_and_older_records_read_without_it() {
+        let k = pntr_core::Intrinsics::hpointloc();
+        for fine in [false, true] {
+            let im = image(fine);
+            let back = decode_image(&encoded(&im), 0, FORMAT_VERSION, &k).unwrap();
+            same(&im, &back);
+        }
+        // A version-4 record is a version-5 record without the finer depth's flag (and thumbnail):
+        // read as such, it has none; read as version 5, it is refused as cut short, not misread.
+        let mut v4 = encoded(&image(false));
+        assert_eq!(
+            v4.pop(),
+            Some(0),
+            "the flag of no finer depth is the record's last byte"
+        );
+        let back = decode_image(&v4, 0, 4, &k).unwrap();
+        assert!(back.fine.is_none());
+        same(&image(false), &back);
+        assert!(decode_image(&v4, 0, FORMAT_VERSION, &k).is_err());
+        // A flag that is neither 0 nor 1 names what is wrong.
+        let mut bad = encoded(&image(false));
+        *bad.last_mut().unwrap() = 7;
+        let e = decode_image(&bad, 0, FORMAT_VERSION, &k).unwrap_err();
+        assert!(e.contains("fine depth flag 7"), "{e}");
+    }
+}

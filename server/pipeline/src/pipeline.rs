@@ -50,8 +50,9 @@ pub const FUSION_GATE_MIN_M: f64 = 0.1;
 pub const FUSION_GATE_MAX_M: f64 = 0.5;
 
 /// How far, metres, a map fix may lie from the tracked pose of the same frame and still be fused
-/// with it ([`odometry::fuse`]): three standard deviations of the track's position
-/// (`track_covariance`, ROS order, with its drift: [`odometry::with_drift`]), within
+/// with it ([`odometry::fuse`]): three times the track's RMS position error (the square root of
+/// the trace of the position block of `track_covariance`, ROS order, with its drift:
+/// [`odometry::with_drift`]; about 5 standard deviations of each axis), within
 /// [`FUSION_GATE_MIN_M`] and [`FUSION_GATE_MAX_M`] (the latter also without a covariance). A fix
 /// farther off is a challenger, not a correction: fused, a look-alike fix 0.44 m from a track
 /// certain to 5 cm still moved it by 5.6 cm, and its neighbours stayed 4-7 cm off (real Kinect
@@ -1359,8 +1360,6 @@ impl Pipeline {
         Ok(hits.into_iter().map(|h| h.id).collect())
     }
 
-    /// The candidates with a registration, most inliers first, those with at least the preset's
-    /// `min_inliers` (at most [`VERIFY_CANDIDATES`]), and the inliers of the weakest registration.
     /// The chosen candidate's pose polished with the finer depth of the query and of its map view,
     /// where the map has it ([`crate::map::MapImage::fine`], [`polish`]). After the decision, so
     /// that which answers are LOCALIZED stays what verification decided on the thumbnails: aligned
@@ -1380,6 +1379,8 @@ impl Pipeline {
         }
     }
 
+    /// The candidates with a registration, most inliers first, those with at least the preset's
+    /// `min_inliers` (at most [`VERIFY_CANDIDATES`]), and the inliers of the weakest registration.
     fn registered(&self, done: Vec<Candidate>) -> (Vec<Candidate>, Option<usize>) {
         let mut valid: Vec<Candidate> = done
             .into_iter()

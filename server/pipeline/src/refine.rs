@@ -110,11 +110,11 @@ fn points_and_normals(t: &Thumb) -> Vec<Option<(Point3<f64>, Vector3<f64>)>> {
 /// and a 16-pixel block is 7 cm wide at 2.5 m with a 525 px lens; aligned at that scale, real frames
 /// landed 3-5 cm from the truth (BENCHMARKS.md, "Real recordings").
 pub fn fine_depth(rgb: &RgbImage, depth: &DepthMap, k: &Intrinsics) -> Option<Thumb> {
-    let by_focal = (k.fx.min(k.fy) / FINE_FOCAL_PX).round();
     // (A NaN focal length, which validation refuses earlier, has no finer depth either.)
-    if by_focal.is_nan() || by_focal < 2.0 {
+    if k.fx.is_nan() || k.fy.is_nan() || k.fx.min(k.fy) < 2.0 * FINE_FOCAL_PX {
         return None;
     }
+    let by_focal = (k.fx.min(k.fy) / FINE_FOCAL_PX).round();
     let side = rgb.width.max(rgb.height).max(1);
     let s = (by_focal.min(side as f64) as u32).max(side.div_ceil(FINE_MAX_SIDE));
     Some(Thumb::reduced(rgb, depth, k, s))
