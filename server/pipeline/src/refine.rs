@@ -22,7 +22,7 @@ use nalgebra::{Isometry3, Matrix6, Point3, Translation3, UnitQuaternion, Vector3
 
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 
-use crate::verify::{depth_tolerance_m, Thumb};
+use crate::verify::{depth_tolerance_m, poses_agree, Thumb};
 
 /// How many standard deviations of the agreeing samples' count a refinement may lose
 /// ([`keeps_agreement`]).
@@ -244,9 +244,7 @@ pub fn refine_dense(
         }
     }
     // The query camera's centre in the map view's frame is the translation.
-    let moved_m = (est.translation.vector - db_from_query.translation.vector).norm();
-    let moved_deg = est.rotation.angle_to(&db_from_query.rotation).to_degrees();
-    if !(moved_m <= MAX_MOVE_M && moved_deg <= MAX_MOVE_DEG) {
+    if !poses_agree(&est, db_from_query, MAX_MOVE_M, MAX_MOVE_DEG) {
         return None;
     }
     keeps_agreement(
@@ -268,9 +266,7 @@ pub fn polish(
     dst: &[Vector3<f64>],
 ) -> Option<Isometry3<f64>> {
     let r = refine_dense(query, db, db_from_query, src, dst)?;
-    let moved_m = (r.translation.vector - db_from_query.translation.vector).norm();
-    let moved_deg = r.rotation.angle_to(&db_from_query.rotation).to_degrees();
-    (moved_m <= MAX_POLISH_M && moved_deg <= MAX_POLISH_DEG).then_some(r)
+    poses_agree(&r, db_from_query, MAX_POLISH_M, MAX_POLISH_DEG).then_some(r)
 }
 
 /// Whether a refinement whose pose has `after` thumbnail samples agreeing with the map view's depth
