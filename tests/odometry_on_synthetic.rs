@@ -1,7 +1,8 @@
 //! A stream's frames registered against its keyframe (`pntr_pipeline::odometry`), on a generated drive
 //! with the committed models: the tracked drive stays localized and accurate between map views, and a
-//! keyframe that does not fit the frame never produces a pose, and odometry carried where the map's
-//! images never looked is outside the mapped area.
+//! keyframe that does not fit the frame never produces a pose, odometry carried where the map's
+//! images never looked is outside the mapped area, and a track that slipped where the map's views
+//! contradict it is lost.
 
 use std::sync::Arc;
 
@@ -234,7 +235,10 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
             "seed {seed}: {followed:?}"
         );
         let loc = pipeline
-            .localize_with(&query(&seq, ki), &follow(kf, truth(ki).translation.vector))
+            .localize_with(
+                &query(&seq, ki),
+                &follow(kf.clone(), truth(ki).translation.vector),
+            )
             .unwrap();
         assert_eq!(
             loc.status,
@@ -243,6 +247,43 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
             loc.reason
         );
         assert!(loc.cause.is_none());
+
+        assert!(!loc.track_lost, "seed {seed}: a right track is not lost");
+
+        // A track that slipped inside the map (odometry that missed the camera's motion): the same
+        // keyframe placed 0.5 m behind where it was. The hop carries the frame there, where its
+        // walls stand in front of what the map's views saw: the map contradicts the pose, the
+        // track is lost, and the frame is searched for over the whole map instead (a fix near the
+        // truth, or no pose at all; never the slipped one).
+        let slipped = Keyframe {
+            world_from_camera: kf.world_from_camera
+                * nalgebra::Isometry3::translation(0.0, 0.0, -0.5),
+            ..kf.clone()
+        };
+        let at = slipped.world_from_camera.translation.vector;
+        let loc = pipeline
+            .localize_with(&query(&seq, ki), &follow(slipped, at))
+            .unwrap();
+        assert!(
+            loc.track_lost,
+            "seed {seed}: {:?} {:?}",
+            loc.status, loc.reason
+        );
+        assert!(!loc.odometry, "seed {seed}");
+        match loc.status {
+            Status::Localized => {
+                assert_eq!(loc.mode, Mode::Global, "seed {seed}");
+                let err = (position(&loc).unwrap() - truth(ki).translation.vector).norm();
+                assert!(err < 0.25, "seed {seed}: {err} m");
+            }
+            Status::NotLocalized => {
+                let reason = loc.reason.as_deref().unwrap_or("");
+                assert!(
+                    reason.contains("the map contradicts the tracked pose"),
+                    "{reason}"
+                );
+            }
+        }
 
         // Without a keyframe nothing is registered against one; unary calls get no keyframe back.
         let loc = pipeline

@@ -30,6 +30,7 @@
 //! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
 //!   separate, labelled mode).
 
+pub mod agreement;
 pub mod alias;
 pub mod calibration;
 pub mod camera;

@@ -32,6 +32,7 @@ use pntr_registration::Rigid;
 use pntr_retrieval::index::Hit;
 use serde::Serialize;
 
+use crate::agreement::{map_agreement, Agreement};
 use crate::alias::resolve;
 use crate::calibration::{choose, Calibration, CalibrationSource};
 use crate::camera::to_map_scale;
@@ -258,6 +259,11 @@ impl Cause {
 /// outside the mapped area.
 pub const MIN_EXPLAINED: f64 = 0.2;
 
+/// Largest contradiction of a tracked pose by the map's nearby views
+/// ([`crate::agreement::Agreement::contradiction`]); beyond it the track is lost. Right tracked poses
+/// on our drives: at most 0.18; a pose 0.25 m or more off: 0.4 and more.
+pub const MAX_TRACK_CONTRADICTION: f64 = 0.3;
+
 /// How the reason of a [`Cause::OutsideMap`] answer begins (a contract: supervisors match on it).
 pub const OUTSIDE_MAP_PREFIX: &str = "outside the mapped area:";
 
@@ -330,6 +336,14 @@ pub struct Localization {
     /// The keyframe the stream's next frame tracks from, when asked for
     /// ([`LocalizeOptions::want_keyframe`]) and LOCALIZED.
     pub keyframe: Option<Arc<Keyframe>>,
+    /// The stream's track is lost: the map contradicted the pose its keyframe carried the frame to
+    /// ([`MAX_TRACK_CONTRADICTION`]), so the frame was searched for over the whole map instead; the
+    /// stream drops its track (an answer, LOCALIZED or not, is then a first fix).
+    pub track_lost: bool,
+    /// For a map answer of a tracked frame whose keyframe also registered it: how far the map's pose
+    /// lies from the frame's own odometry pose (metres, degrees), before they were fused. How
+    /// a stream tells a fix that follows the camera's motion from one that merely lies near it.
+    pub track_gap: Option<(f64, f64)>,
 }
 
 /// A candidate pose that verification scored.
@@ -352,6 +366,13 @@ struct Tracked {
     key: Arc<Keyframe>,
     hop: odometry::Hop,
     pose: Isometry3<f64>,
+}
+
+/// Why the keyframe did not answer a tracked frame, and whether the track is lost with it (the map
+/// contradicted the pose the hop gave).
+struct Refusal {
+    why: String,
+    lost: bool,
 }
 
 /// The query as the tracking paths see it: features, back-projected keypoints (OpenCV query frame)
@@ -590,6 +611,19 @@ impl Pipeline {
         )
     }
 
+    /// How the map's views agree with the frame `thumb` at `pose` (`world_from_camera`, map frame,
+    /// the map's camera axes): [`crate::agreement::map_agreement`].
+    pub fn map_agreement(&self, thumb: &Thumb, pose: &Isometry3<f64>) -> Option<Agreement> {
+        let world_from_camera = convert_axes(pose, self.axes, CameraAxes::OpenCv);
+        map_agreement(
+            &self.map,
+            &self.pose_index,
+            self.axes,
+            thumb,
+            &world_from_camera,
+        )
+    }
+
     /// The map images inside `region`, nearest first.
     pub fn images_within(&self, region: &Region) -> Vec<usize> {
         self.pose_index.within(region)
@@ -650,14 +684,33 @@ impl Pipeline {
             points: &q_pts,
             thumb: thumb.as_ref(),
         };
-        // A tracked stream: the keyframe first, unless its map fix is old enough to re-anchor.
+        // A tracked stream: the keyframe first. It answers unless its map fix is old enough to
+        // re-anchor (`map_first`: the map answers, and the hop is the track's word on that answer).
         let mut odometry_refusal = None;
-        if let (Some(key), false) = (&opts.keyframe, opts.map_first) {
+        let mut hop = None;
+        if let Some(key) = &opts.keyframe {
             match self.odometry_answer(key, &frame, opts, &mut times, t0)? {
-                Ok(loc) => return Ok(loc),
-                Err(why) => odometry_refusal = Some(why),
+                Ok(loc) if !opts.map_first => return Ok(loc),
+                Ok(loc) => hop = Some(loc),
+                Err(refusal) => odometry_refusal = Some(refusal),
             }
         }
+        // The map contradicted where the keyframe carried the frame: the track is lost, and
+        // the frame is searched for over the whole map, as a stream's first frame is (its tracking
+        // region lies around a wrong pose, where a look-alike would be found again).
+        let track_lost = odometry_refusal.as_ref().is_some_and(|r| r.lost);
+        let untracked;
+        let opts = if track_lost {
+            untracked = LocalizeOptions {
+                among: opts.among.clone(),
+                want_keyframe: opts.want_keyframe,
+                ..LocalizeOptions::default()
+            };
+            &untracked
+        } else {
+            opts
+        };
+        let odometry_refusal = odometry_refusal.map(|r| r.why);
         let td = Instant::now();
         let desc = self.map.retriever.describer.describe(&q.rgb, &fq)?;
         times.retrieval += td.elapsed().as_secs_f64();
@@ -697,7 +750,7 @@ impl Pipeline {
                     mode: opts.region_mode,
                     ..loc
                 };
-                return self.settle(loc, &frame, opts, t0);
+                return Ok(self.settle(loc, &frame, opts, hop));
             }
             times = loc.times;
         }
@@ -733,20 +786,17 @@ impl Pipeline {
             None => loc,
         };
         if loc.status == Status::Localized {
-            return self.settle(loc, &frame, opts, t0);
+            let loc = Localization { track_lost, ..loc };
+            return Ok(self.settle(loc, &frame, opts, hop));
         }
-        // The map did not answer: the keyframe, if it was not tried yet.
-        let mut times = loc.times;
-        if let (Some(key), true) = (&opts.keyframe, opts.map_first) {
-            match self.odometry_answer(key, &frame, opts, &mut times, t0)? {
-                Ok(found) => {
-                    return Ok(Localization {
-                        off_track: loc.off_track,
-                        ..found
-                    })
-                }
-                Err(why) => odometry_refusal = Some(why),
-            }
+        // The map did not answer: the keyframe's hop, when the map was tried first.
+        let times = loc.times;
+        if let Some(found) = hop {
+            return Ok(Localization {
+                off_track: loc.off_track,
+                times,
+                ..found
+            });
         }
         let reason = match (loc.reason, odometry_refusal) {
             (Some(r), Some(o)) => Some(format!("{r}; odometry: {o}")),
@@ -756,6 +806,7 @@ impl Pipeline {
             reason,
             cause: loc.cause.or(Some(Cause::NoMatch)),
             times,
+            track_lost,
             ..loc
         })
     }
@@ -771,7 +822,7 @@ impl Pipeline {
         opts: &LocalizeOptions,
         times: &mut StageTimes,
         t0: Instant,
-    ) -> Result<Result<Localization, String>, PipelineError> {
+    ) -> Result<Result<Localization, Refusal>, PipelineError> {
         let thumb = frame.thumb.expect("made when a keyframe is given");
         let mut found = self.hop(key, frame, thumb, opts, times)?;
         if let (Err(_), Some(latest)) = (&found, &key.latest) {
@@ -781,8 +832,29 @@ impl Pipeline {
         }
         let Tracked { key, hop, pose } = match found {
             Ok(found) => found,
-            Err(why) => return Ok(Err(why)),
+            Err(why) => return Ok(Err(Refusal { why, lost: false })),
         };
+        // Where the map has views of what the frame sees, they must not contradict the pose: a
+        // track that slipped (odometry that lost the camera's motion along a striped corridor, a
+        // look-alike room it was carried into) puts the frame's surfaces where the map saw
+        // through. Right poses: at most 20% of the samples on our drives; slipped ones pass 30%
+        // beyond about 0.3 m (BENCHMARKS.md, "Robots that leave the map").
+        let agreement = self.map_agreement(thumb, &pose);
+        let contradicted = agreement
+            .as_ref()
+            .and_then(|a| Some((a.contradiction()?, a.deciding())))
+            .filter(|&(c, _)| c > MAX_TRACK_CONTRADICTION);
+        if let Some((c, views)) = contradicted {
+            times.total = t0.elapsed().as_secs_f64();
+            return Ok(Err(Refusal {
+                why: format!(
+                    "the map contradicts the tracked pose: each of the {views} nearby map views that look at what the frame sees saw through at least {:.0}% of it (at most {:.0}%), so the track slipped and is dropped",
+                    c * 100.0,
+                    MAX_TRACK_CONTRADICTION * 100.0
+                ),
+                lost: true,
+            }));
+        }
         let keyframe = opts.want_keyframe.then(|| {
             odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
         });
@@ -825,6 +897,8 @@ impl Pipeline {
             odometry: true,
             off_track: None,
             keyframe,
+            track_lost: false,
+            track_gap: None,
         }))
     }
 
@@ -865,57 +939,59 @@ impl Pipeline {
         }))
     }
 
-    /// A LOCALIZED map answer `loc` of a tracked stream whose keyframe was not tried yet (a
-    /// re-anchoring frame): when the keyframe also registers and the two poses disagree (by more
-    /// than [`fusion_gate_m`] or 10 deg), the camera cannot have jumped, so odometry answers and
-    /// the map answer goes along as a challenger (`off_track`: two confident ones that agree move the track); otherwise the map
-    /// answer and the track are fused by their covariances ([`odometry::fuse`]) and the frame
-    /// becomes the anchored keyframe at the fused pose.
+    /// A LOCALIZED map answer `loc` of a tracked stream, and the keyframe's `hop` of the same frame
+    /// when the map was tried first (a re-anchoring frame) and the hop held: when the two poses
+    /// disagree (by more than [`fusion_gate_m`] or 10 deg), the camera cannot have jumped, so
+    /// odometry answers and the map answer goes along as a challenger (`off_track`: two confident
+    /// ones that agree move the track); otherwise the map answer and the track are fused by their
+    /// covariances ([`odometry::fuse`]) and the frame becomes the anchored keyframe at the fused
+    /// pose. Either way [`Localization::track_gap`] says how far apart they were.
     fn settle(
         &self,
-        loc: Localization,
+        mut loc: Localization,
         frame: &Frame,
         opts: &LocalizeOptions,
-        t0: Instant,
-    ) -> Result<Localization, PipelineError> {
-        if let (Some(key), true, Some(pose)) = (&opts.keyframe, opts.map_first, loc.pose) {
-            let mut times = loc.times;
-            let mut loc = loc;
-            let hop = self.odometry_answer(key, frame, opts, &mut times, t0)?;
-            // A hop the map's surfaces do not explain cannot outweigh a verified map answer.
-            if let Some(hop) = hop.ok().filter(|h| h.status == Status::Localized) {
-                let hop_pose = hop.pose.expect("LOCALIZED odometry answers have a pose");
-                if !poses_agree(
-                    &hop_pose,
-                    &pose,
-                    fusion_gate_m(hop.covariance.as_deref()),
-                    10.0,
-                ) {
-                    // The refused map answer still challenges the track: a chain that slipped
-                    // onto a wrong pose is moved when confident map answers keep agreeing with
-                    // each other against it (the service's challenge rule).
-                    return Ok(Localization {
-                        off_track: Some((pose, loc.confidence)),
-                        ..hop
-                    });
-                }
-                // The map fix and the track agree: each moves the other by its certainty
-                // ([`odometry::fuse`]), so a fix with a handful of inliers (a wide baseline, a
-                // look-alike part of the view) cannot drag a well-supported track by its own
-                // error (real Kinect frames: BENCHMARKS.md, "Real recordings").
-                let covs = (loc.covariance.as_deref(), hop.covariance.as_deref());
-                if let (Some(cov), Some(track_cov)) = covs {
-                    if let Some((p, c)) = odometry::fuse(&pose, cov, &hop_pose, track_cov) {
-                        loc.pose = Some(p);
-                        loc.estimate = Some(p);
-                        loc.covariance = Some(Box::new(c));
-                    }
-                }
-            }
-            let loc = Localization { times, ..loc };
-            return Ok(self.with_keyframe(loc, frame, opts));
+        hop: Option<Localization>,
+    ) -> Localization {
+        // A hop the map's surfaces do not explain cannot outweigh a verified map answer.
+        let hop = hop.filter(|h| h.status == Status::Localized);
+        let (Some(pose), Some(hop)) = (loc.pose, hop) else {
+            return self.with_keyframe(loc, frame, opts);
+        };
+        let hop_pose = hop.pose.expect("LOCALIZED odometry answers have a pose");
+        loc.track_gap = Some((
+            (hop_pose.translation.vector - pose.translation.vector).norm(),
+            hop_pose.rotation.angle_to(&pose.rotation).to_degrees(),
+        ));
+        if !poses_agree(
+            &hop_pose,
+            &pose,
+            fusion_gate_m(hop.covariance.as_deref()),
+            10.0,
+        ) {
+            // The refused map answer still challenges the track: a chain that slipped onto a
+            // wrong pose is moved when confident map answers keep agreeing with each other
+            // against it (the service's challenge rule).
+            return Localization {
+                off_track: Some((pose, loc.confidence)),
+                times: loc.times,
+                track_gap: loc.track_gap,
+                ..hop
+            };
         }
-        Ok(self.with_keyframe(loc, frame, opts))
+        // The map fix and the track agree: each moves the other by its certainty
+        // ([`odometry::fuse`]), so a fix with a handful of inliers (a wide baseline, a look-alike
+        // part of the view) cannot drag a well-supported track by its own error (real Kinect
+        // frames: BENCHMARKS.md, "Real recordings").
+        let covs = (loc.covariance.as_deref(), hop.covariance.as_deref());
+        if let (Some(cov), Some(track_cov)) = covs {
+            if let Some((p, c)) = odometry::fuse(&pose, cov, &hop_pose, track_cov) {
+                loc.pose = Some(p);
+                loc.estimate = Some(p);
+                loc.covariance = Some(Box::new(c));
+            }
+        }
+        self.with_keyframe(loc, frame, opts)
     }
 
     /// The map's surfaces ([`Coverage::of_map`]), made on first use (or by [`Self::coverage_maker`]).
@@ -1211,6 +1287,8 @@ impl Pipeline {
                 odometry: false,
                 off_track: None,
                 keyframe: None,
+                track_lost: false,
+                track_gap: None,
             });
         };
         let world_from_query = self
@@ -1270,6 +1348,8 @@ impl Pipeline {
             odometry: false,
             off_track: None,
             keyframe: None,
+            track_lost: false,
+            track_gap: None,
         })
     }
 

@@ -308,6 +308,19 @@ pub const ODOMETRY_MAX_AGE_S: f64 = 60.0;
 /// saw what the look-alike matched, established it again).
 pub const STRONG_FIX_INLIERS: u32 = 40;
 
+/// A later map fix establishes a weak one's track only when it lies within this distance (metres)
+/// and angle (degrees) of where the frame's odometry from that track put it
+/// ([`pntr_pipeline::pipeline::Localization::track_gap`]).
+pub const ESTABLISH_GAP_M: f64 = 0.15;
+/// See [`ESTABLISH_GAP_M`].
+pub const ESTABLISH_GAP_DEG: f64 = 5.0;
+/// When the frame's keyframe did not register it (no odometry pose to compare with), the fix must
+/// lie within [`ESTABLISH_GAP_M`] of the track's last pose plus this speed (metres per second) times
+/// the time since...
+pub const ESTABLISH_SPEED_MPS: f64 = 0.5;
+/// ... and within [`ESTABLISH_GAP_DEG`] of its orientation plus this turn rate (degrees per second).
+pub const ESTABLISH_TURN_DEG_PER_S: f64 = 45.0;
+
 /// What a stream remembers between frames: where its last LOCALIZED answer put the camera, whether
 /// that fix is confirmed, the keyframe the next frame registers against ([`pntr_pipeline::odometry`])
 /// and when the chain was last verified against the map. A global fix is confirmed only by a second
@@ -369,6 +382,12 @@ struct Followup {
     /// [`LoadedMap::frame`] and [`LoadedMap::serial`] of the map that answered.
     frame: u64,
     serial: u64,
+    /// The map contradicted the stream's track ([`pntr_pipeline::pipeline::Localization::track_lost`]): it is dropped before
+    /// this answer is taken.
+    track_lost: bool,
+    /// [`pntr_pipeline::pipeline::Localization::track_gap`]: how far a re-anchoring map answer lay from the frame's own
+    /// odometry pose (metres, degrees).
+    track_gap: Option<(f64, f64)>,
 }
 
 /// What the stream's state offers the next frame (all empty for a unary call).
@@ -425,11 +444,27 @@ impl Track {
             } else {
                 previous.is_none_or(|p| p.confirmed)
             },
+            // A weak fix is established by a later one only when that one follows the camera's
+            // motion: the frame's own odometry pose from the first lies within a few centimetres
+            // of it (issue 49: a look-alike's weak fixes lay 0.3 m apart, near enough for the
+            // tracking region, not for the motion between them).
             established: if f.odometry {
                 previous.is_some_and(|p| p.established)
             } else {
+                let follows = match f.track_gap {
+                    Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
+                    // The keyframe did not register the frame: the fix must lie where the camera
+                    // can have moved since the track's last pose, at a robot's pace.
+                    None => previous.is_some_and(|p| {
+                        let dt = p.at.elapsed().as_secs_f64();
+                        (position_m - p.position_m).norm()
+                            <= ESTABLISH_GAP_M + ESTABLISH_SPEED_MPS * dt
+                            && p.rotation.angle_to(&rotation).to_degrees()
+                                <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
+                    }),
+                };
                 r.inliers >= STRONG_FIX_INLIERS
-                    || (recent && agrees && previous.is_some_and(|p| p.confirmed))
+                    || (recent && agrees && follows && previous.is_some_and(|p| p.confirmed))
             },
             keyframe: f.keyframe,
             anchored_at: match previous {
@@ -801,6 +836,8 @@ impl LocalizerService {
             dead_reckoned: loc.estimate.filter(|_| outside_map),
             frame: lm.frame,
             serial: lm.serial,
+            track_lost: loc.track_lost,
+            track_gap: loc.track_gap,
         };
         release(lm);
         Ok((response, followup))
@@ -984,6 +1021,12 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         };
                     let result = result.map(|(mut r, f)| {
                         let off_track = f.off_track;
+                        let odometry = f.odometry;
+                        let gap = f.track_gap;
+                        if f.track_lost {
+                            tracing::info!("the map contradicted the stream's track; it is dropped");
+                            track = None;
+                        }
                         let (convention, frames) = (f.convention, f.frames);
                         if let Some(t) = Track::after(track.as_ref(), &r, f) {
                             track = Some(t);
@@ -998,6 +1041,18 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 track = Some(moved);
                             }
                         }
+                        tracing::debug!(
+                            frame = n,
+                            status = r.status,
+                            mode = r.mode,
+                            inliers = r.inliers,
+                            confidence = r.confidence,
+                            odometry = odometry,
+                            gap = ?gap,
+                            off_track = ?off_track.map(|(p, c)| (p.translation.vector.as_slice().to_vec(), c)),
+                            track = ?track.as_ref().map(|t| (t.position_m.as_slice().to_vec(), t.confirmed, t.established, t.confidence, t.challenger.is_some())),
+                            "stream state"
+                        );
                         // A track that is not established yet tracks but does not answer (a
                         // relocalizing frame is answered as a unary call would be).
                         if let Some(t) = track.as_ref().filter(|t| !t.established && !relocalize) {
@@ -1316,6 +1371,35 @@ mod tests {
         )
         .unwrap();
         assert!(anchored.established);
+        // ... but only one that follows the camera's motion. A look-alike's weak fixes lie near
+        // enough for the tracking region, not for the motion: 0.3 m from where the frame's own
+        // odometry put it, or (when the keyframe did not register the frame) 0.35 m from where
+        // the track was a moment ago, they establish nothing.
+        let gap = |m: f64| Followup {
+            track_gap: Some((m, 1.0)),
+            ..Followup::default()
+        };
+        let slid = Track::after(
+            Some(&carried),
+            &fix(0.35, 20, proto::Mode::Tracking),
+            gap(0.3),
+        )
+        .unwrap();
+        assert!(slid.confirmed && !slid.established);
+        let jumped = Track::after(
+            Some(&carried),
+            &fix(0.65, 20, proto::Mode::Tracking),
+            Followup::default(),
+        )
+        .unwrap();
+        assert!(jumped.confirmed && !jumped.established);
+        let follows = Track::after(
+            Some(&carried),
+            &fix(0.35, 20, proto::Mode::Tracking),
+            gap(0.03),
+        )
+        .unwrap();
+        assert!(follows.established);
         let on =
             Track::after(Some(&anchored), &fix(0.4, 90, proto::Mode::Tracking), hop()).unwrap();
         assert!(on.established, "odometry keeps it");
