@@ -866,6 +866,22 @@ fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
     r.matched_point = 0;
 }
 
+/// Turn the answer of a frame whose map answer moved the stream's track ([`Track::challenged`])
+/// into NOT_LOCALIZED (cause LOOK_ALIKE): its pose is the old track's, which the map has just shown
+/// to be the look-alike; the next frame answers from where the track moved.
+fn superseded(r: &mut proto::LocalizeResponse) {
+    if r.status != proto::Status::Localized as i32 {
+        return;
+    }
+    r.status = proto::Status::NotLocalized as i32;
+    r.cause = proto::NotLocalizedCause::LookAlike as i32;
+    r.reason = "tracking: two confident map answers agreed on another pose than the track's, so the track was a look-alike and moves to them; the next frame answers from there".into();
+    r.pose = None;
+    r.covariance.clear();
+    r.matched_image_id.clear();
+    r.matched_point = 0;
+}
+
 /// Drop a request's hold on its map; when it was the last (the map was replaced or unloaded while
 /// the request ran), the map is freed on a blocking thread, not on the async one.
 fn release(map: Arc<LoadedMap>) {
@@ -1039,6 +1055,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                     "two confident map answers outside the track moved it"
                                 );
                                 track = Some(moved);
+                                superseded(&mut r);
                             }
                         }
                         tracing::debug!(
@@ -1465,5 +1482,15 @@ mod tests {
             .region
             .unwrap()
             .contains(&Vector3::new(-5.8, 0.0, 0.0)));
+        // The frame whose answer moved the track is not answered with the old track's pose.
+        let mut r = proto::LocalizeResponse {
+            status: proto::Status::Localized as i32,
+            covariance: vec![0.01; 36],
+            ..answer(0.4, proto::Mode::Tracking)
+        };
+        superseded(&mut r);
+        assert_eq!(r.status, proto::Status::NotLocalized as i32);
+        assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
+        assert!(r.pose.is_none() && r.covariance.is_empty());
     }
 }
