@@ -813,8 +813,10 @@ impl Pipeline {
 
     /// Register the frame against a stream's keyframe ([`crate::odometry`]), and when that fails
     /// against the last frame tracked from it ([`Keyframe::latest`], which then becomes the
-    /// keyframe): a LOCALIZED TRACKING answer, or why not (the keyframe's refusal). The hops' time
-    /// counts as registration.
+    /// keyframe): a TRACKING answer (NOT_LOCALIZED, OUTSIDE_MAP, where the map's surfaces do not
+    /// explain the view), or why not: the keyframe's refusal, or the map's views contradicting the
+    /// pose it gives ([`MAX_TRACK_CONTRADICTION`]; the refusal then says the track is lost). The
+    /// hops' time counts as registration.
     fn odometry_answer(
         &self,
         key: &Arc<Keyframe>,
