@@ -340,8 +340,9 @@ pub struct Localization {
     /// ([`MAX_TRACK_CONTRADICTION`]), so the frame was searched for over the whole map instead; the
     /// stream drops its track (an answer, LOCALIZED or not, is then a first fix).
     pub track_lost: bool,
-    /// For a map answer of a tracked frame whose keyframe also registered it: how far the map's pose
-    /// lies from the frame's own odometry pose (metres, degrees), before they were fused. How
+    /// For a map answer of a tracked frame whose keyframe also gave it a LOCALIZED pose (registered,
+    /// on track, inside the mapped area): how far the map's pose lies from the frame's own odometry
+    /// pose (metres, degrees), before they were fused; `None` otherwise. How
     /// a stream tells a fix that follows the camera's motion from one that merely lies near it.
     pub track_gap: Option<(f64, f64)>,
 }
@@ -638,9 +639,12 @@ impl Pipeline {
     /// which path produced the answer.
     ///
     /// With `opts.keyframe` (a stream's last verified frame) the frame is first registered against it
-    /// ([`crate::odometry`]; after the map instead when `opts.map_first`), and an accepted hop inside
-    /// the region answers LOCALIZED in [`Mode::Tracking`] with [`Localization::odometry`] set, without
-    /// retrieval. With `opts.want_keyframe` a LOCALIZED answer carries the keyframe for the next frame.
+    /// ([`crate::odometry`]), and an accepted hop inside the region answers LOCALIZED in
+    /// [`Mode::Tracking`] with [`Localization::odometry`] set, without retrieval; with
+    /// `opts.map_first` the map answers and the hop only judges its answer (`settle`), or answers
+    /// when the map does not. A hop the map's views contradict ([`MAX_TRACK_CONTRADICTION`]) loses
+    /// the track: the frame is searched for over the whole map and [`Localization::track_lost`] is
+    /// set. With `opts.want_keyframe` a LOCALIZED answer carries the keyframe for the next frame.
     pub fn localize_with(
         &self,
         q: &Query,

@@ -242,11 +242,11 @@ pub struct LocalizeOptions {
     pub region_candidates: Option<usize>,
     /// Tracking only: the orientations the camera can have; a pose outside is never answered.
     pub heading: Option<Heading>,
-    /// A stream's keyframe: the frame is registered against it ([`crate::odometry`]) before or after
-    /// the map is tried (see `map_first`).
+    /// A stream's keyframe: the frame is registered against it ([`crate::odometry`]) before the map
+    /// is tried (see `map_first`).
     pub keyframe: Option<Arc<Keyframe>>,
-    /// Try the map (region, then global) before the keyframe: the stream's map fix is getting old and
-    /// the chain should be re-anchored.
+    /// Let the map (region, then global) answer before the keyframe, whose hop then judges the map's
+    /// answer: the stream's map fix is getting old and the chain should be re-anchored.
     pub map_first: bool,
     /// Return the keyframe the next frame of the stream should track from
     /// ([`crate::pipeline::Localization::keyframe`]).

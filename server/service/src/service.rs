@@ -314,7 +314,7 @@ pub const STRONG_FIX_INLIERS: u32 = 40;
 pub const ESTABLISH_GAP_M: f64 = 0.15;
 /// See [`ESTABLISH_GAP_M`].
 pub const ESTABLISH_GAP_DEG: f64 = 5.0;
-/// When the frame's keyframe did not register it (no odometry pose to compare with), the fix must
+/// When the track's keyframe gives the frame no pose (nothing to compare with), the fix must
 /// lie within [`ESTABLISH_GAP_M`] of the track's last pose plus this speed (metres per second) times
 /// the time since...
 pub const ESTABLISH_SPEED_MPS: f64 = 0.5;
@@ -453,8 +453,8 @@ impl Track {
             } else {
                 let follows = match f.track_gap {
                     Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
-                    // The keyframe did not register the frame: the fix must lie where the camera
-                    // can have moved since the track's last pose, at a robot's pace.
+                    // The keyframe gave the frame no pose: the fix must lie where the camera can
+                    // have moved since the track's last pose, at a robot's pace.
                     None => previous.is_some_and(|p| {
                         let dt = p.at.elapsed().as_secs_f64();
                         (position_m - p.position_m).norm()
