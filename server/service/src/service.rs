@@ -504,13 +504,32 @@ impl Track {
     /// calibrated `confidence`). A track rests on two agreeing map fixes; when two answers more
     /// confident than the track's fix agree with each other (within a second, inside each other's
     /// tracking bounds) but not with the track, the track is the look-alike: the new track starts
-    /// there, confirmed (two agreeing fixes, as any track), without a keyframe. Returns that track;
-    /// otherwise remembers the answer and returns `None`.
+    /// there, confirmed (two agreeing fixes, as any track), without a keyframe. A track that is not
+    /// established yet rests on one weak fix: one such answer replaces it, unconfirmed, as a first
+    /// fix would start a track. Returns that track; otherwise remembers the answer and returns
+    /// `None`.
     fn challenged(&mut self, pose: &Isometry3<f64>, confidence: f64) -> Option<Track> {
         if confidence <= self.confidence {
             return None;
         }
         let now = Instant::now();
+        if !self.established {
+            return Some(Track {
+                map_id: self.map_id.clone(),
+                frame: self.frame,
+                serial: self.serial,
+                position_m: pose.translation.vector,
+                rotation: pose.rotation,
+                at: now,
+                confirmed: false,
+                established: false,
+                keyframe: None,
+                anchored_at: now,
+                map_tried_at: None,
+                confidence,
+                challenger: None,
+            });
+        }
         let c = Challenger {
             position_m: pose.translation.vector,
             rotation: pose.rotation,
@@ -869,13 +888,18 @@ fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
 /// Turn the answer of a frame whose map answer moved the stream's track ([`Track::challenged`])
 /// into NOT_LOCALIZED (cause LOOK_ALIKE): its pose is the old track's, which the map has just shown
 /// to be the look-alike; the next frame answers from where the track moved.
-fn superseded(r: &mut proto::LocalizeResponse) {
+fn superseded(r: &mut proto::LocalizeResponse, established: bool) {
     if r.status != proto::Status::Localized as i32 {
         return;
     }
     r.status = proto::Status::NotLocalized as i32;
     r.cause = proto::NotLocalizedCause::LookAlike as i32;
-    r.reason = "tracking: two confident map answers agreed on another pose than the track's, so the track was a look-alike and moves to them; the next frame answers from there".into();
+    r.reason = if established {
+        "tracking: two confident map answers agreed on another pose than the track's, so the track was a look-alike and moves to them; the next frame answers from there"
+    } else {
+        "re-acquiring: a map answer more confident than the track's weak fix lies elsewhere, so the track starts again from it"
+    }
+    .into();
     r.pose = None;
     r.covariance.clear();
     r.matched_image_id.clear();
@@ -1052,10 +1076,10 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 tracing::info!(
                                     from = ?t.position_m.as_slice(),
                                     to = ?moved.position_m.as_slice(),
-                                    "two confident map answers outside the track moved it"
+                                    "map answers outside the track moved it"
                                 );
+                                superseded(&mut r, t.established);
                                 track = Some(moved);
-                                superseded(&mut r);
                             }
                         }
                         tracing::debug!(
@@ -1440,11 +1464,12 @@ mod tests {
     fn two_confident_agreeing_answers_outside_a_track_move_it() {
         let fix = |x: f64| proto::LocalizeResponse {
             confidence: 0.8,
+            inliers: 120,
             ..answer(x, proto::Mode::Global)
         };
         let first = Track::after(None, &fix(0.0), Followup::default()).unwrap();
         let mut t = Track::after(Some(&first), &fix(0.3), Followup::default()).unwrap();
-        assert!(t.confirmed);
+        assert!(t.confirmed && t.established);
         let far = |x: f64| Isometry3::translation(x, 0.0, 0.0);
         assert!(t.challenged(&far(3.0), 0.7).is_none());
         assert!(
@@ -1482,13 +1507,30 @@ mod tests {
             .region
             .unwrap()
             .contains(&Vector3::new(-5.8, 0.0, 0.0)));
+        // A track not established yet (one weak fix) is replaced by one more confident answer
+        // elsewhere, as a first fix: unconfirmed, not answered until it is established in turn.
+        let mut weak = Track::after(
+            None,
+            &proto::LocalizeResponse {
+                confidence: 0.8,
+                inliers: 18,
+                ..answer(0.0, proto::Mode::Global)
+            },
+            Followup::default(),
+        )
+        .unwrap();
+        assert!(!weak.established);
+        assert!(weak.challenged(&far(-6.0), 0.7).is_none(), "less confident");
+        let restarted = weak.challenged(&far(-6.0), 0.95).expect("one is enough");
+        assert!(!restarted.confirmed && !restarted.established);
+        assert_eq!(restarted.position_m.x, -6.0);
         // The frame whose answer moved the track is not answered with the old track's pose.
         let mut r = proto::LocalizeResponse {
             status: proto::Status::Localized as i32,
             covariance: vec![0.01; 36],
             ..answer(0.4, proto::Mode::Tracking)
         };
-        superseded(&mut r);
+        superseded(&mut r, true);
         assert_eq!(r.status, proto::Status::NotLocalized as i32);
         assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
         assert!(r.pose.is_none() && r.covariance.is_empty());
