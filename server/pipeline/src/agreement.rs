@@ -100,26 +100,9 @@ pub fn map_agreement(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use pntr_core::Intrinsics;
 
-    /// A 40x30 thumbnail of a wall `depth_m` ahead, with a texture.
     fn wall(depth_m: f64) -> Thumb {
-        let (w, h) = (40u32, 30u32);
-        Thumb {
-            width: w,
-            height: h,
-            intrinsics: Intrinsics {
-                fx: 35.0,
-                fy: 35.0,
-                cx: 19.5,
-                cy: 14.5,
-                width: w,
-                height: h,
-                distortion: [0.0; 5],
-            },
-            depth_mm: vec![(depth_m * 1000.0) as u16; (w * h) as usize],
-            gray: (0..w * h).map(|i| ((i * 37) % 251) as u8).collect(),
-        }
+        crate::test_scenes::wall(depth_m, true)
     }
 
     fn judged(frame: &Thumb, views: &[(&Thumb, Isometry3<f64>)]) -> Agreement {

@@ -107,26 +107,9 @@ impl Coverage {
 mod tests {
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
-    use pntr_core::Intrinsics;
 
-    /// A 40x30 thumbnail of a wall `depth_m` ahead.
     fn wall(depth_m: f64) -> Thumb {
-        let (w, h) = (40u32, 30u32);
-        Thumb {
-            width: w,
-            height: h,
-            intrinsics: Intrinsics {
-                fx: 35.0,
-                fy: 35.0,
-                cx: 19.5,
-                cy: 14.5,
-                width: w,
-                height: h,
-                distortion: [0.0; 5],
-            },
-            depth_mm: vec![(depth_m * 1000.0) as u16; (w * h) as usize],
-            gray: vec![128; (w * h) as usize],
-        }
+        crate::test_scenes::wall(depth_m, false)
     }
 
     #[test]

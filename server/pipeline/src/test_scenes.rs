@@ -109,3 +109,32 @@ pub(crate) fn room_frame(
     let rgb = RgbImage::new(w, h, vec![128; (w * h * 3) as usize]).unwrap();
     (rgb, DepthMap::from_metres(w, h, depth).unwrap())
 }
+
+/// A 40x30 thumbnail of a flat wall `depth_m` ahead, textured (a fixed pattern of grey levels) or
+/// a uniform grey.
+pub(crate) fn wall(depth_m: f64, textured: bool) -> Thumb {
+    let (w, h) = (40u32, 30u32);
+    Thumb {
+        width: w,
+        height: h,
+        intrinsics: Intrinsics {
+            fx: 35.0,
+            fy: 35.0,
+            cx: 19.5,
+            cy: 14.5,
+            width: w,
+            height: h,
+            distortion: [0.0; 5],
+        },
+        depth_mm: vec![(depth_m * 1000.0) as u16; (w * h) as usize],
+        gray: (0..w * h)
+            .map(|i| {
+                if textured {
+                    ((i * 37) % 251) as u8
+                } else {
+                    128
+                }
+            })
+            .collect(),
+    }
+}
