@@ -4,7 +4,8 @@
 #
 # Installs:
 #   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (system HDF5, kept for tools;
-#     the build links HDF5 2.2 statically, compiled from source by hdf5-metno)
+#     the build links HDF5 2.2 statically, compiled from source by hdf5-metno), iproute2 and util-linux
+#     (`ip` and `unshare`: the pntr-ros test keeps its DDS traffic in a private network namespace)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
 #   - OpenVINO's CPU runtime from the openvino PyPI wheel (C library, CPU plugin, ONNX reader, TBB), into
 #     .deps/openvino/ (git-ignored): the engine of the `xfeat-bf16` extractor
@@ -46,7 +47,7 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 
 # --- apt packages -------------------------------------------------------------------------------
-APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv openssl)
+APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv openssl iproute2 util-linux)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
