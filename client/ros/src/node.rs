@@ -179,6 +179,46 @@ fn arrived(
     }
 }
 
+/// The rate limit, on the frames' own stamps: slots `1 / rate_hz` apart; the first frame whose stamp
+/// reaches a slot (a quarter period early at most, for a camera's jitter) takes it and is sent as
+/// soon as it arrives, so what is sent is never older than the camera's period plus the previous
+/// answer's time; frames between slots are dropped. A slot a camera cannot fill is not made up later
+/// (no burst after a pause), so at most `rate_hz` frames a second are sent over any stretch of time.
+/// Stamps that go back (a bag played again) start the slots afresh.
+struct Slots {
+    period_ns: i64,
+    due_ns: Option<i64>,
+    last_ns: i64,
+}
+
+impl Slots {
+    fn new(rate_hz: f64) -> Self {
+        Self {
+            period_ns: (1e9 / rate_hz) as i64,
+            due_ns: None,
+            last_ns: i64::MIN,
+        }
+    }
+
+    /// Whether the frame stamped `stamp_ns` takes a slot.
+    fn take(&mut self, stamp_ns: i64) -> bool {
+        if stamp_ns < self.last_ns {
+            self.due_ns = None;
+        }
+        if let Some(due) = self.due_ns {
+            if stamp_ns < due - self.period_ns / 4 {
+                return false;
+            }
+        }
+        self.due_ns = Some(match self.due_ns {
+            Some(due) if stamp_ns < due + self.period_ns => due + self.period_ns,
+            _ => stamp_ns + self.period_ns,
+        });
+        self.last_ns = stamp_ns;
+        true
+    }
+}
+
 /// The request of one frame, with the transforms its answer needs: (request, base_from_camera,
 /// odom_from_base). Waits up to 0.3 s for transforms that have not arrived yet (odometry a little
 /// behind the camera), as tf2's message filter does.
@@ -449,8 +489,7 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
     }
 
     let mut link = Link::new(target);
-    let period = Duration::from_secs_f64(1.0 / p.rate_hz);
-    let mut next_send = Instant::now();
+    let mut slots = Slots::new(p.rate_hz);
     let shutdown = shutdown_signal();
     futures::pin_mut!(shutdown);
     loop {
@@ -458,18 +497,14 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
             _ = &mut shutdown => break,
             changed = frame_rx.changed() => if changed.is_err() { break },
         }
-        // The rate limit: wait for the next slot, then take the newest frame.
-        let now = Instant::now();
-        if now < next_send {
-            tokio::select! {
-                _ = &mut shutdown => break,
-                _ = tokio::time::sleep(next_send - now) => {}
-            }
-        }
+        // The newest frame, sent at once when its slot has come (a frame that arrived while the
+        // previous one was being answered waits here and is replaced by newer ones).
         let Some(frame) = frame_rx.borrow_and_update().clone() else {
             continue;
         };
-        next_send = Instant::now().max(next_send) + period;
+        if !slots.take(frame.rgb.header().stamp.nanos()) {
+            continue;
+        }
         let wanted = relocalize.swap(false, Ordering::SeqCst);
         let (request, base_from_camera, odom_from_base) =
             match request_of(&state, &ros, &frame, &map_id, wanted).await {
@@ -575,6 +610,39 @@ async fn shutdown_signal() {
     tokio::select! {
         _ = tokio::signal::ctrl_c() => {}
         _ = terminate => {}
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Slots;
+
+    /// Frames stamped `every_ms` apart for `seconds`: how many take a slot at `rate_hz`.
+    fn taken(rate_hz: f64, every_ms: f64, seconds: f64) -> usize {
+        let mut s = Slots::new(rate_hz);
+        (0..(seconds * 1000.0 / every_ms) as i64)
+            .filter(|i| s.take((*i as f64 * every_ms * 1e6) as i64))
+            .count()
+    }
+
+    #[test]
+    fn at_most_rate_hz_and_every_slot_a_camera_fills() {
+        // 30 Hz at 4 Hz: one frame per 0.25 s of stamps (the first at 0 s, so 41 in 10 s), never more.
+        assert_eq!(taken(4.0, 1000.0 / 30.0, 10.0), 41);
+        assert_eq!(taken(4.0, 1000.0 / 30.0, 100.0), 401);
+        assert_eq!(taken(5.0, 100.0, 10.0), 50);
+        // A camera slower than the rate: every frame.
+        assert_eq!(taken(5.0, 300.0, 9.0), 30);
+        // Jitter of a few milliseconds does not cost slots.
+        let mut s = Slots::new(5.0);
+        let n = (0..100)
+            .filter(|i| s.take(i * 100_000_000 + if i % 2 == 0 { 3_000_000 } else { -3_000_000 }))
+            .count();
+        assert_eq!(n, 50);
+        // Stamps that go back start afresh.
+        let mut s = Slots::new(5.0);
+        assert!(s.take(10_000_000_000));
+        assert!(s.take(1_000_000_000));
     }
 }
 

@@ -24,6 +24,11 @@ saw, with its truth, as JSON for the test to judge.
 Usage: robot.py --tum DIR --ros-from-map QW QX QY QZ --seconds S --out REPORT.json
                 [--relocalize-at S ...] [--silent-at S --silent-for S]
 It prints `ready` once its writers exist; times in the report are seconds after that.
+
+With `--direct HOST:PORT --rate-hz R` it is instead a robot that calls pntr-server itself with the
+Python client (`pntr_client`, client/python: one LocalizeStream, frames of the same drive handed over
+at R Hz as the camera takes them) and reports each answer's latency from capture: the baseline the
+node's own latency is compared with (scripts/bench_ros.sh).
 """
 import argparse, bisect, io, json, math, struct, sys, threading, time, zlib
 from dataclasses import dataclass
@@ -234,12 +239,12 @@ def read_lines(path):
     return [r for r in rows if r and not r[0].startswith("#")]
 
 
-def load(folder):
+def load(folder, intrinsics=None):
     d = Path(folder)
     rgb = sorted((float(r[0]), d / r[1]) for r in read_lines(d / "rgb.txt"))
     depth = dict((round(float(r[0]), 6), d / r[1]) for r in read_lines(d / "depth.txt"))
     gt = dict((round(float(r[0]), 6), (np.array(r[1:4], float), np.array(r[4:8], float))) for r in read_lines(d / "groundtruth.txt"))
-    fx, fy, cx, cy = map(float, read_lines(d / "calibration.txt")[0][:4])
+    fx, fy, cx, cy = intrinsics or map(float, read_lines(d / "calibration.txt")[0][:4])
     frames = [(s, p, depth[round(s, 6)], gt[round(s, 6)]) for s, p in rgb if round(s, 6) in depth and round(s, 6) in gt]
     return frames, (fx, fy, cx, cy)
 
@@ -257,6 +262,40 @@ def stamp_of(ns):
     return Time(sec=ns // 10**9, nanosec=ns % 10**9)
 
 
+def direct(a, frames, intrinsics):
+    """The same drive sent by the Python client straight to the server, at `--rate-hz`."""
+    import pntr_client
+
+    period_ns = int(1e9 / a.rate_hz)
+    captured = {}
+
+    def camera():
+        t0_ns = time.time_ns()
+        k = 0
+        while (k * period_ns) * 1e-9 <= a.seconds:
+            due = t0_ns + k * period_ns
+            sleep = (due - time.time_ns()) * 1e-9
+            if sleep > 0:
+                time.sleep(sleep)
+            _, rgb_path, depth_path, _ = frames[int((due - t0_ns) / 100_000_000) % len(frames)]
+            rgb = np.asarray(PILImage.open(rgb_path).convert("RGB"))
+            depth = np.asarray(PILImage.open(depth_path)).astype(np.float32) / 5000.0
+            rid = str(k)
+            captured[rid] = (due, time.time_ns())
+            k += 1
+            yield pntr_client.Frame(rgb=rgb, depth=depth, intrinsics=intrinsics, request_id=rid)
+
+    answers = []
+    with pntr_client.Client(a.direct, frame_convention="ros") as client:
+        print("ready", flush=True)
+        for ans in client.localize_stream(camera()):
+            due, loaded = captured[ans.request_id]
+            now = time.time_ns()
+            answers.append({"latency_ms": (now - due) * 1e-6, "from_loaded_ms": (now - loaded) * 1e-6,
+                            "localized": bool(ans.localized)})
+    Path(a.out).write_text(json.dumps({"direct": answers}))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--tum", required=True)
@@ -266,10 +305,14 @@ def main():
     ap.add_argument("--relocalize-at", type=float, action="append", default=[])
     ap.add_argument("--silent-at", type=float, default=None)
     ap.add_argument("--silent-for", type=float, default=0.0)
-    ap.add_argument("--node", default="pntr_ros")
+    ap.add_argument("--intrinsics", default=None, help="fx,fy,cx,cy (default: the folder's calibration.txt)")
+    ap.add_argument("--direct", default=None, metavar="HOST:PORT")
+    ap.add_argument("--rate-hz", type=float, default=5.0)
     a = ap.parse_args()
 
-    frames, (fx, fy, cx, cy) = load(a.tum)
+    frames, (fx, fy, cx, cy) = load(a.tum, [float(v) for v in a.intrinsics.split(",")] if a.intrinsics else None)
+    if a.direct:
+        return direct(a, frames, (fx, fy, cx, cy))
     w0, h0 = PILImage.open(frames[0][1]).size
     qw, qx, qy, qz = a.ros_from_map
     ros_from_map = (np.zeros(3), np.array([qx, qy, qz, qw]) / np.linalg.norm([qx, qy, qz, qw]))
@@ -331,7 +374,7 @@ def main():
                 got = True
                 p, q = m.pose.pose.position, m.pose.pose.orientation
                 with lock:
-                    report["poses"].append({"t": now, "stamp_ns": m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                    report["poses"].append({"t": now, "recv_ns": time.time_ns(), "stamp_ns": m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
                                             "frame_id": m.header.frame_id, "p": [p.x, p.y, p.z], "q": [q.x, q.y, q.z, q.w],
                                             "covariance": list(m.pose.covariance)})
             for m in r_tf.take(N=50):
@@ -408,18 +451,19 @@ def main():
         h, w = rgb.shape[:2]
         # TUM depth is 5000 per metre; ROS 16UC1 is millimetres.
         depth = ((np.asarray(PILImage.open(depth_path)).astype(np.uint32) + 2) // 5).astype(np.uint16)
-        jpeg = io.BytesIO()
-        PILImage.fromarray(rgb).save(jpeg, "JPEG", quality=92)
         w_info.write(CameraInfo(header=header, height=h, width=w, distortion_model="plumb_bob", d=[0.0] * 5,
                                 k=[fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0], r=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
                                 p=[fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0], binning_x=0, binning_y=0,
                                 roi=RegionOfInterest(0, 0, 0, 0, False)))
         w_rgb.write(Image(header=header, height=h, width=w, encoding="rgb8", is_bigendian=0, step=w * 3, data=rgb.tobytes()))
         w_depth.write(Image(header=header, height=h, width=w, encoding="16UC1", is_bigendian=0, step=w * 2, data=depth.astype("<u2").tobytes()))
+        written_ns = time.time_ns()
+        jpeg = io.BytesIO()
+        PILImage.fromarray(rgb).save(jpeg, "JPEG", quality=92)
         w_rgbc.write(CompressedImage(header=header, format="rgb8; jpeg compressed bgr8", data=jpeg.getvalue()))
         w_depthc.write(CompressedImage(header=header, format="16UC1; compressedDepth png", data=struct.pack("<iff", 0, 0.0, 0.0) + png16(depth)))
         bp, bq = base
-        report["frames"].append({"t": time.monotonic() - t0, "stamp_ns": tick, "p": list(bp), "q": list(bq)})
+        report["frames"].append({"t": time.monotonic() - t0, "stamp_ns": tick, "written_ns": written_ns, "p": list(bp), "q": list(bq)})
 
     time.sleep(1.0)
     stop.set()
