@@ -88,6 +88,13 @@ pub struct ReplayArgs {
     /// optical `camera_optical`).
     #[arg(long, value_name = "OUT.mcap")]
     pub record: Option<PathBuf>,
+    /// Also write what happened as a ROS 2 bag (a new rosbag2 folder: MCAP with ROS 2 message types
+    /// and metadata.yaml, for `ros2 bag play` and rviz), with the topics pntr-ros publishes:
+    /// `/pntr/pose` (PoseWithCovarianceStamped), `/tf` (`map -> camera_optical`), `/diagnostics`,
+    /// `/pntr/ground_truth`, and the frames on `/camera/color/image_raw/compressed` and
+    /// `/camera/color/camera_info`; ROS conventions (z-up `map`).
+    #[arg(long, value_name = "OUT_DIR")]
+    pub record_bag: Option<PathBuf>,
     /// The map file the server serves, read here for its cameras' poses (--record).
     #[arg(long, value_name = "MAP.pntrmap")]
     pub db: Option<PathBuf>,
@@ -440,6 +447,13 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         )?),
         None => None,
     };
+    let bag = match &args.record_bag {
+        Some(path) => Some(
+            pntr_service::ros_bag::BagRecording::create(path)
+                .map_err(|e| anyhow::anyhow!("--record-bag {e}"))?,
+        ),
+        None => None,
+    };
     let mut answers = rt
         .block_on(c.localize_stream(request))
         .context("opening LocalizeStream")?
@@ -537,11 +551,11 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             localized += 1;
             last = estimate;
         }
-        if let Some(rec) = &recording {
+        if recording.is_some() || bag.is_some() {
             let k = pntr_service::decode::intrinsics(Some(&camera), rgb.width, rgb.height)
                 .map_err(|s| anyhow::anyhow!("the camera: {}", s.message()))?;
             let covariance = optical.covariance_to_ros(&r.covariance);
-            rec.view().observe(&pntr_service::visual::Observation {
+            let observation = pntr_service::visual::Observation {
                 time_s: timestamp,
                 picture: Some((pntr_service::visual::Picture::Raw(&rgb), &k)),
                 request_id: &r.request_id,
@@ -555,7 +569,14 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 pose: estimate.as_ref().map(to_ros),
                 covariance: &covariance,
                 truth: seq.world_from_camera(i).as_ref().map(to_ros),
-            });
+            };
+            if let Some(rec) = &recording {
+                rec.view().observe(&observation);
+            }
+            if let Some(b) = &bag {
+                b.observe(&observation)
+                    .map_err(|e| anyhow::anyhow!("--record-bag: {e}"))?;
+            }
         }
         out.push(Answered {
             timestamp,
@@ -595,6 +616,12 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         }
     }
     crate::map_cmd::write_text(&args.trajectory, &traj)?;
+    if let Some(b) = bag {
+        let path = b
+            .finish()
+            .map_err(|e| anyhow::anyhow!("--record-bag {e}"))?;
+        eprintln!("ROS 2 bag written to {}", path.display());
+    }
     if let Some(rec) = recording {
         let path = rec.finish().map_err(|e| anyhow::anyhow!("--record {e}"))?;
         eprintln!("recording written to {}", path.display());

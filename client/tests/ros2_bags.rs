@@ -13,7 +13,7 @@ use std::process::Command;
 use pntr_service::config::Settings;
 use support::{
     build_db, build_db_refused, err, eval, map_images, mapping_drive, ok, read_json, replay,
-    repo_root, runtime, serve, stop, MODELS,
+    repo_root, runtime, serve, stop, tum_rows, MODELS,
 };
 
 fn to_bag(seq: &Path, out: &Path, extra: &[&str]) {
@@ -253,13 +253,31 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     let addr = server.addr.to_string();
     let report = dir.path().join("replay.json");
     let est = dir.path().join("est.txt");
+    let recorded = dir.path().join("recorded");
+    let recorded_arg = recorded.to_str().unwrap();
     ok(&replay(
         &addr,
         &jpeg,
         &est,
         &report,
-        &["--rate", "50", "--frames", "150"],
+        &[
+            "--rate",
+            "50",
+            "--frames",
+            "150",
+            "--record-bag",
+            recorded_arg,
+        ],
     ));
+    // A bag folder is never written over.
+    let e = err(&replay(
+        &addr,
+        &jpeg,
+        &dir.path().join("y.txt"),
+        &dir.path().join("y.json"),
+        &["--record-bag", recorded_arg],
+    ));
+    assert!(e.contains("already exists"), "{e}");
     // Depth in another unit than the bag says: named before a drive localizes nothing.
     let (x_txt, x_json) = (dir.path().join("x.txt"), dir.path().join("x.json"));
     let e = err(&replay(
@@ -282,4 +300,88 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     );
     assert!(r["localized_share"].as_f64().unwrap() >= 0.9, "{r}");
     assert!(r["ate_rmse_m"].as_f64().unwrap() <= 0.05, "{r}");
+
+    // The run written as a ROS 2 bag, read back by `rosbags` (not pntr's reader): the topics pntr-ros
+    // publishes with their ROS types, one pose per LOCALIZED frame, the same path as the trajectory.
+    let b = read_bag(&recorded);
+    let want = [
+        ("/pntr/pose", "geometry_msgs/msg/PoseWithCovarianceStamped"),
+        ("/tf", "tf2_msgs/msg/TFMessage"),
+        ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
+        ("/pntr/ground_truth", "geometry_msgs/msg/PoseStamped"),
+        (
+            "/camera/color/image_raw/compressed",
+            "sensor_msgs/msg/CompressedImage",
+        ),
+        ("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo"),
+    ];
+    for (topic, kind) in want {
+        assert_eq!(b["topics"][topic]["type"], kind, "{topic}: {b}");
+    }
+    let localized = (r["localized_share"].as_f64().unwrap() * 150.0).round() as u64;
+    assert_eq!(
+        b["topics"]["/pntr/pose"]["count"].as_u64(),
+        Some(localized),
+        "{b}"
+    );
+    assert_eq!(
+        b["topics"]["/diagnostics"]["count"].as_u64(),
+        Some(150),
+        "{b}"
+    );
+    assert_eq!(
+        b["topics"]["/camera/color/image_raw/compressed"]["count"].as_u64(),
+        Some(150)
+    );
+    let rows = tum_rows(&est);
+    let path = |a: &[f64], z: &[f64]| {
+        ((a[0] - z[0]).powi(2) + (a[1] - z[1]).powi(2) + (a[2] - z[2]).powi(2)).sqrt()
+    };
+    let from_file = path(&rows[0][1..4], &rows[rows.len() - 1][1..4]);
+    let poses = b["poses"].as_array().unwrap();
+    let p = |v: &serde_json::Value| -> Vec<f64> {
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    let from_bag = path(&p(&poses[0]), &p(&poses[poses.len() - 1]));
+    assert!(
+        (from_file - from_bag).abs() < 1e-6,
+        "{from_file} {from_bag}"
+    );
+    assert_eq!(b["first_level"], 0, "{b}");
+    assert!(b["covariance_diagonal_positive"].as_bool().unwrap(), "{b}");
+}
+
+/// A ROS 2 bag folder read with the Python `rosbags` package: each topic's type and count, the
+/// positions of `/pntr/pose`, whether their covariance diagonals are positive, the first
+/// diagnostic's level.
+fn read_bag(bag: &Path) -> serde_json::Value {
+    let script = r#"
+import json, sys
+from pathlib import Path
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+out = {"topics": {}, "poses": [], "covariance_diagonal_positive": True}
+with AnyReader([Path(sys.argv[1])], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as r:
+    for c in r.connections:
+        out["topics"][c.topic] = {"type": c.msgtype, "count": c.msgcount}
+    for c, t, raw in r.messages():
+        m = r.deserialize(raw, c.msgtype)
+        if c.topic == "/pntr/pose":
+            p = m.pose.pose.position
+            out["poses"].append([p.x, p.y, p.z])
+            out["covariance_diagonal_positive"] &= all(m.pose.covariance[i * 7] > 0 for i in range(6))
+        if c.topic == "/diagnostics" and "first_level" not in out:
+            out["first_level"] = int(m.status[0].level)
+print(json.dumps(out))
+"#;
+    let o = Command::new(support::python_importing("rosbags"))
+        .args(["-c", script])
+        .arg(bag)
+        .output()
+        .unwrap();
+    serde_json::from_str(&ok(&o)).unwrap()
 }

@@ -613,39 +613,6 @@ async fn shutdown_signal() {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::Slots;
-
-    /// Frames stamped `every_ms` apart for `seconds`: how many take a slot at `rate_hz`.
-    fn taken(rate_hz: f64, every_ms: f64, seconds: f64) -> usize {
-        let mut s = Slots::new(rate_hz);
-        (0..(seconds * 1000.0 / every_ms) as i64)
-            .filter(|i| s.take((*i as f64 * every_ms * 1e6) as i64))
-            .count()
-    }
-
-    #[test]
-    fn at_most_rate_hz_and_every_slot_a_camera_fills() {
-        // 30 Hz at 4 Hz: one frame per 0.25 s of stamps (the first at 0 s, so 41 in 10 s), never more.
-        assert_eq!(taken(4.0, 1000.0 / 30.0, 10.0), 41);
-        assert_eq!(taken(4.0, 1000.0 / 30.0, 100.0), 401);
-        assert_eq!(taken(5.0, 100.0, 10.0), 50);
-        // A camera slower than the rate: every frame.
-        assert_eq!(taken(5.0, 300.0, 9.0), 30);
-        // Jitter of a few milliseconds does not cost slots.
-        let mut s = Slots::new(5.0);
-        let n = (0..100)
-            .filter(|i| s.take(i * 100_000_000 + if i % 2 == 0 { 3_000_000 } else { -3_000_000 }))
-            .count();
-        assert_eq!(n, 50);
-        // Stamps that go back start afresh.
-        let mut s = Slots::new(5.0);
-        assert!(s.take(10_000_000_000));
-        assert!(s.take(1_000_000_000));
-    }
-}
-
 fn diagnostics(s: &Stats, ros: &RosArgs, addr: &str, up: Duration) -> msgs::DiagnosticArray {
     let recent = s
         .last_answer
@@ -701,5 +668,38 @@ fn diagnostics(s: &Stats, ros: &RosArgs, addr: &str, up: Duration) -> msgs::Diag
                 kv("rate_hz", ros.params.rate_hz.to_string()),
             ],
         }],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Slots;
+
+    /// Frames stamped `every_ms` apart for `seconds`: how many take a slot at `rate_hz`.
+    fn taken(rate_hz: f64, every_ms: f64, seconds: f64) -> usize {
+        let mut s = Slots::new(rate_hz);
+        (0..(seconds * 1000.0 / every_ms) as i64)
+            .filter(|i| s.take((*i as f64 * every_ms * 1e6) as i64))
+            .count()
+    }
+
+    #[test]
+    fn at_most_rate_hz_and_every_slot_a_camera_fills() {
+        // 30 Hz at 4 Hz: one frame per 0.25 s of stamps (the first at 0 s, so 41 in 10 s), never more.
+        assert_eq!(taken(4.0, 1000.0 / 30.0, 10.0), 41);
+        assert_eq!(taken(4.0, 1000.0 / 30.0, 100.0), 401);
+        assert_eq!(taken(5.0, 100.0, 10.0), 50);
+        // A camera slower than the rate: every frame.
+        assert_eq!(taken(5.0, 300.0, 9.0), 30);
+        // Jitter of a few milliseconds does not cost slots.
+        let mut s = Slots::new(5.0);
+        let n = (0..100)
+            .filter(|i| s.take(i * 100_000_000 + if i % 2 == 0 { 3_000_000 } else { -3_000_000 }))
+            .count();
+        assert_eq!(n, 50);
+        // Stamps that go back start afresh.
+        let mut s = Slots::new(5.0);
+        assert!(s.take(10_000_000_000));
+        assert!(s.take(1_000_000_000));
     }
 }

@@ -27,6 +27,7 @@
 //!   OpenCV axes is an explicit call into `pntr_core`.
 
 pub mod bag;
+pub mod bag_writer;
 pub mod depth_camera;
 mod error;
 mod last_words;

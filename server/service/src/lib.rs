@@ -30,6 +30,7 @@ pub mod config;
 pub mod decode;
 pub mod demo;
 pub mod engine;
+pub mod ros_bag;
 pub mod server;
 pub mod service;
 pub mod telemetry;
