@@ -491,21 +491,25 @@ fn help_sections(bin: &std::path::Path, name: &str, path: &[&str], out: &mut Str
 fn cli_reference_matches_the_clap_definitions() {
     let pntr_bin = std::path::PathBuf::from(env!("CARGO_BIN_EXE_pntr"));
     let server = pntr_bin.with_file_name("pntr-server");
-    assert!(
-        server.is_file(),
-        "{} is missing: build the workspace (cargo build --workspace) before this test",
-        server.display()
-    );
+    let ros = pntr_bin.with_file_name("pntr-ros");
+    for bin in [&server, &ros] {
+        assert!(
+            bin.is_file(),
+            "{} is missing: build the workspace (cargo build --workspace) before this test",
+            bin.display()
+        );
+    }
     let mut doc = String::from(
         "# Command-line reference\n\n<!-- Generated from the clap definitions by client/tests/cli.rs \
          (cli_reference_matches_the_clap_definitions); do not edit by hand: run \
          `PNTR_UPDATE_DOCS=1 cargo test -p pntr-cli --test cli cli_reference`. -->\n\n\
-         Every flag of `pntr` and `pntr-server`, as `--help` prints it. Most server flags can also be \
-         set by a `PNTR_*` environment variable (shown as `[env: ...]`) or a key of the `--config` \
-         file.\n\n",
+         Every flag of `pntr`, `pntr-server` and `pntr-ros`, as `--help` prints it. Most server flags \
+         can also be set by a `PNTR_*` environment variable (shown as `[env: ...]`) or a key of the \
+         `--config` file. pntr-ros's ROS 2 parameters are in docs/robot-integration.md.\n\n",
     );
     help_sections(&server, "pntr-server", &[], &mut doc);
     help_sections(&pntr_bin, "pntr", &[], &mut doc);
+    help_sections(&ros, "pntr-ros", &[], &mut doc);
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/reference/cli.md");
     if std::env::var_os("PNTR_UPDATE_DOCS").is_some() {
         std::fs::create_dir_all(path.parent().unwrap()).unwrap();
