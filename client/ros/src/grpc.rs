@@ -43,24 +43,88 @@ pub struct Link {
     backoff: Duration,
     /// The last failure, for diagnostics.
     pub last_error: Option<String>,
+    /// Whether the last failure was the server refusing (a missing map, a wrong token) rather than
+    /// the server being away.
+    pub refused: bool,
     /// Streams opened so far (1 = never reconnected).
     pub connections: u64,
+    endpoint: Endpoint,
+}
+
+/// The endpoint of `target`: its address parsed, its TLS files read.
+fn endpoint(t: &Target) -> Result<Endpoint> {
+    let scheme = if t.tls_ca.is_some() { "https" } else { "http" };
+    let uri = format!("{scheme}://{}", t.addr);
+    let parsed: tonic::codegen::http::Uri = uri
+        .parse()
+        .ok()
+        .filter(|u: &tonic::codegen::http::Uri| u.port_u16().is_some())
+        .with_context(|| format!("--addr {}: not HOST:PORT", t.addr))?;
+    let mut ep = Endpoint::from(parsed)
+        .connect_timeout(Duration::from_secs(3))
+        .tcp_nodelay(true);
+    if let Some(ca) = &t.tls_ca {
+        let pem = std::fs::read(ca)
+            .with_context(|| format!("--tls-ca {}: cannot read it", ca.display()))?;
+        let host = t.addr.rsplit_once(':').map_or(t.addr.as_str(), |(h, _)| h);
+        let tls = ClientTlsConfig::new()
+            .ca_certificate(Certificate::from_pem(pem))
+            .domain_name(t.tls_domain.clone().unwrap_or_else(|| host.to_string()));
+        ep = ep.tls_config(tls).context("--tls-ca: TLS configuration")?;
+    }
+    Ok(ep)
+}
+
+/// The innermost error of a chain (transport errors repeat their outer layers' text).
+fn root_cause(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut inner = e;
+    while let Some(next) = inner.source() {
+        inner = next;
+    }
+    inner.to_string()
+}
+
+/// A gRPC status in words, with the likely mistake for the codes a node's configuration causes.
+fn describe(s: &tonic::Status) -> String {
+    let hint = match s.code() {
+        tonic::Code::NotFound => " (--map-id names a map the server does not hold)",
+        tonic::Code::Unauthenticated => " (--token is missing or wrong)",
+        tonic::Code::Unimplemented => " (--addr is not a pntr-server's gRPC port)",
+        _ => "",
+    };
+    format!("{:?}: {}{hint}", s.code(), s.message())
+}
+
+/// Codes that retrying soon will not change.
+fn is_refusal(code: tonic::Code) -> bool {
+    matches!(
+        code,
+        tonic::Code::NotFound
+            | tonic::Code::Unauthenticated
+            | tonic::Code::PermissionDenied
+            | tonic::Code::Unimplemented
+            | tonic::Code::InvalidArgument
+    )
 }
 
 const MIN_BACKOFF: Duration = Duration::from_millis(250);
 const MAX_BACKOFF: Duration = Duration::from_secs(5);
 
 impl Link {
-    /// A link that connects on its first frame.
-    pub fn new(target: Target) -> Self {
-        Self {
+    /// A link that connects on its first frame. The address and the TLS files are checked here,
+    /// so a mistake in them stops the node at start rather than at the first frame.
+    pub fn new(target: Target) -> Result<Self> {
+        let endpoint = endpoint(&target)?;
+        Ok(Self {
             target,
+            endpoint,
             open: None,
             retry_at: Instant::now(),
             backoff: MIN_BACKOFF,
             last_error: None,
+            refused: false,
             connections: 0,
-        }
+        })
     }
 
     /// Whether a stream is open.
@@ -70,24 +134,11 @@ impl Link {
 
     async fn connect(&self) -> Result<Open> {
         let t = &self.target;
-        let scheme = if t.tls_ca.is_some() { "https" } else { "http" };
-        let mut ep = Endpoint::from_shared(format!("{scheme}://{}", t.addr))
-            .with_context(|| format!("--addr {}: not HOST:PORT", t.addr))?
-            .connect_timeout(Duration::from_secs(3))
-            .tcp_nodelay(true);
-        if let Some(ca) = &t.tls_ca {
-            let pem = std::fs::read(ca)
-                .with_context(|| format!("--tls-ca {}: cannot read it", ca.display()))?;
-            let host = t.addr.rsplit_once(':').map_or(t.addr.as_str(), |(h, _)| h);
-            let tls = ClientTlsConfig::new()
-                .ca_certificate(Certificate::from_pem(pem))
-                .domain_name(t.tls_domain.clone().unwrap_or_else(|| host.to_string()));
-            ep = ep.tls_config(tls).context("TLS configuration")?;
-        }
-        let channel: Channel = ep
+        let channel: Channel = self
+            .endpoint
             .connect()
             .await
-            .with_context(|| format!("cannot connect to {}", t.addr))?;
+            .map_err(|e| anyhow::anyhow!("cannot connect to {}: {}", t.addr, root_cause(&e)))?;
         let mut client = LocalizerClient::new(channel)
             .max_decoding_message_size(64 << 20)
             .max_encoding_message_size(64 << 20);
@@ -102,7 +153,7 @@ impl Link {
         let answers = client
             .localize_stream(request)
             .await
-            .map_err(|s| anyhow::anyhow!("LocalizeStream: {}: {}", s.code(), s.message()))?
+            .map_err(|s| anyhow::Error::new(s.clone()).context(describe(&s)))?
             .into_inner();
         Ok(Open { requests, answers })
     }
@@ -120,36 +171,58 @@ impl Link {
                     .clone()
                     .unwrap_or_else(|| "not connected".into()));
             }
-            match self.connect().await {
-                Ok(o) => {
+            match tokio::time::timeout(self.target.answer_timeout, self.connect()).await {
+                Ok(Ok(o)) => {
                     self.open = Some(o);
                     self.connections += 1;
                     tracing::info!(addr = %self.target.addr, "LocalizeStream open");
                 }
-                Err(e) => return Err(self.failed(format!("{e:#}"))),
+                Ok(Err(e)) => {
+                    let code = e.downcast_ref::<tonic::Status>().map(|s| s.code());
+                    return Err(self.failed(format!("{e:#}"), code));
+                }
+                Err(_) => {
+                    return Err(self.failed(
+                        format!(
+                            "{} accepted the connection but opened no stream within {:.1} s (is it a pntr-server?)",
+                            self.target.addr,
+                            self.target.answer_timeout.as_secs_f64()
+                        ),
+                        None,
+                    ))
+                }
             }
         }
         let open = self.open.as_mut().expect("opened above");
         if open.requests.send(request).await.is_err() {
-            return Err(self.failed("the stream was closed by the server".into()));
+            return Err(self.failed("the stream was closed by the server".into(), None));
         }
         match tokio::time::timeout(self.target.answer_timeout, open.answers.message()).await {
             Ok(Ok(Some(answer))) => {
                 self.backoff = MIN_BACKOFF;
                 self.last_error = None;
+                self.refused = false;
                 Ok(answer)
             }
-            Ok(Ok(None)) => Err(self.failed("the server ended the stream".into())),
-            Ok(Err(s)) => Err(self.failed(format!("{}: {}", s.code(), s.message()))),
-            Err(_) => Err(self.failed(format!(
-                "no answer within {:.1} s",
-                self.target.answer_timeout.as_secs_f64()
-            ))),
+            Ok(Ok(None)) => Err(self.failed("the server ended the stream".into(), None)),
+            Ok(Err(s)) => Err(self.failed(describe(&s), Some(s.code()))),
+            Err(_) => Err(self.failed(
+                format!(
+                    "no answer within {:.1} s",
+                    self.target.answer_timeout.as_secs_f64()
+                ),
+                None,
+            )),
         }
     }
 
-    fn failed(&mut self, why: String) -> String {
-        tracing::warn!(addr = %self.target.addr, "pntr-server: {why}; reconnecting in {:.2} s", self.backoff.as_secs_f64());
+    fn failed(&mut self, why: String, code: Option<tonic::Code>) -> String {
+        self.refused = code.is_some_and(is_refusal);
+        if self.refused {
+            // The same answer again in a moment helps no one: wait the longest back-off.
+            self.backoff = MAX_BACKOFF;
+        }
+        tracing::warn!(addr = %self.target.addr, "pntr-server: {why}; trying again in {:.2} s", self.backoff.as_secs_f64());
         self.open = None;
         self.retry_at = Instant::now() + self.backoff;
         self.backoff = (self.backoff * 2).min(MAX_BACKOFF);

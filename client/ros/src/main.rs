@@ -36,7 +36,8 @@ use clap::Parser;
 Parameters: rgb_topic, depth_topic, info_topic, map_frame, odom_frame, base_frame, rate_hz, pose_topic,\n\
 relocalize_service, tf_publish_rate_hz, transform_tolerance_s, sync_slop_s, publish_tf (docs/robot-integration.md).\n\
 Environment: ROS_DOMAIN_ID (default 0); RMW_IMPLEMENTATION=rmw_cyclonedds_cpp when the graph's\n\
-service clients use Cyclone DDS (the relocalize service's wire format differs; Fast DDS otherwise)."
+service clients use Cyclone DDS (the relocalize service's wire format differs; Fast DDS otherwise);\n\
+PNTR_LOG (a tracing filter, e.g. pntr_ros=debug; --ros-args --log-level LEVEL overrides it)."
 )]
 struct Cli {
     /// The server, HOST:PORT.
@@ -62,13 +63,6 @@ struct Cli {
 fn main() {
     let (own, ros) = params::split_args(std::env::args().collect());
     let cli = Cli::parse_from(own);
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_env("PNTR_LOG")
-                .unwrap_or_else(|_| "pntr_ros=info,warn".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let ros = match params::RosArgs::parse(&ros) {
         Ok(r) => r,
         Err(e) => {
@@ -76,6 +70,18 @@ fn main() {
             std::process::exit(2);
         }
     };
+    // ros2-client's check of ROS_DISTRO speaks of its own build features: not a user's concern.
+    let quiet = "ros2_client::distributions=off";
+    let filter = match (&ros.log_level, std::env::var("PNTR_LOG")) {
+        (Some(level), _) => format!("pntr_ros={level},warn,{quiet}"),
+        (None, Ok(f)) => format!("{f},{quiet}"),
+        (None, Err(_)) => format!("pntr_ros=info,warn,{quiet}"),
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_writer(std::io::stderr)
+        .init();
     if cli.answer_timeout_s.is_nan() || cli.answer_timeout_s <= 0.0 {
         eprintln!("error: --answer-timeout-s must be > 0");
         std::process::exit(2);

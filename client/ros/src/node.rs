@@ -41,6 +41,10 @@ struct Stats {
     skipped: u64,
     /// Frames the server could not answer (unreachable, stream broken).
     failed: u64,
+    /// When a frame was last skipped.
+    last_skip: Option<Instant>,
+    /// The server refused (a missing map, a wrong token) rather than being away.
+    refused: bool,
     last_status: String,
     last_reason: String,
     last_latency_ms: f64,
@@ -59,6 +63,8 @@ struct Shared {
     /// The newest stamp of any camera message (re-broadcasts of `map -> odom` follow it).
     newest_stamp: Time,
     map_from_odom: Option<Isometry3<f64>>,
+    /// A pose from `initialpose` not yet used.
+    initial: Option<InitialPose>,
     stats: Stats,
 }
 
@@ -219,6 +225,55 @@ impl Slots {
     }
 }
 
+/// A pose given on `initialpose` (RViz's "2D Pose Estimate", as AMCL takes it): the next frame is
+/// searched for near it, over the whole map (the track dropped), with the pose as a prior.
+#[derive(Clone, Copy, Debug)]
+struct InitialPose {
+    map_from_base: Isometry3<f64>,
+    /// Three standard deviations of the position (the largest of x and y), at least 0.5 m.
+    radius_m: f64,
+}
+
+impl InitialPose {
+    fn of(m: &msgs::PoseWithCovarianceStamped) -> Option<Self> {
+        let pose = tf::isometry(&msgs::Transform {
+            translation: m.pose.pose.position,
+            rotation: m.pose.pose.orientation,
+        });
+        let c = &m.pose.covariance;
+        let sigma = c[0].max(c[7]).max(0.0).sqrt();
+        (pose.translation.vector.iter().all(|v| v.is_finite()) && sigma.is_finite()).then_some(
+            Self {
+                map_from_base: pose,
+                radius_m: (3.0 * sigma).max(0.5),
+            },
+        )
+    }
+
+    /// The prior of the camera mounted at `base_from_camera`.
+    fn prior(&self, base_from_camera: &Isometry3<f64>) -> proto::Prior {
+        let p = self.map_from_base * base_from_camera;
+        let q = p.rotation.quaternion();
+        proto::Prior {
+            pose: Some(proto::Pose {
+                translation: Some(proto::Vector3 {
+                    x: p.translation.x,
+                    y: p.translation.y,
+                    z: p.translation.z,
+                }),
+                rotation: Some(proto::Quaternion {
+                    w: q.w,
+                    x: q.i,
+                    y: q.j,
+                    z: q.k,
+                }),
+            }),
+            covariance: Vec::new(),
+            radius_m: self.radius_m,
+        }
+    }
+}
+
 /// The request of one frame, with the transforms its answer needs: (request, base_from_camera,
 /// odom_from_base). Waits up to 0.3 s for transforms that have not arrived yet (odometry a little
 /// behind the camera), as tf2's message filter does.
@@ -228,6 +283,7 @@ async fn request_of(
     f: &Frame,
     map_id: &str,
     relocalize: bool,
+    initial: Option<&InitialPose>,
 ) -> Result<(proto::LocalizeRequest, Isometry3<f64>, Isometry3<f64>), String> {
     let p = &ros.params;
     let header = f.rgb.header().clone();
@@ -261,8 +317,8 @@ async fn request_of(
                     depth: Some(depth),
                     intrinsics: Some(intrinsics),
                     request_id: format!("{}.{:09}", header.stamp.sec, header.stamp.nanosec),
-                    prior: None,
-                    relocalize,
+                    prior: initial.map(|i| i.prior(&base_from_camera)),
+                    relocalize: relocalize || initial.is_some(),
                     frame_convention: proto::FrameConvention::Ros as i32,
                 };
                 return Ok((request, base_from_camera, odom_from_base));
@@ -292,6 +348,7 @@ fn plus_seconds(t: Time, s: f64) -> Time {
 
 /// Run the node until SIGINT or SIGTERM.
 pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
+    let mut link = Link::new(target.clone())?;
     let domain: u16 = match std::env::var("ROS_DOMAIN_ID") {
         Ok(v) if !v.trim().is_empty() => v
             .trim()
@@ -307,7 +364,11 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
     let mut node = context
         .new_node(
             NodeName::new(&ros.namespace, &ros.node_name).map_err(|e| {
-                anyhow::anyhow!("node name {}{}: {e:?}", ros.namespace, ros.node_name)
+                anyhow::anyhow!(
+                    "node {:?} in namespace {:?}: {e:?} (names are letters, digits and underscores, not starting with a digit)",
+                    ros.node_name,
+                    ros.namespace
+                )
             })?,
             NodeOptions::new().enable_rosout(false),
         )
@@ -332,6 +393,12 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         &ros.resolve("/tf_static"),
         types::tf_message(),
         LATCHED,
+    )?;
+    let initial_sub: Subscription<msgs::PoseWithCovarianceStamped> = subscribe(
+        &mut node,
+        &ros.resolve("initialpose"),
+        types::pose_with_covariance_stamped(),
+        RELIABLE.history(History::KeepLast { depth: 1 }),
     )?;
     let pose_pub: Publisher<msgs::PoseWithCovarianceStamped> = advertise(
         &mut node,
@@ -382,6 +449,11 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         depth = %ros.resolve(&p.depth_topic),
         info = %ros.resolve(&p.info_topic),
         pose = %ros.resolve(&p.pose_topic),
+        relocalize = %service_name,
+        service_mapping = if cyclone { "cyclonedds" } else { "fastdds" },
+        frames = %format!("{} <- {} -> {}", p.map_frame, p.odom_frame, p.base_frame),
+        rate_hz = p.rate_hz,
+        publish_tf = p.publish_tf,
         server = %target.addr,
         "pntr-ros running"
     );
@@ -393,6 +465,7 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         depth: VecDeque::new(),
         newest_stamp: Time::default(),
         map_from_odom: None,
+        initial: None,
         stats: Stats::default(),
     }));
     let (frame_tx, mut frame_rx) = watch::channel::<Option<Frame>>(None);
@@ -416,6 +489,24 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         let s = state.clone();
         tokio::spawn(drain(info_sub, "camera_info".into(), move |m| {
             lock(&s).info = Some(m)
+        }));
+        let (s, map_frame) = (state.clone(), p.map_frame.clone());
+        tokio::spawn(drain(initial_sub, "initialpose".into(), move |m| {
+            let frame = m.header.frame_id.trim_start_matches('/');
+            match InitialPose::of(&m) {
+                Some(i) if frame == map_frame => {
+                    tracing::info!(
+                        x = i.map_from_base.translation.x,
+                        y = i.map_from_base.translation.y,
+                        radius_m = i.radius_m,
+                        "initial pose given: the next frame is searched for near it"
+                    );
+                    lock(&s).initial = Some(i);
+                }
+                _ => tracing::warn!(
+                    "initialpose in frame {frame:?} ignored: poses in {map_frame:?} with finite values are taken"
+                ),
+            }
         }));
         let s = state.clone();
         tokio::spawn(drain(tf_sub, "/tf".into(), move |m| {
@@ -488,7 +579,6 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         });
     }
 
-    let mut link = Link::new(target);
     let mut slots = Slots::new(p.rate_hz);
     let shutdown = shutdown_signal();
     futures::pin_mut!(shutdown);
@@ -506,33 +596,48 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
             continue;
         }
         let wanted = relocalize.swap(false, Ordering::SeqCst);
-        let (request, base_from_camera, odom_from_base) =
-            match request_of(&state, &ros, &frame, &map_id, wanted).await {
-                Ok(r) => r,
-                Err(why) => {
-                    if wanted {
-                        relocalize.store(true, Ordering::SeqCst);
-                    }
-                    let mut s = lock(&state);
-                    s.stats.skipped += 1;
-                    if s.stats.skipped.is_power_of_two() {
-                        tracing::warn!("frame skipped ({} so far): {why}", s.stats.skipped);
-                    }
-                    s.stats.last_reason = why;
-                    continue;
+        let initial = lock(&state).initial.take();
+        let prepared = tokio::select! {
+            _ = &mut shutdown => break,
+            r = request_of(&state, &ros, &frame, &map_id, wanted, initial.as_ref()) => r,
+        };
+        let (request, base_from_camera, odom_from_base) = match prepared {
+            Ok(r) => r,
+            Err(why) => {
+                if wanted {
+                    relocalize.store(true, Ordering::SeqCst);
                 }
-            };
+                let mut s = lock(&state);
+                if s.initial.is_none() {
+                    s.initial = initial;
+                }
+                s.stats.skipped += 1;
+                s.stats.last_skip = Some(Instant::now());
+                if s.stats.skipped.is_power_of_two() {
+                    tracing::warn!("frame skipped ({} so far): {why}", s.stats.skipped);
+                }
+                s.stats.last_reason = why;
+                continue;
+            }
+        };
         let stamp = frame.rgb.header().stamp;
         let asked = Instant::now();
-        let result = link.localize(request).await;
+        let result = tokio::select! {
+            _ = &mut shutdown => break,
+            r = link.localize(request) => r,
+        };
         let latency_ms = asked.elapsed().as_secs_f64() * 1e3;
         let r = {
             let mut s = lock(&state);
             s.stats.connected = link.is_open();
+            s.stats.refused = link.refused;
             match result {
                 Err(why) => {
                     if wanted {
                         relocalize.store(true, Ordering::SeqCst);
+                    }
+                    if s.initial.is_none() {
+                        s.initial = initial;
                     }
                     s.stats.failed += 1;
                     s.stats.last_reason = format!("server: {why}");
@@ -617,15 +722,28 @@ fn diagnostics(s: &Stats, ros: &RosArgs, addr: &str, up: Duration) -> msgs::Diag
     let recent = s
         .last_answer
         .is_some_and(|t| t.elapsed() < Duration::from_secs(5));
+    let skipping = s
+        .last_skip
+        .is_some_and(|t| t.elapsed() < Duration::from_secs(2));
     let (level, message) = if !s.connected && s.failed > 0 {
+        let state = if s.refused { "refuses" } else { "unreachable" };
+        (2, format!("pntr-server {addr} {state}: {}", s.last_reason))
+    } else if skipping && !recent {
+        (2, format!("frames skipped: {}", s.last_reason))
+    } else if s.pairs == 0 {
         (
-            2,
-            format!("pntr-server {addr} unreachable: {}", s.last_reason),
+            3,
+            format!(
+                "no camera frames yet: nothing on {} with depth on {} (stamps within sync_slop_s {} s)",
+                ros.resolve(&ros.params.rgb_topic),
+                ros.resolve(&ros.params.depth_topic),
+                ros.params.sync_slop_s
+            ),
         )
     } else if !recent {
         (
             3,
-            "no frame answered in the last 5 s (no camera frames, or transforms missing)"
+            "no frame answered in the last 5 s (the camera stopped, or the frames are dropped)"
                 .to_string(),
         )
     } else if s.last_status == "LOCALIZED" {
@@ -645,7 +763,13 @@ fn diagnostics(s: &Stats, ros: &RosArgs, addr: &str, up: Duration) -> msgs::Diag
         },
         status: vec![msgs::DiagnosticStatus {
             level,
-            name: format!("{}: localization", ros.node_name),
+            name: format!(
+                "{}/{}: localization",
+                ros.namespace.trim_end_matches('/'),
+                ros.node_name
+            )
+            .trim_start_matches('/')
+            .to_string(),
             message,
             hardware_id: addr.to_string(),
             values: vec![

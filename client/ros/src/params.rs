@@ -96,6 +96,8 @@ pub struct RosArgs {
     pub remaps: Vec<(String, String)>,
     /// The parameters.
     pub params: Params,
+    /// `--log-level`: debug, info, warn or error.
+    pub log_level: Option<String>,
 }
 
 impl RosArgs {
@@ -106,6 +108,7 @@ impl RosArgs {
         let mut remaps = Vec::new();
         let mut set: Vec<(String, Value)> = Vec::new();
         let mut files = Vec::new();
+        let mut log_level = None;
         let mut i = 0;
         while i < args.len() {
             let a = args[i].as_str();
@@ -150,7 +153,18 @@ impl RosArgs {
                     files.push((next(i)?, set.len()));
                     i += 1;
                 }
-                "--log-level" | "--log-config-file" | "-e" | "--enclave" => i += 1,
+                "--log-level" => {
+                    let v = next(i)?;
+                    // `--log-level debug`, or `--log-level NAME:=debug` for one logger.
+                    let level = v.rsplit_once(":=").map_or(v.as_str(), |(_, l)| l).to_lowercase();
+                    log_level = Some(match level.as_str() {
+                        "debug" | "info" | "warn" | "error" => level,
+                        "fatal" => "error".into(),
+                        other => bail!("--ros-args: --log-level {other}: debug, info, warn, error or fatal"),
+                    });
+                    i += 1;
+                }
+                "--log-config-file" | "-e" | "--enclave" => i += 1,
                 "--disable-rosout-logs"
                 | "--enable-rosout-logs"
                 | "--disable-stdout-logs"
@@ -166,32 +180,45 @@ impl RosArgs {
             namespace.insert(0, '/');
         }
         // Files first where they came first: an entry of the file is applied at its position.
-        let mut all: Vec<(String, Value)> = Vec::new();
+        let mut all: Vec<(String, Value, bool)> = Vec::new();
         let mut from = 0;
+        let cli = |v: &[(String, Value)]| {
+            v.iter()
+                .map(|(n, x)| (n.clone(), x.clone(), false))
+                .collect::<Vec<_>>()
+        };
         for (file, at) in &files {
-            all.extend(set[from..*at].iter().cloned());
-            all.extend(read_params_file(Path::new(file), &node_name, &namespace)?);
+            all.extend(cli(&set[from..*at]));
+            all.extend(
+                read_params_file(Path::new(file), &node_name, &namespace)?
+                    .into_iter()
+                    .map(|(n, v)| (n, v, true)),
+            );
             from = *at;
         }
-        all.extend(set[from..].iter().cloned());
+        all.extend(cli(&set[from..]));
         let mut params = Params::default();
-        for (name, value) in all {
-            apply(&mut params, &name, value)?;
+        for (name, value, from_file) in all {
+            match apply(&mut params, &name, value) {
+                // A shared parameter file holds other nodes' keys (`qos_overrides...`, a filter's
+                // settings): skipped, as rclcpp skips parameters a node does not declare.
+                Err(e) if from_file && e.to_string().starts_with("unknown parameter") => {
+                    if !name.starts_with("qos_overrides.") {
+                        eprintln!(
+                            "warning: --params-file: {name} is not a pntr-ros parameter: ignored"
+                        );
+                    }
+                }
+                other => other?,
+            }
         }
-        if !(params.rate_hz > 0.0 && params.rate_hz.is_finite()) {
-            bail!(
-                "parameter rate_hz: {} (frames a second, > 0)",
-                params.rate_hz
-            );
-        }
-        if params.tf_publish_rate_hz.is_nan() || params.tf_publish_rate_hz < 0.0 {
-            bail!("parameter tf_publish_rate_hz must be >= 0");
-        }
+        check_ranges(&params)?;
         Ok(RosArgs {
             node_name,
             namespace,
             remaps,
             params,
+            log_level,
         })
     }
 
@@ -216,6 +243,62 @@ impl RosArgs {
         }
         resolved
     }
+}
+
+/// Values outside what each parameter means are refused at start, naming the parameter.
+fn check_ranges(p: &Params) -> Result<()> {
+    let within = |name: &str, v: f64, lo: f64, hi: f64, what: &str| -> Result<()> {
+        if v.is_finite() && (lo..=hi).contains(&v) {
+            Ok(())
+        } else {
+            bail!("parameter {name}: {v} ({what})")
+        }
+    };
+    within(
+        "rate_hz",
+        p.rate_hz,
+        0.01,
+        1000.0,
+        "frames a second, 0.01 to 1000",
+    )?;
+    if p.tf_publish_rate_hz != 0.0 {
+        within(
+            "tf_publish_rate_hz",
+            p.tf_publish_rate_hz,
+            0.1,
+            1000.0,
+            "Hz, 0 (off) or 0.1 to 1000",
+        )?;
+    }
+    within(
+        "transform_tolerance_s",
+        p.transform_tolerance_s,
+        0.0,
+        10.0,
+        "seconds, 0 to 10",
+    )?;
+    within(
+        "sync_slop_s",
+        p.sync_slop_s,
+        0.0,
+        1.0,
+        "seconds, 0 to 1: colour and depth of one frame",
+    )?;
+    for (name, v) in [
+        ("rgb_topic", &p.rgb_topic),
+        ("depth_topic", &p.depth_topic),
+        ("info_topic", &p.info_topic),
+        ("pose_topic", &p.pose_topic),
+        ("relocalize_service", &p.relocalize_service),
+        ("map_frame", &p.map_frame),
+        ("odom_frame", &p.odom_frame),
+        ("base_frame", &p.base_frame),
+    ] {
+        if v.trim().is_empty() {
+            bail!("parameter {name} is empty");
+        }
+    }
+    Ok(())
 }
 
 fn apply(p: &mut Params, name: &str, value: Value) -> Result<()> {
@@ -269,8 +352,7 @@ fn read_params_file(path: &Path, node: &str, namespace: &str) -> Result<Vec<(Str
     let mut out = Vec::new();
     for (key, body) in map {
         let key = key.as_str().unwrap_or_default();
-        let applies = ["/**", "**", node, fqn.as_str(), fqn.trim_start_matches('/')].contains(&key);
-        if !applies {
+        if !(key == node || node_key_matches(key, &fqn)) {
             continue;
         }
         let Some(params) = body.get("ros__parameters") else {
@@ -291,6 +373,39 @@ fn read_params_file(path: &Path, node: &str, namespace: &str) -> Result<Vec<(Str
         }
     }
     Ok(out)
+}
+
+/// Whether a parameter file's node key applies to the node `fqn` (`/ns/name`): rcl's wildcards,
+/// `*` one name token and `**` any number of them (`/**`, `/**/pntr_ros`, `/robot*/pntr_ros`); a
+/// key without the leading slash is taken as absolute.
+fn node_key_matches(key: &str, fqn: &str) -> bool {
+    fn token(pattern: &str, name: &str) -> bool {
+        match pattern.split_once('*') {
+            None => pattern == name,
+            Some((head, tail)) => {
+                name.starts_with(head) && (head.len()..=name.len()).any(|i| token(tail, &name[i..]))
+            }
+        }
+    }
+    fn tokens(p: &[&str], n: &[&str]) -> bool {
+        match (p.first(), n.first()) {
+            (None, None) => true,
+            (Some(&"**"), _) => (0..=n.len()).any(|i| tokens(&p[1..], &n[i..])),
+            (Some(t), Some(m)) => token(t, m) && tokens(&p[1..], &n[1..]),
+            _ => false,
+        }
+    }
+    let split = |s: &str| -> Vec<String> {
+        s.trim_start_matches('/')
+            .split('/')
+            .filter(|t| !t.is_empty())
+            .map(String::from)
+            .collect()
+    };
+    let (p, n) = (split(key), split(fqn));
+    let p: Vec<&str> = p.iter().map(String::as_str).collect();
+    let n: Vec<&str> = n.iter().map(String::as_str).collect();
+    tokens(&p, &n)
 }
 
 /// Nested parameter maps as dotted names (`a: {b: 1}` is `a.b`).
@@ -367,6 +482,33 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("unknown parameter"), "{e}");
+        for (key, applies) in [
+            ("/**", true),
+            ("/**/pntr_ros", true),
+            ("/robot*/pntr_ros", true),
+            ("robot1/pntr_ros", true),
+            ("/robot1/*", true),
+            ("/robot2/pntr_ros", false),
+            ("/pntr_ros", false),
+        ] {
+            assert_eq!(node_key_matches(key, "/robot1/pntr_ros"), applies, "{key}");
+        }
+        // A shared file's keys of other nodes are skipped; a typo on the command line is not.
+        std::fs::write(
+            &file,
+            "/**:\n  ros__parameters:\n    qos_overrides./tf.publisher.depth: 10\n    use_tf_static: true\n    rate_hz: 3.0\n",
+        )
+        .unwrap();
+        let a = RosArgs::parse(&args(&format!("--params-file {}", file.display()))).unwrap();
+        assert_eq!(a.params.rate_hz, 3.0);
+        for bad in [
+            "-p sync_slop_s:=-1",
+            "-p tf_publish_rate_hz:=1e-30",
+            "-p rate_hz:=0",
+            "-p base_frame:=''",
+        ] {
+            assert!(RosArgs::parse(&args(bad)).is_err(), "{bad}");
+        }
         let (own, ros) = split_args(args("pntr-ros --addr h:1 --ros-args -p a:=1 -- --map-id m"));
         assert_eq!(own, args("pntr-ros --addr h:1 --map-id m"));
         assert_eq!(ros, args("-p a:=1"));

@@ -303,6 +303,7 @@ def main():
     ap.add_argument("--seconds", type=float, required=True)
     ap.add_argument("--out", required=True)
     ap.add_argument("--relocalize-at", type=float, action="append", default=[])
+    ap.add_argument("--initialpose-at", type=float, default=None, help="publish the true base pose on /initialpose then")
     ap.add_argument("--silent-at", type=float, default=None)
     ap.add_argument("--silent-for", type=float, default=0.0)
     ap.add_argument("--intrinsics", default=None, help="fx,fy,cx,cy (default: the folder's calibration.txt)")
@@ -346,6 +347,7 @@ def main():
     r_tf = reader("rt/tf", TFMessage, reliable)
     r_diag = reader("rt/diagnostics", DiagnosticArray, reliable)
     r_graph = reader("ros_discovery_info", ParticipantEntitiesInfo, listen_latched)
+    w_initial = writer("rt/initialpose", PoseWithCovarianceStamped, Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(1)))
     w_srv = writer("rq/pntr/relocalizeRequest", TriggerRequest, Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(10)))
     r_srv = reader("rr/pntr/relocalizeReply", TriggerResponse, Qos(Policy.Reliability.Reliable(duration(milliseconds=100)), Policy.History.KeepLast(10)))
 
@@ -431,6 +433,19 @@ def main():
             w_srv.write(TriggerRequest(client=client_id, seq=seq, structure_needs_at_least_one_member=0))
             with lock:
                 report["services"].append({"t": time.monotonic() - t0, "asked": seq})
+        # Written once, volatile, as RViz does: only once the node's reader is matched.
+        if a.initialpose_at is not None and elapsed >= a.initialpose_at \
+                and w_initial.get_publication_matched_status().current_count > 0:
+            a.initialpose_at = None
+            fi = (tick - t0_ns) / period_ns
+            bp, bq = truth[int(fi) % len(frames)]
+            cov = [0.0] * 36
+            cov[0] = cov[7] = 0.25
+            cov[35] = 0.07
+            w_initial.write(PoseWithCovarianceStamped(header=Header(stamp=stamp_of(tick), frame_id="map"), pose=PoseWithCovariance(
+                pose=Pose(position=Point(*map(float, bp)), orientation=Quaternion(*map(float, bq))), covariance=cov)))
+            with lock:
+                report["initialpose"] = {"t": time.monotonic() - t0, "p": list(bp)}
         k += 1
         if a.silent_at is not None and a.silent_at <= elapsed < a.silent_at + a.silent_for:
             continue

@@ -304,7 +304,8 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     let q = ros_from_map(&rt, addr);
     let rate_hz = 4.0;
 
-    // 1. Raw images; the relocalize service at 4 s; the robot silent from 6 to 7.5 s.
+    // 1. Raw images; RViz's "2D Pose Estimate" on /initialpose at 2 s; the relocalize service at
+    // 4 s; the robot silent from 6 to 7.5 s.
     let log = dir.path().join("node1.log");
     let n = node(addr, &log, &["-p", "rate_hz:=4.0"]);
     let out = dir.path().join("raw.json");
@@ -316,6 +317,8 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
             seconds,
             &out,
             &[
+                "--initialpose-at",
+                "2",
                 "--relocalize-at",
                 "4",
                 "--silent-at",
@@ -356,6 +359,12 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     assert!(
         mp < 0.05 && mq < 1.0,
         "map -> odom median error {mp} m, {mq} deg"
+    );
+    assert!(
+        context().contains("initial pose given"),
+        "the node did not take /initialpose (the robot sent {})\n{}",
+        r["initialpose"],
+        context()
     );
     // Poses again after the silence.
     assert!(
