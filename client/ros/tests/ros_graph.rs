@@ -349,8 +349,9 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     );
     let (dp, dq) = pose_errors(&r);
     let (mp, mq) = map_odom_errors(&r);
+    let last = &r["diagnostics"].as_array().unwrap().last().unwrap()["values"];
     eprintln!(
-        "raw: {poses} poses for {asked} frames asked; base pose median {dp:.4} m {dq:.3} deg; map -> odom median {mp:.4} m {mq:.3} deg"
+        "raw: {poses} poses for {asked} frames asked; base pose median {dp:.4} m {dq:.3} deg; map -> odom median {mp:.4} m {mq:.3} deg; the node's counts: {last}"
     );
     assert!(
         dp < 0.05 && dq < 1.0,
