@@ -309,7 +309,7 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     let log = dir.path().join("node1.log");
     let n = node(addr, &log, &["-p", "rate_hz:=4.0"]);
     let out = dir.path().join("raw.json");
-    let seconds = 10.0;
+    let seconds = 14.0;
     let r = finish(
         robot(
             &seq,
