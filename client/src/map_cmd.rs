@@ -194,8 +194,10 @@ pub struct EvalArgs {
     pub stability_preset: Option<String>,
     /// Also write every query to this MCAP file with Foxglove's schemas (open it in Foxglove): its
     /// image and camera, the answer (pose with covariance, status, reason), the ground truth and the
-    /// map's cameras (in process), in ROS conventions (z-up `map`, optical `camera_optical`).
-    #[arg(long, value_name = "OUT.mcap")]
+    /// map's cameras (in process), in ROS conventions (z-up `map`, optical `camera_optical`). A path
+    /// not ending in `.mcap` is a ROS 2 bag folder instead (the topics of `replay --record-bag`; queries
+    /// stamped 0.1 s apart).
+    #[arg(long, value_name = "OUT.mcap|OUT_DIR")]
     pub record: Option<PathBuf>,
     /// A dataset of places the map does not cover: its queries are sent too and every LOCALIZED answer
     /// counts as a false positive (`negatives` in the report).
@@ -528,14 +530,15 @@ pub fn build_db(args: &BuildArgs) -> Result<()> {
     Ok(())
 }
 
-/// Start an MCAP recording (`--record`) at `out`; with `db`, the map's cameras go in first, stamped
+/// Start a recording (`--record`) at `out` (a Foxglove MCAP file, or a ROS 2 bag folder when `out`
+/// does not end in `.mcap`); with `db`, the map's cameras go in first, stamped
 /// `time_s`.
 pub fn start_recording(
     out: &Path,
     db: Option<&Path>,
     time_s: f64,
-) -> Result<pntr_service::visual::Recording> {
-    let rec = pntr_service::visual::Recording::create(out)
+) -> Result<pntr_service::ros_bag::Recorder> {
+    let rec = pntr_service::ros_bag::Recorder::create(out)
         .map_err(|e| anyhow::anyhow!("--record {e}"))?;
     if let Some(path) = db {
         let map = load_map(path, 1).with_context(|| format!("--db {}", path.display()))?;
@@ -545,9 +548,9 @@ pub fn start_recording(
 }
 
 /// Write a map's image poses into a recording, in ROS conventions.
-fn show_map_cameras(rec: &pntr_service::visual::Recording, map: &Map, time_s: f64) {
+fn show_map_cameras(rec: &pntr_service::ros_bag::Recorder, map: &Map, time_s: f64) {
     let frames = pntr_service::wire::MapFrames::of(&map.header);
-    rec.view().map_cameras(
+    rec.map_cameras(
         time_s,
         map.images
             .iter()
@@ -559,12 +562,12 @@ fn show_map_cameras(rec: &pntr_service::visual::Recording, map: &Map, time_s: f6
 /// in ROS conventions (the dataset's frame is y-up with Habitat camera axes). Queries are stamped
 /// 0.1 s apart from the Unix epoch (datasets carry no time).
 fn record_query(
-    rec: &pntr_service::visual::Recording,
+    rec: &pntr_service::ros_bag::Recorder,
     n: &mut usize,
     q: &pntr_pipeline::pipeline::Query,
     truth: Option<&nalgebra::Isometry3<f64>>,
     a: &Answer,
-) {
+) -> Result<()> {
     // Evaluation answers are in the dataset's frames: y up, Habitat axes.
     let frames = pntr_service::wire::MapFrames::default();
     let to_ros = |p: &nalgebra::Isometry3<f64>| frames.pose_to_ros(p);
@@ -578,7 +581,7 @@ fn record_query(
         Some(_) => "NOT_LOCALIZED",
         None => "ERROR",
     };
-    rec.view().observe(&pntr_service::visual::Observation {
+    rec.observe(&pntr_service::visual::Observation {
         time_s: *n as f64 * 0.1,
         picture: Some((pntr_service::visual::Picture::Raw(&q.rgb), &q.intrinsics)),
         request_id: &id,
@@ -592,12 +595,14 @@ fn record_query(
         pose: a.pose.as_ref().map(to_ros),
         covariance: &covariance,
         truth: truth.map(to_ros),
-    });
+    })
+    .map_err(|e| anyhow::anyhow!("--record: {e}"))?;
     *n += 1;
+    Ok(())
 }
 
 /// Close a recording under its name and say where it is.
-fn finish_recording(record: Option<pntr_service::visual::Recording>) -> Result<()> {
+fn finish_recording(record: Option<pntr_service::ros_bag::Recorder>) -> Result<()> {
     if let Some(rec) = record {
         let path = rec.finish().map_err(|e| anyhow::anyhow!("--record {e}"))?;
         eprintln!("recording written to {}", path.display());
@@ -611,7 +616,7 @@ pub fn evaluate_in_process(
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
     effects: Option<pntr_synth::effects::RobotEffects>,
-    record: Option<&pntr_service::visual::Recording>,
+    record: Option<&pntr_service::ros_bag::Recorder>,
     stability: bool,
     variant: Option<&Pipeline>,
 ) -> Result<(EvalReport, Stability)> {
@@ -628,6 +633,8 @@ pub fn evaluate_in_process(
         show_map_cameras(rec, &map, 0.0);
     }
     let mut n = 0usize;
+    // The first error writing --record: recording stops there and the run fails after it.
+    let mut failed: Option<anyhow::Error> = None;
     let report = eval::run_observed(
         scenes,
         opts,
@@ -668,8 +675,8 @@ pub fn evaluate_in_process(
             pb.set_position(done as u64);
         },
         &mut |q, truth, a| {
-            if let Some(rec) = record {
-                record_query(rec, &mut n, q, truth, a);
+            if let (Some(rec), None) = (record, &failed) {
+                failed = record_query(rec, &mut n, q, truth, a).err();
             }
             for (kind, perturbed) in pending.borrow_mut().drain(..) {
                 let side = if truth.is_some() {
@@ -685,6 +692,9 @@ pub fn evaluate_in_process(
         },
     )?;
     pb.finish_and_clear();
+    if let Some(e) = failed {
+        return Err(e);
+    }
     Ok((report, counts))
 }
 
@@ -722,11 +732,13 @@ pub fn evaluate_remote(
     remote: &mut crate::remote::Remote,
     scenes: &[&SceneEntry],
     opts: &EvalOptions,
-    record: Option<&pntr_service::visual::Recording>,
+    record: Option<&pntr_service::ros_bag::Recorder>,
 ) -> Result<EvalReport> {
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total, "localizing queries through the server");
     let mut n = 0usize;
+    // The first error writing --record: recording stops there and the run fails after it.
+    let mut failed: Option<anyhow::Error> = None;
     let report = eval::run_observed(
         scenes,
         opts,
@@ -736,12 +748,15 @@ pub fn evaluate_remote(
             pb.set_position(done as u64);
         },
         &mut |q, truth, a| {
-            if let Some(rec) = record {
-                record_query(rec, &mut n, q, truth, a);
+            if let (Some(rec), None) = (record, &failed) {
+                failed = record_query(rec, &mut n, q, truth, a).err();
             }
         },
     )?;
     pb.finish_and_clear();
+    if let Some(e) = failed {
+        return Err(e);
+    }
     Ok(report)
 }
 

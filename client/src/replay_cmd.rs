@@ -85,8 +85,9 @@ pub struct ReplayArgs {
     /// Also write what happened to this MCAP file, with Foxglove's schemas (open it in Foxglove):
     /// every frame's image and camera, the answered poses with their covariance, status and reason,
     /// the ground truth, and with --db the map's cameras; poses in ROS conventions (z-up `map`,
-    /// optical `camera_optical`).
-    #[arg(long, value_name = "OUT.mcap")]
+    /// optical `camera_optical`). A path not ending in `.mcap` is a ROS 2 bag folder instead, as
+    /// `--record-bag` writes.
+    #[arg(long, value_name = "OUT.mcap|OUT_DIR")]
     pub record: Option<PathBuf>,
     /// Also write what happened as a ROS 2 bag (a new rosbag2 folder: MCAP with ROS 2 message types
     /// and metadata.yaml, for `ros2 bag play` and rviz), with the topics pntr-ros publishes:
@@ -571,7 +572,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 truth: seq.world_from_camera(i).as_ref().map(to_ros),
             };
             if let Some(rec) = &recording {
-                rec.view().observe(&observation);
+                rec.observe(&observation)
+                    .map_err(|e| anyhow::anyhow!("--record: {e}"))?;
             }
             if let Some(b) = &bag {
                 b.observe(&observation)

@@ -260,16 +260,9 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         &jpeg,
         &est,
         &report,
-        &[
-            "--rate",
-            "50",
-            "--frames",
-            "150",
-            "--record-bag",
-            recorded_arg,
-        ],
+        &["--rate", "50", "--frames", "150", "--record", recorded_arg],
     ));
-    // A bag folder is never written over.
+    // A bag folder is never written over (`--record-bag` says it is a bag whatever its name).
     let e = err(&replay(
         &addr,
         &jpeg,
@@ -353,6 +346,28 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
     );
     assert_eq!(b["first_level"], 0, "{b}");
     assert!(b["covariance_diagonal_positive"].as_bool().unwrap(), "{b}");
+
+    // `eval --record` to a folder: the dataset's queries as a bag, one status per query.
+    let eval_bag = dir.path().join("eval_bag");
+    ok(&eval(
+        &data,
+        &dir.path().join("tum.pntrmap"),
+        &["--record", eval_bag.to_str().unwrap()],
+    ));
+    let b = read_bag(&eval_bag);
+    assert_eq!(
+        b["topics"]["/diagnostics"]["count"].as_u64(),
+        Some(30),
+        "{b}"
+    );
+    assert!(
+        b["topics"]["/pntr/pose"]["count"].as_u64().unwrap() >= 20,
+        "{b}"
+    );
+    assert_eq!(
+        b["topics"]["/pntr/ground_truth"]["type"],
+        "geometry_msgs/msg/PoseStamped"
+    );
 }
 
 /// A ROS 2 bag folder read with the Python `rosbags` package: each topic's type and count, the

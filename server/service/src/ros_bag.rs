@@ -223,3 +223,54 @@ impl BagRecording {
             .map_err(|e| e.to_string())
     }
 }
+
+/// Where `--record` writes: a Foxglove MCAP file (a path ending in `.mcap`) or a ROS 2 bag (any
+/// other path: a new rosbag2 folder).
+pub enum Recorder {
+    /// Foxglove's schemas, one MCAP file ([`crate::visual::Recording`]).
+    Foxglove(crate::visual::Recording),
+    /// ROS 2 message types, a rosbag2 folder ([`BagRecording`]).
+    RosBag(BagRecording),
+}
+
+impl Recorder {
+    /// Start `out`: a Foxglove MCAP file when it ends in `.mcap`, else a ROS 2 bag folder (which
+    /// must not exist). Errors name the path.
+    pub fn create(out: &Path) -> Result<Self, String> {
+        let mcap = out
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("mcap"));
+        Ok(if mcap {
+            Self::Foxglove(crate::visual::Recording::create(out)?)
+        } else {
+            Self::RosBag(BagRecording::create(out)?)
+        })
+    }
+
+    /// Write one answered frame.
+    pub fn observe(&self, o: &Observation<'_>) -> Result<(), String> {
+        match self {
+            Self::Foxglove(r) => {
+                r.view().observe(o);
+                Ok(())
+            }
+            Self::RosBag(b) => b.observe(o),
+        }
+    }
+
+    /// The poses of a map's images (`map_from_camera_optical`, z-up), at `time_s`: shown in a
+    /// Foxglove file; a ROS 2 bag has no standard message for them and leaves them out.
+    pub fn map_cameras(&self, time_s: f64, poses: impl IntoIterator<Item = Isometry3<f64>>) {
+        if let Self::Foxglove(r) = self {
+            r.view().map_cameras(time_s, poses);
+        }
+    }
+
+    /// Close it and move it to its name.
+    pub fn finish(self) -> Result<PathBuf, String> {
+        match self {
+            Self::Foxglove(r) => r.finish(),
+            Self::RosBag(b) => b.finish(),
+        }
+    }
+}
