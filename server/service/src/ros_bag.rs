@@ -230,7 +230,7 @@ pub enum Recorder {
     /// Foxglove's schemas, one MCAP file ([`crate::visual::Recording`]).
     Foxglove(crate::visual::Recording),
     /// ROS 2 message types, a rosbag2 folder ([`BagRecording`]).
-    RosBag(BagRecording),
+    RosBag(Box<BagRecording>),
 }
 
 impl Recorder {
@@ -243,7 +243,7 @@ impl Recorder {
         Ok(if mcap {
             Self::Foxglove(crate::visual::Recording::create(out)?)
         } else {
-            Self::RosBag(BagRecording::create(out)?)
+            Self::RosBag(Box::new(BagRecording::create(out)?))
         })
     }
 
