@@ -391,7 +391,13 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
         "relocalize: {services:?}"
     );
 
-    // 2. Compressed colour and compressedDepth; the server stops at 4 s and is back at 6 s.
+    // 2. Compressed colour and compressedDepth; the node started after the robot has latched
+    // /tf_static (it must get it as a late joiner, transient local); the server stops at 4 s and is
+    // back at 6 s.
+    let out = dir.path().join("compressed.json");
+    let started = Instant::now();
+    let running = robot(&seq, q, 12.0, &out, &[]);
+    std::thread::sleep(Duration::from_millis(500));
     let log = dir.path().join("node2.log");
     let n = node(
         addr,
@@ -405,9 +411,6 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
             "rate_hz:=4.0",
         ],
     );
-    let out = dir.path().join("compressed.json");
-    let started = Instant::now();
-    let running = robot(&seq, q, 12.0, &out, &[]);
     std::thread::sleep(Duration::from_secs(4).saturating_sub(started.elapsed()));
     stop(&rt, server);
     std::thread::sleep(Duration::from_secs(6).saturating_sub(started.elapsed()));
