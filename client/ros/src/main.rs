@@ -35,8 +35,8 @@ use clap::Parser;
     after_help = "ROS 2 arguments: --ros-args [-p name:=value]... [-r from:=to]... [-r __ns:=/NS] [-r __node:=NAME] [--params-file FILE.yaml]\n\
 Parameters: rgb_topic, depth_topic, info_topic, map_frame, odom_frame, base_frame, rate_hz, pose_topic,\n\
 relocalize_service, tf_publish_rate_hz, transform_tolerance_s, sync_slop_s, publish_tf (docs/robot-integration.md).\n\
-Environment: ROS_DOMAIN_ID (default 0); RMW_IMPLEMENTATION=rmw_cyclonedds_cpp when the graph's\n\
-service clients use Cyclone DDS (the relocalize service's wire format differs; Fast DDS otherwise);\n\
+Environment: ROS_DOMAIN_ID (default 0); RMW_IMPLEMENTATION (rmw_cyclonedds_cpp or rmw_fastrtps_cpp:\n\
+the relocalize service in that RMW's wire format only; unset: both);\n\
 PNTR_LOG (a tracing filter, e.g. pntr_ros=debug; --ros-args --log-level LEVEL overrides it)."
 )]
 struct Cli {

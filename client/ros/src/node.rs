@@ -358,7 +358,21 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
             .with_context(|| format!("ROS_DOMAIN_ID={v:?}: a domain is 0 to 232"))?,
         _ => 0,
     };
-    let cyclone = std::env::var("RMW_IMPLEMENTATION").is_ok_and(|v| v.contains("cyclonedds"));
+    // The service's wire format differs between RMWs (rmw_cyclonedds puts a request header in the
+    // payload; Fast DDS uses RTPS sample identities). RMW_IMPLEMENTATION names the robot's RMW as
+    // its other nodes read it; unset, both are served (each ignores the other's requests, which it
+    // cannot decode, or answers them in a form the other's clients drop).
+    let rmw = std::env::var("RMW_IMPLEMENTATION").unwrap_or_default();
+    let mappings: &[(ServiceMapping, &str)] = if rmw.contains("cyclonedds") {
+        &[(ServiceMapping::Cyclone, "cyclonedds")]
+    } else if rmw.contains("fastrtps") || rmw.contains("fastdds") {
+        &[(ServiceMapping::Enhanced, "fastdds")]
+    } else {
+        &[
+            (ServiceMapping::Enhanced, "fastdds"),
+            (ServiceMapping::Cyclone, "cyclonedds"),
+        ]
+    };
     let context = Context::with_options(ContextOptions::new().domain_id(domain))
         .map_err(|e| anyhow::anyhow!("DDS participant on domain {domain}: {e:?}"))?;
     let mut node = context
@@ -420,20 +434,20 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
     )?;
     let service_qos = QosProfile::publisher_default().history(History::KeepLast { depth: 10 });
     let service_name = ros.resolve(&p.relocalize_service);
-    let server = node
-        .create_server::<msgs::TriggerRequest, msgs::TriggerResponse>(
-            if cyclone {
-                ServiceMapping::Cyclone
-            } else {
-                ServiceMapping::Enhanced
-            },
-            &Name::parse(&service_name)
-                .map_err(|e| anyhow::anyhow!("service {service_name}: {e:?}"))?,
-            &ServiceTypeName::new("std_srvs", "Trigger"),
-            service_qos.clone(),
-            service_qos,
-        )
-        .map_err(|e| anyhow::anyhow!("service {service_name}: {e:?}"))?;
+    let mut servers = Vec::new();
+    for (mapping, _) in mappings {
+        servers.push(
+            node.create_server::<msgs::TriggerRequest, msgs::TriggerResponse>(
+                *mapping,
+                &Name::parse(&service_name)
+                    .map_err(|e| anyhow::anyhow!("service {service_name}: {e:?}"))?,
+                &ServiceTypeName::new("std_srvs", "Trigger"),
+                service_qos.clone(),
+                service_qos.clone(),
+            )
+            .map_err(|e| anyhow::anyhow!("service {service_name}: {e:?}"))?,
+        );
+    }
     let spinner = node
         .spinner()
         .map_err(|e| anyhow::anyhow!("ROS spinner: {e:?}"))?;
@@ -450,7 +464,7 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         info = %ros.resolve(&p.info_topic),
         pose = %ros.resolve(&p.pose_topic),
         relocalize = %service_name,
-        service_mapping = if cyclone { "cyclonedds" } else { "fastdds" },
+        service_mappings = %mappings.iter().map(|(_, n)| *n).collect::<Vec<_>>().join(","),
         frames = %format!("{} <- {} -> {}", p.map_frame, p.odom_frame, p.base_frame),
         rate_hz = p.rate_hz,
         publish_tf = p.publish_tf,
@@ -518,7 +532,7 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
         }));
     }
     let relocalize = Arc::new(AtomicBool::new(false));
-    {
+    for server in servers {
         let relocalize = relocalize.clone();
         tokio::spawn(async move {
             loop {
@@ -536,7 +550,8 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
                             tracing::warn!("relocalize reply: {e:?}");
                         }
                     }
-                    Err(e) => tracing::warn!("relocalize request: {e:?}"),
+                    // The other RMW's requests, when both are served.
+                    Err(e) => tracing::debug!("relocalize request not read: {e:?}"),
                 }
             }
         });

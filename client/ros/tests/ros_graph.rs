@@ -117,11 +117,15 @@ fn ros_from_map(rt: &Runtime, addr: std::net::SocketAddr) -> [f64; 4] {
     })
 }
 
-fn node(addr: std::net::SocketAddr, log: &Path, ros_args: &[&str]) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_pntr-ros"))
-        .args(["--addr", &addr.to_string(), "--ros-args"])
+/// Start the node; `rmw` is RMW_IMPLEMENTATION (unset: the relocalize service in both wire formats).
+fn node(addr: std::net::SocketAddr, log: &Path, rmw: Option<&str>, ros_args: &[&str]) -> Child {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_pntr-ros"));
+    match rmw {
+        Some(r) => c.env("RMW_IMPLEMENTATION", r),
+        None => c.env_remove("RMW_IMPLEMENTATION"),
+    };
+    c.args(["--addr", &addr.to_string(), "--ros-args"])
         .args(ros_args)
-        .env("RMW_IMPLEMENTATION", "rmw_cyclonedds_cpp")
         .env_remove("ROS_DOMAIN_ID")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(log).unwrap())
@@ -307,7 +311,7 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     // 1. Raw images; RViz's "2D Pose Estimate" on /initialpose at 2 s; the relocalize service at
     // 4 s; the robot silent from 6 to 7.5 s.
     let log = dir.path().join("node1.log");
-    let n = node(addr, &log, &["-p", "rate_hz:=4.0"]);
+    let n = node(addr, &log, None, &["-p", "rate_hz:=4.0"]);
     let out = dir.path().join("raw.json");
     let seconds = 14.0;
     let r = finish(
@@ -382,7 +386,8 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     assert!(diagnostics
         .iter()
         .any(|d| d["level"] == 0 && d["values"]["map_id"] == "apartment"));
-    // The service answered as an rmw_cyclonedds client checks: its own request header echoed.
+    // The service answered as an rmw_cyclonedds client checks, its own request header echoed (the
+    // node served both RMWs' formats: RMW_IMPLEMENTATION was unset).
     let services = r["services"].as_array().unwrap();
     assert!(
         services.iter().any(|s| s["success"] == true
@@ -396,12 +401,13 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
     // back at 6 s.
     let out = dir.path().join("compressed.json");
     let started = Instant::now();
-    let running = robot(&seq, q, 12.0, &out, &[]);
+    let running = robot(&seq, q, 12.0, &out, &["--relocalize-at", "9"]);
     std::thread::sleep(Duration::from_millis(500));
     let log = dir.path().join("node2.log");
     let n = node(
         addr,
         &log,
+        Some("rmw_cyclonedds_cpp"),
         &[
             "-p",
             "rgb_topic:=/camera/color/image_raw/compressed",
@@ -445,6 +451,14 @@ fn a_robot_on_cyclone_dds_gets_poses_tf_diagnostics_and_its_service() {
             .iter()
             .any(|d| d["level"] == 2 && d["values"]["connected"] == "false"),
         "the outage never showed on /diagnostics"
+    );
+    // RMW_IMPLEMENTATION=rmw_cyclonedds_cpp: the service in Cyclone's format only, answered.
+    let services = r["services"].as_array().unwrap();
+    assert!(
+        services
+            .iter()
+            .any(|s| s["success"] == true && s["seq"] == 1),
+        "relocalize with RMW_IMPLEMENTATION set: {services:?}"
     );
     stop(&rt, server);
 }
