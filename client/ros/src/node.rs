@@ -538,10 +538,12 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
             loop {
                 match server.async_receive_request().await {
                     Ok((id, _)) => {
-                        relocalize.store(true, Ordering::SeqCst);
-                        tracing::info!(
-                            "relocalize requested: the next frame is searched over the whole map"
-                        );
+                        // Served in both formats, one request may reach two servers: said once.
+                        if !relocalize.swap(true, Ordering::SeqCst) {
+                            tracing::info!(
+                                "relocalize requested: the next frame is searched over the whole map"
+                            );
+                        }
                         let reply = msgs::TriggerResponse {
                             success: true,
                             message: "the track is dropped: the next frame is searched over the whole map".into(),
