@@ -14,6 +14,7 @@ use ros2_client::{
     Context, ContextOptions, MessageTypeName, Name, Node, NodeName, NodeOptions, Publisher,
     QosProfile, ServiceMapping, ServiceTypeName, Subscription,
 };
+use rustdds::Topic;
 use serde::de::DeserializeOwned;
 use tokio::sync::watch;
 
@@ -86,20 +87,21 @@ const RELIABLE: QosProfile = QosProfile::publisher_default()
 /// /tf_static as tf2 listens to it: reliable and transient local, so a late joiner gets it.
 const LATCHED: QosProfile = RELIABLE.durability(Durability::TransientLocal);
 
+/// The topic `name` (already resolved) of type `kind`.
+fn topic(node: &mut Node, name: &str, kind: MessageTypeName, qos: &QosProfile) -> Result<Topic> {
+    let parsed = Name::parse(name).map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))?;
+    node.create_topic(&parsed, kind, qos)
+        .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))
+}
+
 fn subscribe<M: DeserializeOwned + 'static>(
     node: &mut Node,
     name: &str,
     kind: MessageTypeName,
     qos: QosProfile,
 ) -> Result<Subscription<M>> {
-    let topic = node
-        .create_topic(
-            &Name::parse(name).map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))?,
-            kind,
-            &qos,
-        )
-        .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))?;
-    node.create_subscription(&topic, Some(qos))
+    let t = topic(node, name, kind, &qos)?;
+    node.create_subscription(&t, Some(qos))
         .map_err(|e| anyhow::anyhow!("subscription {name}: {e:?}"))
 }
 
@@ -109,14 +111,8 @@ fn advertise<M: serde::Serialize>(
     kind: MessageTypeName,
     qos: QosProfile,
 ) -> Result<Publisher<M>> {
-    let topic = node
-        .create_topic(
-            &Name::parse(name).map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))?,
-            kind,
-            &qos,
-        )
-        .map_err(|e| anyhow::anyhow!("topic {name}: {e:?}"))?;
-    node.create_publisher(&topic, Some(qos))
+    let t = topic(node, name, kind, &qos)?;
+    node.create_publisher(&t, Some(qos))
         .map_err(|e| anyhow::anyhow!("publisher {name}: {e:?}"))
 }
 

@@ -155,6 +155,27 @@ pub struct CameraInfo {
     pub roi: RegionOfInterest,
 }
 
+impl CameraInfo {
+    /// The CameraInfo of a pinhole camera with `plumb_bob` distortion (K, identity R, P = [K | 0]).
+    pub fn of(k: &Intrinsics, header: Header) -> Self {
+        Self {
+            header,
+            height: k.height,
+            width: k.width,
+            distortion_model: "plumb_bob".into(),
+            d: k.distortion.to_vec(),
+            k: [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
+            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: [
+                k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
+            ],
+            binning_x: 0,
+            binning_y: 0,
+            roi: RegionOfInterest::default(),
+        }
+    }
+}
+
 /// geometry_msgs/msg/Point (also used for the position of a pose).
 #[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct Point {
@@ -1224,21 +1245,7 @@ pub fn write_bag_with(
             data: mm,
         };
         put(depth_ch, ser(&d)?).map_err(mcap_err)?;
-        let info = CameraInfo {
-            header: header.clone(),
-            height: k.height,
-            width: k.width,
-            distortion_model: "plumb_bob".into(),
-            d: k.distortion.to_vec(),
-            k: [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
-            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-            p: [
-                k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
-            ],
-            binning_x: 0,
-            binning_y: 0,
-            roi: RegionOfInterest::default(),
-        };
+        let info = CameraInfo::of(k, header.clone());
         put(info_ch, ser(&info)?).map_err(mcap_err)?;
         if let (Some(ch), Some(g)) = (pose_ch, gt) {
             let q = g.rotation.quaternion();

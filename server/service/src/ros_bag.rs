@@ -16,10 +16,9 @@ use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
 use nalgebra::Isometry3;
-use pntr_core::Intrinsics;
 use pntr_dataset::bag::{
-    CameraInfo, CompressedImage, Header, Point, Pose, PoseStamped, RegionOfInterest, RosQuaternion,
-    RosVector3, TfMessage, Time, Transform, TransformStamped,
+    CameraInfo, CompressedImage, Header, Point, Pose, PoseStamped, RosQuaternion, RosVector3,
+    TfMessage, Time, Transform, TransformStamped,
 };
 use pntr_dataset::bag_writer::{
     BagWriter, Covariance, DiagnosticArray, DiagnosticStatus, KeyValue, MessageType,
@@ -77,24 +76,6 @@ fn pose(p: &Isometry3<f64>) -> Pose {
     }
 }
 
-fn camera_info(k: &Intrinsics, time_s: f64) -> CameraInfo {
-    CameraInfo {
-        header: header(time_s, FRAME_CAMERA),
-        height: k.height,
-        width: k.width,
-        distortion_model: "plumb_bob".into(),
-        d: k.distortion.to_vec(),
-        k: [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0],
-        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        p: [
-            k.fx, 0.0, k.cx, 0.0, 0.0, k.fy, k.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
-        ],
-        binning_x: 0,
-        binning_y: 0,
-        roi: RegionOfInterest::default(),
-    }
-}
-
 impl BagRecording {
     /// Start the bag folder `out` (it must not exist). Errors name the folder.
     pub fn create(out: &Path) -> Result<Self, String> {
@@ -134,7 +115,7 @@ impl BagRecording {
                 topics::CAMERA_INFO,
                 MessageType::CameraInfo,
                 t,
-                &camera_info(k, o.time_s),
+                &CameraInfo::of(k, header(o.time_s, FRAME_CAMERA)),
             )
             .map_err(err)?;
         }
