@@ -20,7 +20,7 @@
 //! - [`alias`]: a registration locked onto a repeated texture one period off, found from the
 //!   residuals of the other matches and moved when the dense checks prefer the copy they support.
 //! - [`refine`]: a registered pose polished against the map view's whole depth (point-to-plane ICP
-//!   with the keypoint inliers).
+//!   with the keypoint inliers), the chosen one also against the neighbouring map views.
 //! - [`verify`]: dense depth, free-space and colour checks of a pose against the map's thumbnails;
 //!   [`calibration`]: the fitted model that turns them into the probability of a right pose.
 //! - [`prior`]: a rough pose from the robot (odometry, the last fix) as a search region, and the

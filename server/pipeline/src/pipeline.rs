@@ -42,13 +42,24 @@ use crate::map::Map;
 use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
-use crate::refine::{fine_depth, polish, refine_dense};
+use crate::refine::{fine_depth, polish_views, refine_dense, View};
 use crate::shortlist::{automatic_depth, Shortlist, Shortlisted, FINAL_KEYPOINTS};
 
 /// Nearest and farthest a map fix may lie from a tracked pose and still be fused with it, metres.
 pub const FUSION_GATE_MIN_M: f64 = 0.1;
 /// See [`FUSION_GATE_MIN_M`].
 pub const FUSION_GATE_MAX_M: f64 = 0.5;
+
+/// Map views the final polish aligns the query with at most, the matched one included
+/// ([`Pipeline::polish`]).
+pub const POLISH_VIEWS: usize = 4;
+/// Radius around a verified camera in which the polish looks for neighbouring map views, metres.
+pub const POLISH_RADIUS_M: f64 = 1.5;
+/// Nearest map images (with a finer depth) the polish checks for shared surfaces.
+pub const POLISH_NEIGHBOURS_SEARCHED: usize = 12;
+/// Share of the query's valid thumbnail samples a neighbouring map view must agree with to join the
+/// polish.
+pub const POLISH_MIN_SHARED: f64 = 0.3;
 
 /// How far, metres, a map fix may lie from the tracked pose of the same frame and still be fused
 /// with it ([`odometry::fuse`]): three times the track's RMS position error (the square root of
@@ -88,7 +99,9 @@ fn off_track(pose: &Isometry3<f64>, opts: &LocalizeOptions) -> Option<String> {
         heading.max_deg
     ))
 }
-use crate::verify::{aliases, dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb};
+use crate::verify::{
+    aliases, dense_check, dense_evidence, grid_coverage, poses_agree, vec3, Evidence, Thumb,
+};
 use crate::PipelineError;
 
 /// Registered candidates verified per query (the most inliers first).
@@ -1247,7 +1260,7 @@ impl Pipeline {
         let own = chosen.map_or(0.0, |(i, _)| probabilities[i]);
         let best = chosen.map(|(i, conf)| {
             let (mut c, e, _) = scored.swap_remove(i);
-            self.polish(q, &mut c);
+            self.polish(q, &mut c, thumb_ref);
             let covariance = thumb_ref.and_then(|t| self.covariance(&c, t));
             (c, e, conf, covariance)
         });
@@ -1447,12 +1460,13 @@ impl Pipeline {
     }
 
     /// The chosen candidate's pose polished with the finer depth of the query and of its map view,
-    /// where the map has it ([`crate::map::MapImage::fine`], [`polish`]). After the decision, so
-    /// that which answers are LOCALIZED stays what verification decided on the thumbnails: aligned
-    /// on the finer depth before verification, wrong wide-baseline registrations slid along a
-    /// kitchen's cabinets into agreement and were LOCALIZED 0.3-0.5 m off (BENCHMARKS.md, "Real
-    /// recordings").
-    fn polish(&self, q: &Query, c: &mut Candidate) {
+    /// where the map has it ([`crate::map::MapImage::fine`], [`polish_views`]), jointly with up to
+    /// [`POLISH_VIEWS`] - 1 neighbouring map views that see the same surfaces
+    /// ([`Self::polish_neighbours`]). After the decision, so that which answers are LOCALIZED stays
+    /// what verification decided on the thumbnails: aligned on the finer depth before verification,
+    /// wrong wide-baseline registrations slid along a kitchen's cabinets into agreement and were
+    /// LOCALIZED 0.3-0.5 m off (BENCHMARKS.md, "Real recordings").
+    fn polish(&self, q: &Query, c: &mut Candidate, thumb: Option<&Thumb>) {
         let Some(db) = &self.map.images[c.image].fine else {
             return;
         };
@@ -1460,9 +1474,68 @@ impl Pipeline {
         let Some(query) = fine_depth(&q.rgb, &q.depth, &q.intrinsics) else {
             return;
         };
-        if let Some(r) = polish(&query, db, &p, &c.inlier_src, &c.inlier_dst) {
+        let mut views = vec![View {
+            thumb: db,
+            from_ref: Isometry3::identity(),
+        }];
+        if let Some(t) = thumb {
+            views.extend(self.polish_neighbours(c.image, &p, t));
+        }
+        if let Some(r) = polish_views(&query, &views, &p, &c.inlier_src, &c.inlier_dst) {
             c.db_from_query = Some(r);
         }
+    }
+
+    /// Map views near a verified pose (`db_from_query`, against map image `image`, OpenCV axes)
+    /// that see what the query sees: of the [`POLISH_NEIGHBOURS_SEARCHED`] map images of its scene
+    /// nearest to it within [`POLISH_RADIUS_M`] that have a finer depth, those whose thumbnail depth
+    /// agrees with at least [`POLISH_MIN_SHARED`] of the query's valid samples under the pose, the
+    /// most agreeing first, [`POLISH_VIEWS`] - 1 at most, each with its camera from `image`'s.
+    fn polish_neighbours<'a>(
+        &'a self,
+        image: usize,
+        db_from_query: &Isometry3<f64>,
+        thumb: &Thumb,
+    ) -> Vec<View<'a>> {
+        let world_from = |j: usize| {
+            convert_axes(
+                &self.map.images[j].world_from_camera,
+                self.axes,
+                CameraAxes::OpenCv,
+            )
+        };
+        let world_from_db = world_from(image);
+        let world_from_query = world_from_db * db_from_query;
+        let Ok(region) = Region::new(world_from_query.translation.vector, POLISH_RADIUS_M) else {
+            return Vec::new();
+        };
+        let scene = self.map.images[image].scene;
+        let mut found: Vec<(usize, View<'a>)> = self
+            .images_within(&region)
+            .into_iter()
+            .filter(|&j| j != image && self.map.images[j].scene == scene)
+            .filter_map(|j| Some((j, self.map.images[j].fine.as_ref()?)))
+            .take(POLISH_NEIGHBOURS_SEARCHED)
+            .filter_map(|(j, fine)| {
+                let from_ref = world_from(j).inverse() * world_from_db;
+                let counts = dense_check(
+                    thumb,
+                    &self.map.images[j].thumb,
+                    &(from_ref * db_from_query),
+                );
+                (counts.valid > 0 && counts.agree as f64 >= POLISH_MIN_SHARED * counts.valid as f64)
+                    .then_some((
+                        counts.agree,
+                        View {
+                            thumb: fine,
+                            from_ref,
+                        },
+                    ))
+            })
+            .collect();
+        found.sort_by_key(|f| std::cmp::Reverse(f.0));
+        found.truncate(POLISH_VIEWS - 1);
+        found.into_iter().map(|(_, v)| v).collect()
     }
 
     /// The candidates with a registration, most inliers first, those with at least the preset's
