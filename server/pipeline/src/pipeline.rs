@@ -1474,10 +1474,7 @@ impl Pipeline {
         let Some(query) = fine_depth(&q.rgb, &q.depth, &q.intrinsics) else {
             return;
         };
-        let mut views = vec![View {
-            thumb: db,
-            from_ref: Isometry3::identity(),
-        }];
+        let mut views = vec![View::matched(db)];
         if let Some(t) = thumb {
             views.extend(self.polish_neighbours(c.image, &p, t));
         }

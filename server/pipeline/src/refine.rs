@@ -173,16 +173,7 @@ pub fn refine_dense(
     src: &[Vector3<f64>],
     dst: &[Vector3<f64>],
 ) -> Option<Isometry3<f64>> {
-    refine_views(
-        query,
-        &[View {
-            thumb: db,
-            from_ref: Isometry3::identity(),
-        }],
-        db_from_query,
-        src,
-        dst,
-    )
+    refine_views(query, &[View::matched(db)], db_from_query, src, dst)
 }
 
 /// One map view of a joint refinement ([`refine_views`]): its depth, and its camera from the
@@ -193,6 +184,16 @@ pub struct View<'a> {
     pub thumb: &'a Thumb,
     /// `view_from_ref`: the reference camera's coordinates into this view's.
     pub from_ref: Isometry3<f64>,
+}
+
+impl<'a> View<'a> {
+    /// The matched view itself: the reference frame of [`refine_views`].
+    pub fn matched(thumb: &'a Thumb) -> Self {
+        Self {
+            thumb,
+            from_ref: Isometry3::identity(),
+        }
+    }
 }
 
 /// [`refine_dense`] against several map views at once: every query sample is associated with each
@@ -349,16 +350,7 @@ pub fn polish(
     src: &[Vector3<f64>],
     dst: &[Vector3<f64>],
 ) -> Option<Isometry3<f64>> {
-    polish_views(
-        query,
-        &[View {
-            thumb: db,
-            from_ref: Isometry3::identity(),
-        }],
-        db_from_query,
-        src,
-        dst,
-    )
+    polish_views(query, &[View::matched(db)], db_from_query, src, dst)
 }
 
 /// [`polish`] against several map views' finer depth at once ([`refine_views`]; `views[0]` is the
@@ -406,6 +398,46 @@ mod tests {
                 (p, (truth * Point3::from(p)).coords + noise)
             })
             .unzip()
+    }
+
+    /// Keypoint pairs at `pixels` of `query` that have depth: their points in the query camera and,
+    /// under `truth`, in the map view's, with `noise` times -1, 0 or 1 in turn.
+    fn pairs_at(
+        query: &Thumb,
+        truth: &Isometry3<f64>,
+        pixels: impl Iterator<Item = (u32, u32)>,
+        noise: Vector3<f64>,
+    ) -> (Vec<Vector3<f64>>, Vec<Vector3<f64>>) {
+        pixels
+            .enumerate()
+            .filter_map(|(i, (c, r))| {
+                let z = query.depth_m(c, r)?;
+                let p = query.intrinsics.backproject(c as f64, r as f64, z).coords;
+                let n = noise * ((i % 3) as f64 - 1.0);
+                Some((p, (truth * Point3::from(p)).coords + n))
+            })
+            .unzip()
+    }
+
+    /// Position (m) and rotation (deg) error of `p` against `truth`.
+    fn pose_error(p: &Isometry3<f64>, truth: &Isometry3<f64>) -> (f64, f64) {
+        (
+            (p.translation.vector - truth.translation.vector).norm(),
+            p.rotation.angle_to(&truth.rotation).to_degrees(),
+        )
+    }
+
+    /// A Kinect-like VGA camera (f = 525 px).
+    fn vga() -> Intrinsics {
+        Intrinsics {
+            fx: 525.0,
+            fy: 525.0,
+            cx: 319.5,
+            cy: 239.5,
+            width: 640,
+            height: 480,
+            distortion: [0.0; 5],
+        }
     }
 
     #[test]
@@ -494,15 +526,7 @@ mod tests {
     fn a_vga_frame_is_polished_on_its_finer_depth_and_only_near_its_pose() {
         // A Kinect-like camera (640 x 480, f = 525, depth noise 0.0015 z^2 per pixel) in a room
         // with boxes about: the thumbnail keeps blocks of 16 pixels, the finer depth blocks of 4.
-        let k = Intrinsics {
-            fx: 525.0,
-            fy: 525.0,
-            cx: 319.5,
-            cy: 239.5,
-            width: 640,
-            height: 480,
-            distortion: [0.0; 5],
-        };
+        let k = vga();
         assert!(fine_depth(
             &RgbImage::new(256, 256, vec![0; 256 * 256 * 3]).unwrap(),
             &DepthMap::from_metres(256, 256, vec![1.0; 256 * 256]).unwrap(),
@@ -522,23 +546,13 @@ mod tests {
         let q_coarse = Thumb::new(&rgb, &depth, &k);
         let q_fine = fine_depth(&rgb, &depth, &k).unwrap();
         // Keypoint pairs spread over the view, with 2 cm noise in the map view's frame.
-        let (mut src, mut dst) = (Vec::new(), Vec::new());
-        for i in 0..24u32 {
-            let (c, r) = (20 + 25 * (i % 6), 15 + 25 * (i / 6));
-            let Some(z) = q_fine.depth_m(c, r) else {
-                continue;
-            };
-            let p = q_fine.intrinsics.backproject(c as f64, r as f64, z).coords;
-            let noise = Vector3::new(0.02, -0.02, 0.01) * ((i % 3) as f64 - 1.0);
-            src.push(p);
-            dst.push((truth * Point3::from(p)).coords + noise);
-        }
-        let error = |p: &Isometry3<f64>| {
-            (
-                (p.translation.vector - truth.translation.vector).norm(),
-                p.rotation.angle_to(&truth.rotation).to_degrees(),
-            )
-        };
+        let (src, dst) = pairs_at(
+            &q_fine,
+            &truth,
+            (0..24u32).map(|i| (20 + 25 * (i % 6), 15 + 25 * (i / 6))),
+            Vector3::new(0.02, -0.02, 0.01),
+        );
+        let error = |p: &Isometry3<f64>| pose_error(p, &truth);
         // A verified pose 4 cm and 0.8 degrees off.
         let axis = Vector3::new(0.2, 1.0, 0.3).normalize();
         let init = Isometry3::from_parts(
@@ -572,15 +586,7 @@ mod tests {
         // A VGA camera (Kinect-like depth noise) in the cluttered room: the matched map view 0.8 m
         // and 60 degrees from the query sees part of what it sees; a neighbouring map view near
         // the query sees the rest. Keypoint pairs only in one corner, with 2 cm noise.
-        let k = Intrinsics {
-            fx: 525.0,
-            fy: 525.0,
-            cx: 319.5,
-            cy: 239.5,
-            width: 640,
-            height: 480,
-            distortion: [0.0; 5],
-        };
+        let k = vga();
         let world_from_db = Isometry3::from_parts(
             Translation3::new(0.0, 0.0, 0.0),
             UnitQuaternion::from_euler_angles(0.0, -0.6, 0.0),
@@ -603,33 +609,20 @@ mod tests {
             fine_of(&world_from_query, 3),
         );
         let truth = world_from_db.inverse() * world_from_query;
-        let (mut src, mut dst) = (Vec::new(), Vec::new());
-        for i in 0..12u32 {
-            let (c, r) = (10 + 4 * (i % 4), 10 + 4 * (i / 4));
-            let Some(z) = query.depth_m(c, r) else {
-                continue;
-            };
-            let p = query.intrinsics.backproject(c as f64, r as f64, z).coords;
-            let noise = Vector3::new(0.02, -0.015, 0.02) * ((i % 3) as f64 - 1.0);
-            src.push(p);
-            dst.push((truth * Point3::from(p)).coords + noise);
-        }
+        let (src, dst) = pairs_at(
+            &query,
+            &truth,
+            (0..12u32).map(|i| (10 + 4 * (i % 4), 10 + 4 * (i / 4))),
+            Vector3::new(0.02, -0.015, 0.02),
+        );
         assert!(src.len() >= 6, "the corner has depth");
         let init = Isometry3::from_parts(
             Translation3::from(truth.translation.vector + Vector3::new(0.03, -0.02, 0.02)),
             UnitQuaternion::from_scaled_axis(Vector3::new(0.2, 1.0, 0.3).normalize() * 0.015)
                 * truth.rotation,
         );
-        let error = |p: &Isometry3<f64>| {
-            (
-                (p.translation.vector - truth.translation.vector).norm(),
-                p.rotation.angle_to(&truth.rotation).to_degrees(),
-            )
-        };
-        let alone = [View {
-            thumb: &db,
-            from_ref: Isometry3::identity(),
-        }];
+        let error = |p: &Isometry3<f64>| pose_error(p, &truth);
+        let alone = [View::matched(&db)];
         let both = [
             alone[0],
             View {
@@ -656,13 +649,7 @@ mod tests {
             depth_mm: vec![0; db.depth_mm.len()],
             ..db.clone()
         };
-        let via_near = [
-            View {
-                thumb: &blank,
-                from_ref: Isometry3::identity(),
-            },
-            both[1],
-        ];
+        let via_near = [View::matched(&blank), both[1]];
         let moved = refine_views(&query, &via_near, &init, &src, &dst).expect("refined");
         let (near_m, near_deg) = error(&moved);
         assert!(
