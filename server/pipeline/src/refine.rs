@@ -32,7 +32,7 @@ pub const AGREEMENT_NOISE_SIGMAS: f64 = 2.0;
 pub const FINE_FOCAL_PX: f64 = 128.0;
 /// Largest side of that finer depth, pixels (bounds its cost and the map's size).
 pub const FINE_MAX_SIDE: u32 = 160;
-/// Largest move of the final polish ([`polish`]), metres.
+/// Largest move of the final polish ([`polish_views`]), metres.
 pub const MAX_POLISH_M: f64 = 0.1;
 /// Largest rotation of the final polish, degrees.
 pub const MAX_POLISH_DEG: f64 = 3.0;
@@ -339,22 +339,12 @@ pub fn refine_views(
     keeps_agreement(agreeing_all(&est), agreeing_all(ref_from_query)).then_some(est)
 }
 
-/// The final polish of a verified pose: [`refine_dense`] on the finer depth of both frames
-/// ([`fine_depth`]), kept only when it moves the camera by at most [`MAX_POLISH_M`] and
-/// [`MAX_POLISH_DEG`] (a verified pose is right within a few centimetres or wrong; the polish does
-/// not move it to another place). Same arguments and `None` cases as [`refine_dense`].
-pub fn polish(
-    query: &Thumb,
-    db: &Thumb,
-    db_from_query: &Isometry3<f64>,
-    src: &[Vector3<f64>],
-    dst: &[Vector3<f64>],
-) -> Option<Isometry3<f64>> {
-    polish_views(query, &[View::matched(db)], db_from_query, src, dst)
-}
-
-/// [`polish`] against several map views' finer depth at once ([`refine_views`]; `views[0]` is the
-/// matched view, whose frame `ref_from_query` and the pairs' `dst` are in), with the same bounds.
+/// The final polish of a verified pose: [`refine_views`] on the finer depth ([`fine_depth`]) of the
+/// query and of the map views (`views[0]` the matched one, whose frame `ref_from_query` and the
+/// pairs' `dst` are in; [`View::matched`] alone for one view), kept only when it moves the camera by
+/// at most [`MAX_POLISH_M`] and [`MAX_POLISH_DEG`] (a verified pose is right within a few
+/// centimetres or wrong; the polish does not move it to another place). Same `None` cases as
+/// [`refine_views`].
 pub fn polish_views(
     query: &Thumb,
     views: &[View<'_>],
@@ -560,7 +550,8 @@ mod tests {
             UnitQuaternion::from_scaled_axis(axis * 0.8f64.to_radians()) * truth.rotation,
         );
         let coarse = refine_dense(&q_coarse, &db_coarse, &init, &src, &dst).unwrap_or(init);
-        let polished = polish(&q_fine, &db_fine, &coarse, &src, &dst).expect("polished");
+        let polished = polish_views(&q_fine, &[View::matched(&db_fine)], &coarse, &src, &dst)
+            .expect("polished");
         let (coarse_m, coarse_deg) = error(&coarse);
         let (fine_m, fine_deg) = error(&polished);
         assert!(
@@ -578,7 +569,7 @@ mod tests {
             Translation3::from(truth.translation.vector + Vector3::new(0.2, 0.0, 0.15)),
             truth.rotation,
         );
-        assert!(polish(&q_fine, &db_fine, &far, &src, &dst).is_none());
+        assert!(polish_views(&q_fine, &[View::matched(&db_fine)], &far, &src, &dst).is_none());
     }
 
     #[test]
