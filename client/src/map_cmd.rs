@@ -1030,9 +1030,18 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
         header.built_by,
         header.build_seconds
     );
+    let keypoints = if p.extractor_top_k() > p.keypoints {
+        format!(
+            "{} keypoints (up to {} on larger images)",
+            p.keypoints,
+            p.extractor_top_k()
+        )
+    } else {
+        format!("{} keypoints", p.keypoints)
+    };
     println!(
-        "preset {}: {} ({} words) + {}, index {}, {} keypoints, {} candidates, matcher {}, solver {:?}",
-        p.name, p.global, p.vlad_words, p.extractor, p.index, p.keypoints, p.candidates, p.matcher, p.solver
+        "preset {}: {} ({} words) + {}, index {}, {keypoints}, {} candidates, matcher {}, solver {:?}",
+        p.name, p.global, p.vlad_words, p.extractor, p.index, p.candidates, p.matcher, p.solver
     );
     if p.map_extractor() != p.extractor {
         println!(

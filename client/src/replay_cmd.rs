@@ -78,7 +78,8 @@ pub struct ReplayArgs {
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
     /// Also write one JSON line per frame (timestamp, status, mode, reason, cause, confidence, inliers,
-    /// matched image, position standard deviation from the covariance, latency, and with ground truth the translation and rotation errors): what
+    /// matched image, position and rotation standard deviations from the covariance, the map version
+    /// that answered, latency, and with ground truth the translation and rotation errors): what
     /// answered each frame, and why a frame was not localized.
     #[arg(long, value_name = "OUT.jsonl")]
     pub frames_log: Option<PathBuf>,
@@ -241,6 +242,8 @@ struct Answered {
     inliers: u32,
     matched_image_id: String,
     position_sigma_m: Option<f64>,
+    rotation_sigma_deg: Option<f64>,
+    map_version: String,
     latency_ms: f64,
     stages: Vec<(String, f64)>,
 }
@@ -309,6 +312,8 @@ fn frames_log(out: &[Answered]) -> String {
             "inliers": a.inliers,
             "matched_image_id": a.matched_image_id,
             "position_sigma_m": a.position_sigma_m,
+            "rotation_sigma_deg": a.rotation_sigma_deg,
+            "map_version": a.map_version,
             "latency_ms": a.latency_ms,
             "error_m": error_m,
             "error_deg": error_deg,
@@ -597,6 +602,12 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             matched_image_id: r.matched_image_id.clone(),
             position_sigma_m: (r.covariance.len() == 36)
                 .then(|| (r.covariance[0] + r.covariance[7] + r.covariance[14]).sqrt()),
+            rotation_sigma_deg: (r.covariance.len() == 36).then(|| {
+                (r.covariance[21] + r.covariance[28] + r.covariance[35])
+                    .sqrt()
+                    .to_degrees()
+            }),
+            map_version: r.map_version.clone(),
             latency_ms,
             stages: crate::remote::stage_seconds(&r),
         });

@@ -80,6 +80,29 @@ impl Features {
     pub fn descriptor(&self, i: usize) -> &[f32] {
         &self.descriptors[i * self.dim..(i + 1) * self.dim]
     }
+
+    /// Keep the `n` keypoints of highest score (ties: the earlier one), in their order; nothing
+    /// changes when there are at most `n`.
+    pub fn keep_strongest(&mut self, n: usize) {
+        if self.len() <= n {
+            return;
+        }
+        let mut order: Vec<usize> = (0..self.len()).collect();
+        order.sort_by(|&a, &b| self.scores[b].total_cmp(&self.scores[a]).then(a.cmp(&b)));
+        order.truncate(n);
+        order.sort_unstable();
+        self.keypoints = order.iter().map(|&i| self.keypoints[i]).collect();
+        self.scores = order.iter().map(|&i| self.scores[i]).collect();
+        if self.dim > 0 {
+            self.descriptors = order
+                .iter()
+                .flat_map(|&i| self.descriptor(i).to_vec())
+                .collect();
+        }
+        if !self.binary.is_empty() {
+            self.binary = order.iter().map(|&i| self.binary[i]).collect();
+        }
+    }
 }
 
 /// Matches between two feature sets: `pairs[k] = (index in the first, index in the second)`.
@@ -93,8 +116,17 @@ pub struct Matches {
 
 /// Something that turns an image into features.
 pub trait Extractor: Send + Sync {
-    /// Extract features from an RGB image.
+    /// Extract features from an RGB image (at most the extractor's configured `top_k`).
     fn extract(&self, image: &RgbImage) -> Result<Features, FeatureError>;
+    /// Extract at most `top_k` keypoints, the strongest: what a pipeline calls when the count
+    /// depends on the image's size (`pntr_pipeline::preset::Preset::keypoints_for`). No more than
+    /// the configured `top_k` come back. The default extracts and keeps the strongest
+    /// ([`Features::keep_strongest`]); XFeat selects them in its own top-k step.
+    fn extract_at_most(&self, image: &RgbImage, top_k: usize) -> Result<Features, FeatureError> {
+        let mut f = self.extract(image)?;
+        f.keep_strongest(top_k);
+        Ok(f)
+    }
     /// The name used in configuration.
     fn name(&self) -> &'static str;
     /// Where its network runs: `cpu` or `cuda` (ONNX Runtime), `openvino-bf16` or `openvino-f32`

@@ -264,6 +264,7 @@ impl XFeat {
         rel: &Map,
         scale: (f32, f32),
         image_size: (u32, u32),
+        top_k: usize,
     ) -> Features {
         let (hh, hw) = (heat.h, heat.w);
         let th = self.params.detection_threshold;
@@ -312,7 +313,7 @@ impl XFeat {
             .collect();
         // Highest score first; ties keep row-major order.
         scored.sort_by(|a, b| b.0.total_cmp(&a.0));
-        scored.truncate(self.params.top_k);
+        scored.truncate(top_k);
         scored.retain(|s| s.0 > 0.0);
         let mut keypoints = Vec::with_capacity(scored.len());
         let mut scores = Vec::with_capacity(scored.len());
@@ -378,6 +379,11 @@ impl XFeat {
 
 impl Extractor for XFeat {
     fn extract(&self, image: &RgbImage) -> Result<Features, FeatureError> {
+        self.extract_at_most(image, self.params.top_k)
+    }
+
+    fn extract_at_most(&self, image: &RgbImage, top_k: usize) -> Result<Features, FeatureError> {
+        let top_k = top_k.min(self.params.top_k);
         let (w, h) = (image.width as usize, image.height as usize);
         if w < 32 || h < 32 {
             return Err(FeatureError::Input(format!(
@@ -469,6 +475,7 @@ impl Extractor for XFeat {
             &rel,
             (w as f32 / rw as f32, h as f32 / rh as f32),
             (image.width, image.height),
+            top_k,
         ))
     }
 

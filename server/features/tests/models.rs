@@ -551,3 +551,56 @@ fn aliked_matches_its_export_reference_and_geometry() {
         }
     }
 }
+
+/// A pipeline asks each image for its own keypoint count (`Preset::keypoints_for`): XFeat's own
+/// top-k step and the default (extract, keep the strongest) must both give the strongest `n` of the
+/// full extraction, never more than the extractor's configured count.
+#[test]
+fn extract_at_most_keeps_the_strongest_keypoints() {
+    let img = image("image_a");
+    let strongest = |f: &Features, n: usize| -> Vec<[f32; 2]> {
+        let mut order: Vec<usize> = (0..f.len()).collect();
+        order.sort_by(|&a, &b| f.scores[b].total_cmp(&f.scores[a]).then(a.cmp(&b)));
+        let mut kept: Vec<usize> = order.into_iter().take(n).collect();
+        kept.sort_unstable();
+        kept.into_iter().map(|i| f.keypoints[i]).collect()
+    };
+    let x = xfeat();
+    let all = x.extract(&img).unwrap();
+    assert!(all.len() > 300, "{} keypoints", all.len());
+    let some = x.extract_at_most(&img, 200).unwrap();
+    assert_eq!(some.len(), 200);
+    let mut got = some.keypoints.clone();
+    got.sort_by(|a, b| a[1].total_cmp(&b[1]).then(a[0].total_cmp(&b[0])));
+    let mut want = strongest(&all, 200);
+    want.sort_by(|a, b| a[1].total_cmp(&b[1]).then(a[0].total_cmp(&b[0])));
+    assert_eq!(got, want);
+    // Each kept keypoint keeps its own descriptor.
+    let j = all
+        .keypoints
+        .iter()
+        .position(|k| *k == some.keypoints[7])
+        .unwrap();
+    assert_eq!(some.descriptor(7), all.descriptor(j));
+    // More than the configured count is not given.
+    let params = XFeatParams {
+        top_k: 100,
+        ..XFeatParams::default()
+    };
+    let small = XFeat::load(&models().join("xfeat_backbone.onnx"), params).unwrap();
+    assert_eq!(small.extract_at_most(&img, 5000).unwrap().len(), 100);
+    // The default path (ORB: extract, then keep the strongest), binary descriptors with them.
+    let orb = Orb { top_k: 1024 };
+    let full = orb.extract(&img).unwrap();
+    assert!(full.len() > 150, "{} ORB keypoints", full.len());
+    let few = orb.extract_at_most(&img, 150).unwrap();
+    assert_eq!(few.len(), 150);
+    assert_eq!(few.binary.len(), 150);
+    assert_eq!(few.keypoints, strongest(&full, 150));
+    let i = full
+        .keypoints
+        .iter()
+        .position(|k| *k == few.keypoints[3])
+        .unwrap();
+    assert_eq!(few.binary[3], full.binary[i]);
+}

@@ -512,7 +512,11 @@ impl<'a> MapBuilder<'a> {
             )));
         }
         self.header_camera.get_or_insert(k);
-        let f = self.stage.extractor.extract(v.rgb)?;
+        let pixels = v.rgb.width as usize * v.rgb.height as usize;
+        let f = self
+            .stage
+            .extractor
+            .extract_at_most(v.rgb, self.preset.keypoints_for(pixels))?;
         if let Some(m) = &self.global_model {
             self.onnx_desc.push(Descriptor::Dense(
                 m.describe(v.rgb)

@@ -121,6 +121,27 @@ pub const FALLBACK_MIN_SIMILARITY: f32 = 0.78;
 /// position errors' median Mahalanobis distance was 1.93 and 2.47 against 1.54 for a consistent
 /// 3-d covariance, so the variances are doubled (BENCHMARKS.md, "Covariance consistency").
 pub const COVARIANCE_SCALE: f64 = 2.0;
+/// Largest rotation standard deviation (degrees, the square root of the trace of the covariance's
+/// rotation block) of a LOCALIZED answer: a pose whose own covariance leaves it this loosely held
+/// could be 10 deg off (three standard deviations), where a wrong answer begins. On real Kinect
+/// frames every answer more than 0.5 m or 10 deg off had 3.1-9.8 deg, and those within (5 cm, 5
+/// deg) mostly less than 2 (BENCHMARKS.md, "Real recordings: more keypoints for larger frames").
+/// Applied only against a map of a real camera's size, f >= 256 px (one that keeps a finer depth
+/// per image, [`crate::refine::fine_depth`]): HPointLoc-camera answers (f = 128 px) this loosely
+/// held were right, and refusing them cost 1 point of recall on clean rendered frames and 1.6 on
+/// frames with a robot camera's effects. (The frame's measured depth noise does not tell the two
+/// apart: the Kinect's correlated noise measures as clean.)
+pub const MAX_ROTATION_SIGMA_DEG: f64 = 3.0;
+
+/// The rotation standard deviation of a 6x6 covariance in the ROS order (x, y, z, then rotation
+/// about x, y, z in radians): the square root of the rotation block's trace, in degrees.
+pub fn rotation_sigma_deg(covariance: &[f64; 36]) -> f64 {
+    (covariance[21] + covariance[28] + covariance[35])
+        .max(0.0)
+        .sqrt()
+        .to_degrees()
+}
+
 /// A map view farther than this from the matched one (metres), or turned more (degrees), is an
 /// independent view whose registration counts for the candidates' consensus.
 pub const INDEPENDENT_VIEW_M: f64 = 1.0;
@@ -673,7 +694,11 @@ impl Pipeline {
         let q: &Query = &resampled.query;
         let tr = Instant::now();
         times.resampling = (tr - t0).as_secs_f64();
-        let fq = self.stage.extractor.extract(&q.rgb)?;
+        let pixels = q.rgb.width as usize * q.rgb.height as usize;
+        let fq = self
+            .stage
+            .extractor
+            .extract_at_most(&q.rgb, self.preset.keypoints_for(pixels))?;
         let t1 = Instant::now();
         times.extraction = (t1 - tr).as_secs_f64();
         // A query that sees less than a map image describes the place less surely: widen the
@@ -1314,8 +1339,16 @@ impl Pipeline {
             .world_from_query(&c)
             .expect("verified candidates are valid");
         let estimate = convert_axes(&world_from_query, CameraAxes::OpenCv, self.axes);
+        // A pose its own inliers hold too loosely is not an answer, however sure the place is:
+        // for a real camera's frame (a map that keeps finer depth, f >= 256 px) only; see
+        // MAX_ROTATION_SIGMA_DEG for where it was measured.
+        let loose = covariance.as_ref().map(rotation_sigma_deg).filter(|&deg| {
+            deg > MAX_ROTATION_SIGMA_DEG
+                && p >= self.min_confidence
+                && self.map.images[c.image].fine.is_some()
+        });
         let covariance = covariance.map(Box::new);
-        let localized = p >= self.min_confidence;
+        let localized = p >= self.min_confidence && loose.is_none();
         Ok(Localization {
             status: if localized {
                 Status::Localized
@@ -1323,6 +1356,12 @@ impl Pipeline {
                 Status::NotLocalized
             },
             reason: (!localized).then(|| {
+                if let Some(deg) = loose {
+                    return format!(
+                        "verification: the place verifies (confidence {p:.2}) but the pose is loosely held: rotation +-{deg:.1} deg (one standard deviation, {} inliers), more than the {MAX_ROTATION_SIGMA_DEG} deg a LOCALIZED answer may carry",
+                        c.inliers
+                    );
+                }
                 let turned = turned_rival.map_or(String::new(), |(deg, pr)| {
                     format!(
                         "; a pose turned by {deg:.0} deg also verifies (probability {pr:.2}): the room looks alike turned round and the map cannot tell the two apart"
@@ -1346,7 +1385,9 @@ impl Pipeline {
             // A pose that verified on its own but lost to a rival (a look-alike place, the room
             // turned round) is a look-alike; one that never verified is unverified.
             cause: (!localized).then_some(
-                if turned_rival.is_some() || own >= self.min_confidence {
+                if loose.is_some() {
+                    Cause::Unverified
+                } else if turned_rival.is_some() || own >= self.min_confidence {
                     Cause::LookAlike
                 } else {
                     Cause::Unverified
@@ -1842,6 +1883,57 @@ pub fn check_query(q: &Query) -> Result<(), PipelineError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The gate's quantity on the covariance the pipeline computes from inliers: a real sensor's
+    /// pose held by a dozen matches bunched on one patch at 2.5 m is loosely held, one held by
+    /// matches spread over the view is not, with the same 1.5 cm of point noise.
+    #[test]
+    fn few_bunched_inliers_hold_a_rotation_loosely_and_spread_ones_tightly() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut noise = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (((state >> 11) as f64 / (1u64 << 53) as f64) - 0.5) * 0.05
+        };
+        let sigma = |src: Vec<Vector3<f64>>, noise: &mut dyn FnMut() -> f64| {
+            let dst: Vec<Vector3<f64>> = src
+                .iter()
+                .map(|p| p + Vector3::new(noise(), noise(), noise()))
+                .collect();
+            let cov = point_to_point_covariance(
+                &src,
+                &dst,
+                &Rigid::from_isometry(&Isometry3::identity()),
+                COVARIANCE_MIN_SIGMA_M,
+            )
+            .unwrap()
+                * COVARIANCE_SCALE;
+            let mut c = [0.0; 36];
+            for r in 0..6 {
+                for k in 0..6 {
+                    c[r * 6 + k] = cov[(r, k)];
+                }
+            }
+            rotation_sigma_deg(&c)
+        };
+        let bunched: Vec<Vector3<f64>> = (0..12)
+            .map(|i| Vector3::new(0.3 + 0.05 * (i % 4) as f64, 0.05 * (i / 4) as f64, 2.5))
+            .collect();
+        let spread: Vec<Vector3<f64>> = (0..40)
+            .map(|i| {
+                let (u, v) = ((i % 8) as f64 / 7.0 - 0.5, (i / 8) as f64 / 4.0 - 0.5);
+                let z = 1.5 + (i % 3) as f64;
+                Vector3::new(u * 1.6 * z, v * 1.2 * z, z)
+            })
+            .collect();
+        let (loose, tight) = (sigma(bunched, &mut noise), sigma(spread, &mut noise));
+        assert!(loose > MAX_ROTATION_SIGMA_DEG, "bunched: {loose:.2} deg");
+        assert!(
+            tight < MAX_ROTATION_SIGMA_DEG / 3.0,
+            "spread: {tight:.2} deg"
+        );
+    }
 
     #[test]
     fn a_fix_is_fused_within_three_sigmas_of_the_track_and_its_bounds() {

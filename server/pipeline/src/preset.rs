@@ -44,8 +44,15 @@ pub struct Preset {
     pub extractor: String,
     /// Matcher name (`lighterglue`, `lightglue`, `mnn`, `onnx`).
     pub matcher: String,
-    /// Keypoints per image.
+    /// Keypoints per image of up to [`KEYPOINTS_REFERENCE_PIXELS`] (HPointLoc's 256x256 frames,
+    /// which the counts were chosen for); see [`Preset::keypoints_for`] for larger images.
     pub keypoints: usize,
+    /// Most keypoints per image for images larger than [`KEYPOINTS_REFERENCE_PIXELS`]: the count
+    /// grows with the described image's pixels up to this many ([`Preset::keypoints_for`]), the
+    /// same for the map's images and the queries. 0 (also for maps written before this field) keeps
+    /// `keypoints` at every size.
+    #[serde(default)]
+    pub keypoints_max: usize,
     /// Retrieval candidates considered per query (k of top-k).
     pub candidates: usize,
     /// Global candidates re-ranked by a vote of their strongest keypoints before the `candidates`
@@ -78,6 +85,18 @@ pub struct Preset {
     #[serde(default)]
     pub max_image_pixels: usize,
 }
+
+/// Pixels of the image size [`Preset::keypoints`] was chosen for: HPointLoc's 256x256 frames.
+pub const KEYPOINTS_REFERENCE_PIXELS: usize = 256 * 256;
+
+/// [`Preset::keypoints_max`] of the XFeat + MNN presets that describe frames at the camera's own
+/// size: twice their 512, reached from 131,072 pixels on (a 640x480 frame has 4.7 times a 256x256
+/// one's pixels). Measured on real 640x480 Kinect frames (BENCHMARKS.md, "Real recordings: more
+/// keypoints for larger frames"): with 512 keypoints a VGA frame's pose rests on a few dozen matches
+/// and comes out loosely held; with 1024 more frames localize within (5 cm, 5 deg) under the
+/// covariance gate ([`crate::pipeline::MAX_ROTATION_SIGMA_DEG`]) for about 30 % more server time,
+/// where 2048 doubled the time for two frames more.
+pub const XFEAT_MNN_KEYPOINTS_MAX: usize = 1024;
 
 /// [`Preset::max_image_pixels`] of the `-qvga` presets: 320x240, about a 256x256 frame's cost.
 pub const QVGA_PIXELS: usize = 320 * 240;
@@ -122,6 +141,7 @@ impl Preset {
             extractor: "xfeat".into(),
             matcher: "lighterglue".into(),
             keypoints: 512,
+            keypoints_max: 0,
             candidates: 5,
             shortlist: 0,
             rerank: true,
@@ -162,15 +182,18 @@ impl Preset {
                 ..base
             },
             "xfeat-mnn" => Self {
+                keypoints_max: XFEAT_MNN_KEYPOINTS_MAX,
                 matcher: "mnn".into(),
                 ..base
             },
             "xfeat-mnn-int8" => Self {
+                keypoints_max: XFEAT_MNN_KEYPOINTS_MAX,
                 extractor: "xfeat-int8".into(),
                 matcher: "mnn".into(),
                 ..base
             },
             "xfeat-mnn-bf16" => Self {
+                keypoints_max: XFEAT_MNN_KEYPOINTS_MAX,
                 extractor: "xfeat-bf16".into(),
                 matcher: "mnn".into(),
                 ..base
@@ -273,13 +296,31 @@ impl Preset {
             .map_err(|e| PipelineError::Config(e.to_string()))
     }
 
+    /// Keypoints to describe an image of `pixels` pixels with (after any resampling to the map's
+    /// scale): [`Self::keypoints`] up to [`KEYPOINTS_REFERENCE_PIXELS`], then in proportion to the
+    /// pixels (the same density) up to [`Self::keypoints_max`]; `keypoints` at every size when that
+    /// is 0 or smaller. The map's images and the queries follow the same rule, so both sides of a
+    /// match are described alike.
+    pub fn keypoints_for(&self, pixels: usize) -> usize {
+        let most = self.keypoints_max.max(self.keypoints);
+        let scaled = (self.keypoints as f64 * pixels as f64 / KEYPOINTS_REFERENCE_PIXELS as f64)
+            .round() as usize;
+        scaled.clamp(self.keypoints, most)
+    }
+
+    /// The most keypoints any image asks of the extractor ([`Self::keypoints_for`]): its
+    /// configured `top_k`.
+    pub fn extractor_top_k(&self) -> usize {
+        self.keypoints_max.max(self.keypoints)
+    }
+
     /// The feature-stage configuration (models from `models_dir`).
     pub fn feature_config(&self, models_dir: PathBuf) -> FeatureConfig {
         FeatureConfig {
             extractor: self.extractor.clone(),
             matcher: self.matcher.clone(),
             models_dir,
-            top_k: self.keypoints,
+            top_k: self.extractor_top_k(),
             ..FeatureConfig::default()
         }
     }
@@ -364,5 +405,33 @@ mod tests {
         let fast = Preset::named("fast").unwrap();
         assert_eq!(fast.map_extractor(), "xfeat");
         assert_eq!(fast.calibration_preset(), "fast");
+    }
+
+    #[test]
+    fn keypoints_grow_with_the_image_up_to_the_presets_most() {
+        let p = Preset::named("xfeat-mnn").unwrap();
+        // HPointLoc's 256x256 frames and anything smaller: the preset's 512.
+        assert_eq!(p.keypoints_for(256 * 256), 512);
+        assert_eq!(p.keypoints_for(128 * 128), 512);
+        // The same density above it, up to the most.
+        assert_eq!(p.keypoints_for(320 * 240), 600);
+        assert_eq!(p.keypoints_for(362 * 362), 1024);
+        assert_eq!(p.keypoints_for(640 * 480), XFEAT_MNN_KEYPOINTS_MAX);
+        assert_eq!(p.keypoints_for(1280 * 720), XFEAT_MNN_KEYPOINTS_MAX);
+        assert_eq!(p.extractor_top_k(), XFEAT_MNN_KEYPOINTS_MAX);
+        assert_eq!(
+            p.feature_config(PathBuf::new()).top_k,
+            XFEAT_MNN_KEYPOINTS_MAX
+        );
+        // The -qvga presets keep their budget: 512 at every size.
+        let q = Preset::named("xfeat-mnn-qvga").unwrap();
+        assert_eq!(q.keypoints_for(640 * 480), 512);
+        // A map written before the field (no `keypoints_max` in its header) keeps its count.
+        let mut old = serde_json::to_value(&p).unwrap();
+        old.as_object_mut().unwrap().remove("keypoints_max");
+        let old: Preset = serde_json::from_value(old).unwrap();
+        assert_eq!(old.keypoints_max, 0);
+        assert_eq!(old.keypoints_for(640 * 480), 512);
+        assert_eq!(old.extractor_top_k(), 512);
     }
 }

@@ -514,7 +514,7 @@ impl Engine {
         let key = (
             preset.extractor.clone(),
             preset.matcher.clone(),
-            preset.keypoints,
+            preset.extractor_top_k(),
         );
         let mut stages = self.stages.lock().unwrap_or_else(|e| e.into_inner());
         if let Some(s) = stages.get(&key) {
@@ -589,7 +589,7 @@ impl Engine {
                 (
                     m.preset.extractor.clone(),
                     m.preset.matcher.clone(),
-                    m.preset.keypoints,
+                    m.preset.extractor_top_k(),
                 )
             })
             .collect();
