@@ -10,8 +10,10 @@
 #   - OpenVINO's CPU runtime from the openvino PyPI wheel (C library, CPU plugin, ONNX reader, TBB), into
 #     .deps/openvino/ (git-ignored): the engine of the `xfeat-bf16` extractor
 #   - a Python venv in .deps/venv with h5py and numpy, used by the tests that check our files against h5py,
-#     grpcio + grpcio-tools at the versions the Python client (client/python) builds with (its test
-#     installs that package into a fresh venv of its own), and kubernetes-validate
+#     grpcio + grpcio-tools at the version the Python client's committed stubs are generated with
+#     (client/python/generate_proto.py), the Python client itself, editable (`pip install -e
+#     client/python`: the examples run in this venv; its test installs it into a fresh venv of its
+#     own), and kubernetes-validate
 #     (Kubernetes OpenAPI schemas bundled, no network) for the manifest check in tests/deploy_config.rs,
 #     rosbags and pillow (scripts/tum_to_rosbag2.py writes the ROS 2 bags the bag tests read, with
 #     another tool than pntr's own writer), mcap (the MCAP files `--record` writes are read back with
@@ -77,6 +79,13 @@ if ! "$PY" -c "import numpy, h5py, onnx, PIL, rosbags, mcap, cyclonedds, grpc, g
   "$PY" -m pip install -q --disable-pip-version-check "${PY_PACKAGES[@]}"
 else
   log "python: venv ready"
+fi
+# The Python client, editable (the source tree is imported), after its dependencies above.
+if ! "$PY" -c "import pathlib, sys, pntr_client; sys.exit(pathlib.Path(pntr_client.__file__).resolve().parent != pathlib.Path('$ROOT/client/python/src/pntr_client').resolve())" 2>/dev/null; then
+  log "python: installing client/python (editable)"
+  "$PY" -m pip install -q --disable-pip-version-check -e "$ROOT/client/python"
+else
+  log "python: pntr-client ready (editable)"
 fi
 
 # --- Prometheus (Debian's package, unpacked into .deps/prometheus: no service is installed or started) --

@@ -121,7 +121,39 @@ fn map_round_trip_pipeline_and_refused_files() {
     let e = load(&old).unwrap_err();
     assert!(e.contains("version 99") && e.contains("build-db"), "{e}");
     let e = load(&dir.path().join("HPointLoc_dataset")).unwrap_err();
-    assert!(e.contains("HPointLoc_dataset"), "{e}");
+    assert!(
+        e.contains("HPointLoc_dataset") && e.contains("a folder, not a map file"),
+        "{e}"
+    );
+    // What is not a regular file is named, and a FIFO is refused at once rather than waited on.
+    let e = load(Path::new("/dev/zero")).unwrap_err();
+    assert!(e.contains("a character device, not a map file"), "{e}");
+    let fifo = dir.path().join("pipe.pntrmap");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    if made.is_ok_and(|s| s.success()) {
+        let e = load(&fifo).unwrap_err();
+        assert!(e.contains("a FIFO (named pipe), not a map file"), "{e}");
+        let e = mapfile::read_header(&fifo).unwrap_err().to_string();
+        assert!(e.contains("FIFO"), "{e}");
+    }
+    let e = load(&dir.path().join("absent.pntrmap")).unwrap_err();
+    assert!(e.contains("no such file"), "{e}");
+    // A map the reader would refuse is never written: a pose with NaN (a recording's bad sample
+    // that slipped through) fails the save, and neither the file nor a temporary one is left.
+    let kept = map.images[2].world_from_camera;
+    map.images[2].world_from_camera.translation.vector.x = f64::NAN;
+    let nan_path = dir.path().join("nan.pntrmap");
+    let e = mapfile::save(&map, &nan_path).unwrap_err().to_string();
+    map.images[2].world_from_camera = kept;
+    assert!(
+        e.contains("refusing to write") && e.contains("pose is not finite"),
+        "{e}"
+    );
+    assert!(!nan_path.exists());
+    assert!(std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .all(|e| !e.file_name().to_string_lossy().contains("partial")));
 
     // The pipeline on the reloaded map.
     let map = Arc::new(back);

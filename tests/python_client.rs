@@ -5,13 +5,15 @@
 //!
 //! Each test process makes its own venv in a temporary folder (`<python> -m venv`, with the
 //! interpreter of `$PNTR_PYTHON` / `.deps/venv`) and runs `pip install "client/python[hpointloc]"`
-//! into it, which needs the Python package index (grpcio-tools to build, grpcio, protobuf, numpy,
-//! h5py to run): without it the tests fail, naming the cause. The install is checked: the gRPC stubs
-//! were generated at build time and shipped inside the package (`pntr_client/_proto/`, with `.pyi`
-//! and `py.typed`), nothing top-level besides `pntr_client` was installed, grpcio-tools (a build
-//! requirement only) was not, and the module imported is the installed one. Every client run gets
-//! an empty `HOME` / `XDG_CACHE_HOME`, which must stay empty: nothing is generated or cached at run
-//! time.
+//! into it, which needs the Python package index (setuptools to build; grpcio, protobuf, numpy,
+//! h5py to run): without it the tests fail, naming the cause. The install is checked: the committed
+//! gRPC stubs were shipped inside the package (`pntr_client/_proto/`, with `.pyi` and `py.typed`)
+//! byte for byte as the source tree holds them, nothing top-level besides `pntr_client` was
+//! installed, grpcio-tools (needed only to regenerate the stubs) was not, and the module imported is
+//! the installed one. Every client run gets an empty `HOME` / `XDG_CACHE_HOME`, which must stay
+//! empty: nothing is generated or cached at run time. The committed stubs themselves are checked
+//! against the proto by `client/python/generate_proto.py --check` (with the grpcio-tools of
+//! `$PNTR_PYTHON` / `.deps/venv`, which scripts/setup.sh installs), so they cannot drift from it.
 //!
 //! Covered: the frames the package reads with h5py and sends are byte-identical to the Rust reader's
 //! (RGB, depth decoded to metres, ground-truth poses); the `pntr-client` console script localizes
@@ -22,8 +24,12 @@
 //! `Client.localize` answers a 4x4 `world_from_camera` close to the Rust reader's ground truth with a
 //! 6x6 covariance and per-stage times, `localize_stream` answers in order and reports a malformed
 //! frame by index, malformed inputs raise ValueError naming the mistake, a wrong token raises
-//! `UnauthenticatedError` (a `PntrError` with code UNAUTHENTICATED), an unknown map NOT_FOUND, and a
-//! `Prior` (also from `Answer.as_prior`) is answered through the prior region (mode PRIOR).
+//! `UnauthenticatedError` (a `PntrError` with code UNAUTHENTICATED), an unknown map NOT_FOUND, a
+//! `Prior` (also from `Answer.as_prior`) is answered through the prior region (mode PRIOR), every
+//! answer's `map_version` is the server's map version, a uint16 millimetre depth image is sent as
+//! UINT16_MILLIMETERS and localizes as the same depth in float32 metres does, and `relocalize`
+//! reaches the server (stream frames that ask for it are searched globally where the same stream
+//! without it tracks).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -34,7 +40,7 @@ use nalgebra::{Isometry3, Matrix4};
 use pntr_dataset::{Role, View};
 use pntr_pipeline::mapfile;
 use pntr_service::config::Settings;
-use pntr_service::wire;
+use pntr_service::{proto, wire};
 use pntr_tests::{free_addr, runtime, serve, stop_on};
 use serde_json::Value;
 
@@ -161,7 +167,7 @@ fn venv() -> &'static Venv {
         assert!(
             out.status.success(),
             "pip could not install {}[hpointloc] into a fresh venv ({}). It needs the Python package \
-             index (grpcio-tools to build; grpcio, protobuf, numpy, h5py to run): check network \
+             index (setuptools to build; grpcio, protobuf, numpy, h5py to run): check network \
              access to it. pip said:\n{}\n{}",
             package.display(),
             out.status,
@@ -177,7 +183,14 @@ fn venv() -> &'static Venv {
     })
 }
 
-/// What the install put into the venv: the generated stubs inside the package, nothing else.
+/// The gRPC stubs committed in the source tree, which every install must ship unchanged.
+const STUB_FILES: [&str; 3] = [
+    "localizer_pb2.py",
+    "localizer_pb2.pyi",
+    "localizer_pb2_grpc.py",
+];
+
+/// What the install put into the venv: the committed stubs inside the package, nothing else.
 fn check_installed(v: &Venv) {
     let code = r#"
 import importlib.metadata as md, importlib.util, json, pathlib, sysconfig
@@ -186,6 +199,7 @@ from pntr_client._proto import localizer_pb2, localizer_pb2_grpc
 dist = md.distribution("pntr-client")
 print(json.dumps({
     "module": str(pathlib.Path(pntr_client.__file__).resolve().parent),
+    "stubs": str(pathlib.Path(localizer_pb2.__file__).resolve().parent),
     "site": str(pathlib.Path(sysconfig.get_paths()["purelib"]).resolve()),
     "files": sorted(str(f) for f in dist.files),
     "top_level": sorted({str(f).split("/")[0] for f in dist.files}),
@@ -240,11 +254,49 @@ print(json.dumps({
     );
     assert_eq!(
         m["grpc_tools_installed"], false,
-        "grpcio-tools is a build requirement only"
+        "grpcio-tools is needed only to regenerate the stubs, not to install or run"
     );
     assert_eq!(m["stubs_have_prior"], true, "stubs not built from proto/");
     assert_eq!(m["stub"], true);
+    // The installed stubs are the committed ones (`shipped_stubs_match_the_proto` checks those).
+    let shipped = pntr_tests::workspace_root().join("client/python/src/pntr_client/_proto");
+    let installed = PathBuf::from(m["stubs"].as_str().unwrap());
+    assert_eq!(installed, site.join("pntr_client/_proto"));
+    for name in STUB_FILES {
+        let want = std::fs::read(shipped.join(name))
+            .unwrap_or_else(|e| panic!("{name} missing from {}: {e}", shipped.display()));
+        assert!(
+            std::fs::read(installed.join(name)).unwrap() == want,
+            "the installed {name} differs from {}",
+            shipped.display()
+        );
+    }
     v.assert_home_untouched();
+}
+
+/// The stubs committed in `client/python/src/pntr_client/_proto/` are what the proto generates now:
+/// `generate_proto.py --check` regenerates them into a temporary folder and compares (byte for
+/// byte with the pinned grpcio-tools; with another version, the serialized file descriptors).
+#[test]
+fn shipped_stubs_match_the_proto() {
+    let script = pntr_tests::workspace_root().join("client/python/generate_proto.py");
+    let python = pntr_tests::python();
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg("--check")
+        .env_remove("PYTHONPATH")
+        .output()
+        .expect("python runs");
+    let said = format!("{}{}", text(&out.stdout), text(&out.stderr));
+    eprint!("{said}");
+    assert!(
+        out.status.success(),
+        "the committed gRPC stubs do not match proto/pntr/v1/localizer.proto ({}): regenerate \
+         them with `{} {}` and commit the result (grpcio-tools comes with scripts/setup.sh):\n{said}",
+        out.status,
+        python.display(),
+        script.display()
+    );
 }
 
 /// Run the `pntr-client` console script with `args`.
@@ -539,6 +591,7 @@ const API_SCRIPT: &str = r#"
 import json, sys
 import numpy as np
 import pntr_client as pc
+from pntr_client._proto import localizer_pb2 as pb2
 from pntr_client.hpointloc import read_point
 
 addr, token, paths = sys.argv[1], sys.argv[2], sys.argv[3:]
@@ -563,9 +616,11 @@ def summary(a):
     assert isinstance(a, pc.Answer)
     assert a.status in ("LOCALIZED", "NOT_LOCALIZED"), a.status
     assert a.localized == (a.status == "LOCALIZED")
+    assert isinstance(a.map_version, str)
     r = {"status": a.status, "mode": a.mode, "confidence": a.confidence, "inliers": a.inliers,
          "min_confidence": a.min_confidence, "request_id": a.request_id, "map_id": a.map_id,
-         "reason": a.reason, "stage_ms": a.stage_ms, "matched_image_id": a.matched_image_id}
+         "map_version": a.map_version, "reason": a.reason, "stage_ms": a.stage_ms,
+         "matched_image_id": a.matched_image_id}
     if a.localized:
         assert a.cause == "", a.cause
         assert isinstance(a.pose, np.ndarray) and a.pose.shape == (4, 4) and a.pose.dtype == np.float64
@@ -583,7 +638,8 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     info = c.map_info()
     assert isinstance(info, pc.MapInfo)
     report["map_info"] = {"map_id": info.map_id, "images": info.images, "loaded": list(info.loaded_map_ids),
-                          "calibration_source": info.calibration_source, "min_confidence": info.min_confidence}
+                          "calibration_source": info.calibration_source, "min_confidence": info.min_confidence,
+                          "version": info.version}
 
     # One call per frame.
     answers = []
@@ -610,8 +666,12 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     # Malformed inputs, caught before sending.
     expect_value_error("rgb float", lambda: c.localize(rgb0.astype(np.float32), depth0), "rgb", "uint8")
     expect_value_error("rgb grey", lambda: c.localize(rgb0[..., 0], depth0), "rgb", "HxWx3")
-    expect_value_error("depth millimetres",
-                       lambda: c.localize(rgb0, (depth0 * 1000).astype(np.uint16)), "millimetres", "metres")
+    expect_value_error("depth float millimetres", lambda: c.localize(rgb0, depth0 * 1000), "millimetres", "1000")
+    expect_value_error("depth metres in uint16", lambda: c.localize(rgb0, np.round(depth0).astype(np.uint16)),
+                       "uint16", "metres stored")
+    expect_value_error("depth int32", lambda: c.localize(rgb0, (depth0 * 1000).astype(np.int32)), "int32", "uint16")
+    expect_value_error("relocalize not a bool", lambda: pc.make_request(rgb0, depth0, relocalize="yes"),
+                       "relocalize")
     expect_value_error("size mismatch", lambda: c.localize(rgb0, depth0[:100, :120]), "depth", "same size")
     expect_value_error("intrinsics count", lambda: c.localize(rgb0, depth0, intrinsics=(128.0, 128.0, 127.5)),
                        "intrinsics", "3 values")
@@ -637,6 +697,33 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     if base.covariance is not None:
         report["prior_covariance"] = summary(c.localize(rgb, depth, prior=base.as_prior(),
                                                         request_id="prior-covariance"))
+
+    # uint16 millimetres (a RealSense or ROS 16UC1 image, 0 = missing) go out as UINT16_MILLIMETERS,
+    # unconverted. The server reads them as the float32 metres mm / 1000 are, so the same frame in
+    # those metres must get the same answer.
+    mm = np.round(np.nan_to_num(depth, nan=0.0, posinf=0.0, neginf=0.0) * 1000).clip(0, 65535).astype(np.uint16)
+    metres = mm.astype(np.float32) / np.float32(1000)
+    req = pc.make_request(rgb, mm)
+    report["uint16"] = {
+        "encoding": pb2.DepthEncoding.Name(req.depth.encoding),
+        "metres_encoding": pb2.DepthEncoding.Name(pc.make_request(rgb, metres).depth.encoding),
+        "raw": req.depth.data == mm.astype("<u2").tobytes(),
+        "millimetres": summary(c.localize(rgb, mm, request_id="uint16-millimetres")),
+        "metres": summary(c.localize(rgb, metres, request_id="uint16-metres")),
+        "stream": [summary(a) for a in c.localize_stream([pc.Frame(rgb, mm, request_id="uint16-stream")])],
+    }
+
+    # relocalize: the same frame four times in a stream (a robot standing still). Without the flag the
+    # stream tracks once two fixes agree (mode TRACKING); with it on the last two frames (a Frame and a
+    # dict), those are searched over the whole map and answered as unary calls are (GLOBAL).
+    assert pc.make_request(rgb, depth, relocalize=True).relocalize
+    assert not pc.make_request(rgb, depth).relocalize
+    still = [pc.Frame(rgb, depth, request_id=f"still{j}") for j in range(4)]
+    again = [pc.Frame(rgb, depth, request_id="reloc0"), pc.Frame(rgb, depth, request_id="reloc1"),
+             pc.Frame(rgb, depth, request_id="reloc2", relocalize=True),
+             {"rgb": rgb, "depth": depth, "request_id": "reloc3", "relocalize": True}]
+    report["relocalize"] = {"without": [summary(a) for a in c.localize_stream(still)],
+                            "with": [summary(a) for a in c.localize_stream(again)]}
 
     # ROS conventions, per call and per client: the same answer, re-expressed with the package's own
     # conversion; a ROS answer taken as the next prior is read in ROS conventions.
@@ -699,6 +786,16 @@ fn typed_api_against_a_real_server() {
     s.token = Some("api-t0ken".into());
     let running = serve(&rt, s);
     let addr = running.addr.to_string();
+    // The server's own word on its map's version, asked from Rust.
+    let server_version = rt.block_on(async {
+        let mut c = pntr_tests::client(running.addr).await;
+        let req = pntr_tests::authed(proto::GetMapInfoRequest::default(), "api-t0ken");
+        c.get_map_info(req).await.unwrap().into_inner().version
+    });
+    assert!(
+        !server_version.is_empty(),
+        "the server reports no map version"
+    );
     let points: Vec<PathBuf> = (0..3)
         .map(|p| pntr_dataset::layout::point_path(f.dir.path(), SCENE, p))
         .collect();
@@ -788,7 +885,7 @@ fn typed_api_against_a_real_server() {
         assert_eq!(e["unauthenticated"], true, "{e}");
         assert!(!e["message"].as_str().unwrap().contains("api-t0ken"), "{e}");
     }
-    assert_eq!(r["value_errors"].as_object().unwrap().len(), 9);
+    assert_eq!(r["value_errors"].as_object().unwrap().len(), 12);
 
     // Priors: answered through the prior region, and still verified.
     for name in ["prior_position", "prior_answer"] {
@@ -819,5 +916,91 @@ fn typed_api_against_a_real_server() {
     assert_eq!(ros["prior"]["status"], "LOCALIZED", "{ros}");
     assert_eq!(ros["prior"]["mode"], "PRIOR", "{ros}");
     assert_eq!(ros["prior"]["convention"], "ros", "{ros}");
+
+    // uint16 millimetres: sent raw as UINT16_MILLIMETERS, answered as the same depth in float32
+    // metres (mm / 1000, what the server reads) is, and as the frame's own metres were.
+    let u = &r["uint16"];
+    eprintln!(
+        "uint16: {} {} vs metres {} {}",
+        u["millimetres"]["status"],
+        u["millimetres"]["confidence"],
+        u["metres"]["status"],
+        u["metres"]["confidence"]
+    );
+    assert_eq!(u["encoding"], "UINT16_MILLIMETERS", "{u}");
+    assert_eq!(u["metres_encoding"], "FLOAT32_METERS", "{u}");
+    assert_eq!(u["raw"], true, "uint16 depth was not sent unconverted: {u}");
+    let base = answers
+        .iter()
+        .find(|a| a["status"] == "LOCALIZED")
+        .expect("a LOCALIZED answer");
+    let (mm, metres) = (&u["millimetres"], &u["metres"]);
+    for a in [mm, metres, &u["stream"][0]] {
+        assert_eq!(a["status"], "LOCALIZED", "{a}");
+        assert_eq!(a["matched_image_id"], mm["matched_image_id"], "{u}");
+    }
+    let (pose_mm, pose_m) = (matrix(&mm["pose"]), matrix(&metres["pose"]));
+    let gap = (pose_mm.fixed_view::<3, 1>(0, 3) - pose_m.fixed_view::<3, 1>(0, 3)).norm();
+    assert!(
+        gap < 1e-3,
+        "uint16 and float32 metres answers {gap} m apart: {u}"
+    );
+    assert!(angle_deg(&pose_mm, &pose_m) < 0.1, "{u}");
+    let conf_gap =
+        (mm["confidence"].as_f64().unwrap() - metres["confidence"].as_f64().unwrap()).abs();
+    assert!(conf_gap < 1e-3, "{u}");
+    // Against the frame's original float depth (rounded to the millimetre here): the same place.
+    let original = matrix(&base["pose"]);
+    let gap = (pose_mm.fixed_view::<3, 1>(0, 3) - original.fixed_view::<3, 1>(0, 3)).norm();
+    assert!(
+        gap < 0.05,
+        "uint16 answer {gap} m from the float answer: {u} vs {base}"
+    );
+
+    // relocalize reaches the server: the stream without it tracks the standing camera, the one with
+    // it on its last two frames answers those globally, as unary calls.
+    let reloc = &r["relocalize"];
+    let modes = |k: &str| -> Vec<String> {
+        reloc[k]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| a["mode"].as_str().unwrap().to_string())
+            .collect()
+    };
+    let (without, with) = (modes("without"), modes("with"));
+    eprintln!("relocalize: without {without:?}, with {with:?}");
+    assert_eq!(
+        without[3], "TRACKING",
+        "the stream without relocalize did not track, so relocalize cannot be told apart: {reloc}"
+    );
+    assert_eq!(with, ["GLOBAL"; 4], "{reloc}");
+    let ids: Vec<&str> = reloc["with"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["request_id"].as_str().unwrap())
+        .collect();
+    assert_eq!(ids, ["reloc0", "reloc1", "reloc2", "reloc3"]);
+    for a in &reloc["with"].as_array().unwrap()[2..] {
+        assert_eq!(
+            a["status"], "LOCALIZED",
+            "a relocalized frame is answered: {a}"
+        );
+    }
+
+    // Every answer names the map version that answered: the server's.
+    assert_eq!(r["map_info"]["version"], server_version.as_str());
+    let mut every: Vec<&Value> = answers.iter().chain(stream).collect();
+    for name in ["prior_position", "prior_answer", "prior_covariance"] {
+        every.push(&r[name]);
+    }
+    every.extend([mm, metres, &u["stream"][0]]);
+    for k in ["without", "with"] {
+        every.extend(reloc[k].as_array().unwrap());
+    }
+    for a in every {
+        assert_eq!(a["map_version"], server_version.as_str(), "{a}");
+    }
     v.assert_home_untouched();
 }

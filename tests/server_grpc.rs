@@ -552,6 +552,11 @@ fn localizes_reports_and_refuses_bad_input() {
             "pntr_in_flight_requests",
             "pntr_queue_depth",
             "pntr_map_images{map_id=\"all\"} 24",
+            // What a fleet's supervisor watches: how close answers sit to the threshold, and
+            // whether a map's calibration is stale.
+            "pntr_answer_confidence_bucket{status=\"LOCALIZED\",map_id=\"all\",le=\"0.5\"}",
+            "pntr_answer_confidence_count{status=\"LOCALIZED\",map_id=\"all\"}",
+            "pntr_map_calibration_stale{map_id=\"all\"} 0",
         ] {
             assert!(text.contains(name), "the scrape lacks {name}:\n{text}");
         }

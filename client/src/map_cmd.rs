@@ -586,6 +586,7 @@ fn record_query(
         picture: Some((pntr_service::visual::Picture::Raw(&q.rgb), &q.intrinsics)),
         request_id: &id,
         map_id: "",
+        map_version: "",
         status,
         reason: a.reason.as_deref().unwrap_or(""),
         confidence: a.confidence,

@@ -88,6 +88,28 @@ pub enum MapsCommand {
         /// Units per metre of integer depth, when the recording's format says otherwise.
         #[arg(long)]
         depth_scale: Option<f64>,
+        /// ROS 2 bag: the colour topic (sensor_msgs/Image, or its `/compressed` sibling)
+        /// [default on the server: /camera/color/image_raw].
+        #[arg(long)]
+        rgb_topic: Option<String>,
+        /// ROS 2 bag: the depth topic aligned to the colour camera (or its `/compressedDepth`
+        /// sibling) [default on the server: /camera/aligned_depth_to_color/image_raw].
+        #[arg(long)]
+        depth_topic: Option<String>,
+        /// ROS 2 bag: the colour camera's sensor_msgs/CameraInfo topic [default on the server:
+        /// /camera/color/camera_info].
+        #[arg(long)]
+        info_topic: Option<String>,
+        /// ROS 2 bag: poses from this topic instead of TF (geometry_msgs/PoseStamped of the optical
+        /// frame, or nav_msgs/Odometry of the body).
+        #[arg(long)]
+        pose_topic: Option<String>,
+        /// ROS 2 bag: the world frame of TF poses [default on the server: map].
+        #[arg(long)]
+        map_frame: Option<String>,
+        /// ROS 2 bag: the camera's optical frame in TF (default: the colour images' frame_id).
+        #[arg(long)]
+        camera_frame: Option<String>,
     },
     /// Read every loaded map's file again and replace those that changed (what SIGHUP does).
     Reload {
@@ -353,7 +375,14 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
                 sequence,
                 trajectory,
                 depth_scale,
+                rgb_topic,
+                depth_topic,
+                info_topic,
+                pose_topic,
+                map_frame,
+                camera_frame,
             } => {
+                let given = |v: &Option<String>| v.clone().unwrap_or_default();
                 let c = client(connect)
                     .await?
                     .extend_map(request(
@@ -363,6 +392,12 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
                             sequence: sequence.clone(),
                             trajectory: trajectory.clone(),
                             depth_scale: depth_scale.unwrap_or(0.0),
+                            rgb_topic: given(rgb_topic),
+                            depth_topic: given(depth_topic),
+                            info_topic: given(info_topic),
+                            pose_topic: given(pose_topic),
+                            map_frame: given(map_frame),
+                            camera_frame: given(camera_frame),
                         },
                     )?)
                     .await

@@ -566,6 +566,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 picture: Some((pntr_service::visual::Picture::Raw(&rgb), &k)),
                 request_id: &r.request_id,
                 map_id: &r.map_id,
+                map_version: &r.map_version,
                 status: proto::Status::try_from(r.status).map_or("UNKNOWN", |s| s.as_str_name()),
                 reason: &r.reason,
                 confidence: r.confidence,

@@ -504,7 +504,7 @@ fn block_env(bin: &Path, shim: &Path, pylib: Option<&Path>) -> Vec<(OsString, Os
 }
 
 /// Build the Python client package offline into `dir` (what `pip install client/python` installs),
-/// with the set-up venv's setuptools and grpcio-tools.
+/// with the set-up venv's setuptools (the gRPC stubs are committed).
 fn install_python_client(py: &Path, dir: &Path) {
     let out = Command::new(py)
         .args([

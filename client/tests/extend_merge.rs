@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use support::{
-    build_db, build_db_refused, err, json_pose, map_images, mapping_drive, ok_json, pntr, runtime,
-    serve, stop, tum_pose, tum_rows, MODELS,
+    build_db, build_db_refused, err, json_pose, map_images, mapping_drive, ok, ok_json, pntr,
+    repo_root, runtime, serve, stop, tum_pose, tum_rows, MODELS,
 };
 
 /// A mapping drive of the scene of `seed` (four Points, four query draws each), with `extra`
@@ -350,6 +350,45 @@ fn sessions_extend_and_merge_maps() {
     );
     let msg = err(&admin(&extend, true));
     assert!(msg.contains("already in map"), "{msg}");
+    // The same drive as a bag with realsense-ros 4.x's topic names (/camera/camera/...): the
+    // server reads it with the topics given, as build-db would (and its frames are in the map now).
+    let bag = dir.path().join("bag");
+    let renamed = dir.path().join("bag_renamed");
+    let python = support::python_importing("rosbags, numpy, PIL");
+    ok(&Command::new(&python)
+        .arg(repo_root().join("scripts/tum_to_rosbag2.py"))
+        .args([second_seq.as_os_str(), bag.as_os_str()])
+        .output()
+        .unwrap());
+    ok(&Command::new(&python)
+        .arg(repo_root().join("client/tests/support/bag_faults.py"))
+        .args([bag.as_os_str(), renamed.as_os_str()])
+        .arg("renamed")
+        .output()
+        .unwrap());
+    let bag_extend = [
+        "extend",
+        "--map-id",
+        "lab",
+        "--sequence",
+        renamed.to_str().unwrap(),
+    ];
+    let msg = err(&admin(&bag_extend, true));
+    assert!(
+        msg.contains("no colour images on /camera/color/image_raw")
+            && msg.contains("/camera/camera/color/image_raw/compressed"),
+        "{msg}"
+    );
+    let topics = [
+        "--rgb-topic",
+        "/camera/camera/color/image_raw",
+        "--depth-topic",
+        "/camera/camera/aligned_depth_to_color/image_raw",
+        "--info-topic",
+        "/camera/camera/color/camera_info",
+    ];
+    let msg = err(&admin(&[&bag_extend[..], &topics[..]].concat(), true));
+    assert!(msg.contains("already in map"), "{msg}");
     let msg = err(&admin(&["list"], false));
     assert!(msg.contains("admin token"), "{msg}");
     stop(&rt, [running]);
@@ -367,6 +406,20 @@ fn sessions_extend_and_merge_maps() {
     ]));
     assert!(msg.contains("too few keyframes agree"), "{msg}");
     assert!(!dir.path().join("no.pntrmap").exists());
+    // One map given twice would hold every image twice: refused, saying so.
+    let msg = err(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        a.to_str().unwrap(),
+        "--out",
+        dir.path().join("twice.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(
+        msg.contains("already in map A") && msg.contains("maps merge A A"),
+        "{msg}"
+    );
+    assert!(!dir.path().join("twice.pntrmap").exists());
 }
 
 /// groundtruth.txt rows: (stamp, position).

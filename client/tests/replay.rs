@@ -43,6 +43,11 @@ fn check_recording(path: &Path, report: &serde_json::Value) {
     let answers = m["json"].as_array().unwrap();
     let mut errors = Vec::new();
     for a in answers {
+        // Which version of the map answered (a live replace or extend changes it).
+        assert!(
+            a["map_version"].as_str().is_some_and(|v| !v.is_empty()),
+            "{a}"
+        );
         if a["status"] == "LOCALIZED" {
             let z = a["pose"]["position"][2].as_f64().unwrap();
             assert!((0.5..2.0).contains(&z), "camera height on ROS z: {a}");

@@ -181,17 +181,83 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         "{e}"
     );
 
-    // A body frame given as the camera frame: the map builds, with warnings saying what is wrong.
-    let (body, _) = build(
-        &png,
-        &dir.path().join("body.pntrmap"),
-        &["--camera-frame", "camera_link"],
-    );
-    let w = body["warnings"].to_string();
+    // A body frame given as the camera frame (x forward, its child the optical frame): refused,
+    // naming the optical child, before a map lying on its side is written.
+    let body = dir.path().join("body.pntrmap");
+    let e = build_db_refused(&png, &body, &["--camera-frame", "camera_link"]);
     assert!(
-        w.contains("frame_id is camera_color_optical_frame") && w.contains("optical frame"),
-        "{body}"
+        e.contains("--camera-frame camera_link is a body frame")
+            && e.contains("--camera-frame camera_color_optical_frame"),
+        "{e}"
     );
+    assert!(!body.exists());
+
+    // Faults of real recordings, each written into the bag by `rosbags` (client/tests/support/
+    // bag_faults.py), each found with the check and the self-calibration off.
+    let fault = |name: &str| {
+        let out = dir.path().join(format!("bag_{name}"));
+        let o = Command::new(support::python_importing("rosbags"))
+            .arg(repo_root().join("client/tests/support/bag_faults.py"))
+            .args([png.as_os_str(), out.as_os_str()])
+            .arg(name)
+            .output()
+            .unwrap();
+        ok(&o);
+        out
+    };
+    // base_link under two parents (odometry's odom and another localizer's map, 0.4 m apart): one
+    // chain followed throughout, the same poses as the clean bag's, both parents named.
+    let (two, two_images) = build(&fault("two-parents"), &dir.path().join("two.pntrmap"), &[]);
+    let w = two["warnings"].to_string();
+    assert!(
+        w.contains("base_link is published under 2 parents")
+            && w.contains("odom (")
+            && w.contains("map (")
+            && w.contains("never a mix"),
+        "{two}"
+    );
+    assert_eq!(two_images.len(), bag_images.len(), "{two}");
+    for (stamp, (t, _)) in &two_images {
+        let (bt, _) = &bag_images[stamp];
+        let d = ((t[0] - bt[0]).powi(2) + (t[1] - bt[1]).powi(2) + (t[2] - bt[2]).powi(2)).sqrt();
+        assert!(d < 1e-3, "image {stamp}: {d} m from the clean bag's");
+    }
+    // The CameraInfo of another camera: refused naming both frames, unless the camera is given.
+    let info = fault("info-frame");
+    let e = build_db_refused(&info, &x, &["--no-check", "--no-self-calibration"]);
+    assert!(
+        e.contains("frame camera_depth_optical_frame")
+            && e.contains("are of camera_color_optical_frame")
+            && e.contains("--info-topic")
+            && e.contains("--intrinsics"),
+        "{e}"
+    );
+    assert!(!x.exists());
+    let k = std::fs::read_to_string(seq.join("calibration.txt")).unwrap();
+    let k = k.split_whitespace().collect::<Vec<_>>().join(",");
+    let (given, _) = build(
+        &info,
+        &dir.path().join("given.pntrmap"),
+        &["--intrinsics", &k],
+    );
+    assert!(given["images"].as_u64().unwrap() > 0, "{given}");
+    // Poses with NaN or an all-zero quaternion: left out as tf2 leaves them (the frames needing
+    // them have no pose), said in a warning; the map written loads.
+    let bad_poses = dir.path().join("bad_poses.pntrmap");
+    let (bad, bad_images) = build(&fault("bad-poses"), &bad_poses, &[]);
+    let w = bad["warnings"].to_string();
+    assert!(
+        w.contains("/tf: 3 poses left out, as tf2 leaves them out")
+            && w.contains("not finite")
+            && w.contains("odom -> base_link"),
+        "{bad}"
+    );
+    assert!(bad_images.len() * 10 >= bag_images.len() * 9, "{bad}");
+    ok(&support::pntr(&[
+        "info",
+        "--db",
+        bad_poses.to_str().unwrap(),
+    ]));
     // A missing trajectory file names the flag; a folder of .mcap files without metadata.yaml says
     // what to give instead.
     let e = build_db_refused(

@@ -286,11 +286,59 @@ pub struct OdometryPose {
     pub pose: Pose,
 }
 
-fn isometry(t: [f64; 3], q: &RosQuaternion) -> Isometry3<f64> {
-    Isometry3::from_parts(
+/// How far a quaternion's squared norm may be from 1 before its transform is left out: tf2's
+/// tolerance (`BufferCore::setTransform` ignores such a transform with `TF_DENORMALIZED_QUATERNION`).
+pub const QUATERNION_NORM2_TOLERANCE: f64 = 1e-2;
+
+/// A transform or pose as recorded, or why it is left out (as tf2 leaves it out): a value that is
+/// not finite, or a quaternion whose squared norm is farther than [`QUATERNION_NORM2_TOLERANCE`]
+/// from 1 (an all-zero one among them). Within the tolerance the quaternion is normalised.
+fn isometry(t: [f64; 3], q: &RosQuaternion) -> Result<Isometry3<f64>, String> {
+    let v = [t[0], t[1], t[2], q.x, q.y, q.z, q.w];
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err(format!(
+            "a value that is not finite (position {:?}, quaternion x y z w {:?})",
+            t,
+            [q.x, q.y, q.z, q.w]
+        ));
+    }
+    let q = Quaternion::new(q.w, q.x, q.y, q.z);
+    let n2 = q.norm_squared();
+    if (n2 - 1.0).abs() > QUATERNION_NORM2_TOLERANCE {
+        return Err(format!(
+            "a quaternion of norm {:.4}, not a rotation",
+            n2.sqrt()
+        ));
+    }
+    Ok(Isometry3::from_parts(
         Translation3::new(t[0], t[1], t[2]),
-        UnitQuaternion::from_quaternion(Quaternion::new(q.w, q.x, q.y, q.z)),
-    )
+        UnitQuaternion::from_quaternion(q),
+    ))
+}
+
+/// Transforms and poses left out of a recording (not finite, not a rotation), per topic: how many,
+/// and the first one's stamp, frame and reason, for one warning a topic.
+#[derive(Default)]
+struct LeftOut(BTreeMap<String, (usize, f64, String, String)>);
+
+impl LeftOut {
+    fn note(&mut self, topic: &str, stamp: f64, frame: &str, why: String) {
+        let e = self
+            .0
+            .entry(topic.to_string())
+            .or_insert_with(|| (0, stamp, frame.to_string(), why));
+        e.0 += 1;
+    }
+
+    fn warnings(&self) -> impl Iterator<Item = String> + '_ {
+        self.0.iter().map(|(topic, (n, t, frame, why))| {
+            format!(
+                "{topic}: {n} pose{} left out, as tf2 leaves them out (the first at {t:.6} s, {frame}: {why}); frames are posed from the samples around the gap{}",
+                if *n == 1 { "" } else { "s" },
+                if *n == 1 { "" } else { "s" }
+            )
+        })
+    }
 }
 
 /// The MCAP files of a bag: the file itself, or a rosbag2 folder's `metadata.yaml` files in order
@@ -596,6 +644,7 @@ impl Bag {
         let mut poses: Vec<(f64, Isometry3<f64>)> = Vec::new();
         let mut odometry_child: Option<String> = None;
         let mut tf = crate::tf::TfTree::default();
+        let mut left_out = LeftOut::default();
         let mut seen: BTreeMap<String, String> = BTreeMap::new();
         while let Some(m) = reader.next()? {
             let topic: &str = &m.topic;
@@ -631,29 +680,38 @@ impl Bag {
                 let msg: TfMessage = decode_bounded(path, topic, &m.data)?;
                 for t in msg.transforms {
                     let p = t.transform;
-                    tf.add(
-                        &t.header.frame_id,
-                        &t.child_frame_id,
-                        t.header.stamp.seconds(),
-                        isometry(
-                            [p.translation.x, p.translation.y, p.translation.z],
-                            &p.rotation,
+                    let stamp = t.header.stamp.seconds();
+                    match isometry(
+                        [p.translation.x, p.translation.y, p.translation.z],
+                        &p.rotation,
+                    ) {
+                        Ok(pose) => tf.add(
+                            &t.header.frame_id,
+                            &t.child_frame_id,
+                            stamp,
+                            pose,
+                            topic == "/tf_static",
                         ),
-                        topic == "/tf_static",
-                    );
+                        Err(why) => left_out.note(
+                            topic,
+                            stamp,
+                            &format!("{} -> {}", t.header.frame_id, t.child_frame_id),
+                            why,
+                        ),
+                    }
                 }
             } else if Some(topic) == topics.pose.as_deref() {
-                let (stamp, pose) = match &*m.schema {
+                let (stamp, frame, pose) = match &*m.schema {
                     "nav_msgs/msg/Odometry" => {
                         let o: OdometryPose = decode_bounded(path, topic, &m.data)?;
                         odometry_child.get_or_insert(o.child_frame_id.clone());
                         let p = o.pose.position;
-                        (o.header.stamp.seconds(), isometry([p.x, p.y, p.z], &o.pose.orientation))
+                        (o.header.stamp.seconds(), o.child_frame_id, isometry([p.x, p.y, p.z], &o.pose.orientation))
                     }
                     "geometry_msgs/msg/PoseStamped" | "" => {
                         let o: PoseStamped = decode_bounded(path, topic, &m.data)?;
                         let p = o.pose.position;
-                        (o.header.stamp.seconds(), isometry([p.x, p.y, p.z], &o.pose.orientation))
+                        (o.header.stamp.seconds(), o.header.frame_id, isometry([p.x, p.y, p.z], &o.pose.orientation))
                     }
                     other => {
                         return Err(bad(
@@ -662,7 +720,10 @@ impl Bag {
                         ))
                     }
                 };
-                poses.push((stamp, pose));
+                match pose {
+                    Ok(pose) => poses.push((stamp, pose)),
+                    Err(why) => left_out.note(topic, stamp, &frame, why),
+                }
             }
         }
         tf.seal();
@@ -690,6 +751,7 @@ impl Bag {
         let (rgb_k, rgb_topic) = pick(0, "colour", &topics.rgb, &rgb_c)?;
         let (depth_k, depth_topic) = pick(2, "depth", &topics.depth, &depth_c)?;
         let mut warnings = std::mem::take(&mut reader.warnings);
+        warnings.extend(left_out.warnings());
         let mut streams = [Stamps::default(), Stamps::default()];
         // A driver that leaves header stamps zero: receive times for both streams (and for the
         // pose look-ups), so the two are never mixed.
@@ -720,11 +782,68 @@ impl Bag {
         let (intrinsics, camera_problem) = match info {
             None => (None, Some(format!("no CameraInfo on {}", topics.info))),
             Some(Err(e)) => (None, Some(e.to_string())),
-            Some(Ok(i)) => match camera(path, &i) {
-                Ok(k) => (Some(k), None),
-                Err(e) => (None, Some(e.to_string())),
+            Some(Ok(i)) => match (camera(path, &i), &camera_frame) {
+                // A CameraInfo of another camera (the depth camera's, another lens) would build the
+                // map with the wrong intrinsics, silently: refused, naming both frames.
+                (Ok(_), Some(images))
+                    if !i.header.frame_id.is_empty()
+                        && i.header.frame_id.trim_start_matches('/')
+                            != images.trim_start_matches('/') =>
+                {
+                    (
+                        None,
+                        Some(format!(
+                            "the CameraInfo on {} is of frame {} but the colour images on {rgb_topic} are of {images}: it describes another camera; name the colour camera's CameraInfo with --info-topic",
+                            topics.info, i.header.frame_id
+                        )),
+                    )
+                }
+                (Ok(k), _) => (Some(k), None),
+                (Err(e), _) => (None, Some(e.to_string())),
             },
         };
+        for (child, parents) in tf.several_parents() {
+            let used = tf
+                .parent_towards(&child, &topics.map_frame)
+                .unwrap_or_default()
+                .to_string();
+            let named: Vec<String> = parents
+                .iter()
+                .map(|(p, n)| format!("{p} ({n} transforms)"))
+                .collect();
+            warnings.push(format!(
+                "TF: {child} is published under {} parents, {}, by different publishers (odometry and another localizer, say); poses follow {used}'s chain to {}, never a mix",
+                parents.len(),
+                named.join(" and "),
+                topics.map_frame
+            ));
+        }
+        if let Some(given) = &topics.camera_frame {
+            let optical = |f: &str| f.contains("optical");
+            if !optical(given) {
+                // A body frame (x forward) whose child is the optical frame (z forward): poses of
+                // it would turn the map on its side.
+                let mut below = Vec::new();
+                let mut todo = tf.children(given);
+                while let Some(f) = todo.pop() {
+                    if below.len() < 64 {
+                        todo.extend(tf.children(&f));
+                        below.push(f);
+                    }
+                }
+                let mut optical_below: Vec<&String> = below.iter().filter(|f| optical(f)).collect();
+                optical_below.sort_by_key(|f| Some(f.as_str()) != camera_frame.as_deref());
+                if let Some(child) = optical_below.first() {
+                    return Err(bad(
+                        path,
+                        format!(
+                            "--camera-frame {given} is a body frame in TF (x forward), not an optical one (z forward, x right, y down, as images are): its optical child is {child}{}; give --camera-frame {child}, or leave the flag out",
+                            if Some(child.as_str()) == camera_frame.as_deref() { ", which the colour images name" } else { "" }
+                        ),
+                    ));
+                }
+            }
+        }
         if let (Some(given), Some(images)) = (&topics.camera_frame, &camera_frame) {
             if given.trim_start_matches('/') != images.trim_start_matches('/') {
                 warnings.push(format!(

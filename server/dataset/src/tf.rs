@@ -18,17 +18,28 @@ enum Edge {
     Dynamic(Vec<(f64, Isometry3<f64>)>),
 }
 
-/// The transforms of a recording.
+/// One parent of a frame and the transforms published under it.
+struct Link {
+    parent: String,
+    edge: Edge,
+    /// Transforms recorded under this parent.
+    samples: usize,
+}
+
+/// The transforms of a recording. A frame normally has one parent; one published under two (two
+/// publishers, say `odom -> base_link` from odometry and `map -> base_link` from another localizer)
+/// keeps both apart: a look-up follows one chain, never a mix ([`TfTree::several_parents`]).
 #[derive(Default)]
 pub struct TfTree {
-    /// child -> (parent, edge); a frame has one parent.
-    edges: HashMap<String, (String, Edge)>,
-    /// Dynamic edges as trajectories, built by [`TfTree::seal`].
-    sealed: HashMap<String, Trajectory>,
+    /// child -> its parents, in the order first seen.
+    edges: HashMap<String, Vec<Link>>,
+    /// Dynamic edges as trajectories by (child, parent), built by [`TfTree::seal`].
+    sealed: HashMap<(String, String), Trajectory>,
 }
 
 impl TfTree {
-    /// Add `parent_from_child` at `stamp` seconds (`is_static`: from `/tf_static`, valid at any time).
+    /// Add `parent_from_child` at `stamp` seconds (`is_static`: from `/tf_static`, valid at any time;
+    /// it replaces dynamic samples of the same edge).
     pub fn add(
         &mut self,
         parent: &str,
@@ -39,20 +50,23 @@ impl TfTree {
     ) {
         let parent = parent.trim_start_matches('/').to_string();
         let child = child.trim_start_matches('/').to_string();
-        if is_static {
-            self.edges
-                .insert(child, (parent, Edge::Static(parent_from_child)));
-            return;
-        }
-        match self.edges.get_mut(&child) {
-            Some((p, Edge::Dynamic(v))) if *p == parent => v.push((stamp, parent_from_child)),
-            Some((_, Edge::Static(_))) => {}
-            _ => {
-                self.edges.insert(
-                    child,
-                    (parent, Edge::Dynamic(vec![(stamp, parent_from_child)])),
-                );
+        let links = self.edges.entry(child).or_default();
+        let link = match links.iter().position(|l| l.parent == parent) {
+            Some(i) => &mut links[i],
+            None => {
+                links.push(Link {
+                    parent,
+                    edge: Edge::Dynamic(Vec::new()),
+                    samples: 0,
+                });
+                links.last_mut().expect("just pushed")
             }
+        };
+        link.samples += 1;
+        match (&mut link.edge, is_static) {
+            (_, true) => link.edge = Edge::Static(parent_from_child),
+            (Edge::Dynamic(v), false) => v.push((stamp, parent_from_child)),
+            (Edge::Static(_), false) => {}
         }
         self.sealed.clear();
     }
@@ -65,30 +79,91 @@ impl TfTree {
     /// Sort the dynamic edges for look-ups (call after the last [`TfTree::add`]).
     pub fn seal(&mut self) {
         // The samples move into the trajectories (no second copy of a long recording's TF).
-        self.sealed = self
-            .edges
-            .iter_mut()
-            .filter_map(|(child, (_, e))| match e {
-                Edge::Dynamic(v) => {
-                    Some((child.clone(), Trajectory::from_poses(std::mem::take(v))))
+        let mut sealed = HashMap::new();
+        for (child, links) in self.edges.iter_mut() {
+            for l in links.iter_mut() {
+                if let Edge::Dynamic(v) = &mut l.edge {
+                    sealed.insert(
+                        (child.clone(), l.parent.clone()),
+                        Trajectory::from_poses(std::mem::take(v)),
+                    );
                 }
-                Edge::Static(_) => None,
-            })
-            .collect();
+            }
+        }
+        self.sealed = sealed;
     }
 
-    /// `root_from_frame` at `t` and the root's name, or why not.
-    fn to_root(&self, frame: &str, t: f64) -> Result<(Isometry3<f64>, String), String> {
+    /// Frames published under more than one parent: (child, [(parent, transforms)]), sorted.
+    pub fn several_parents(&self) -> Vec<(String, Vec<(String, usize)>)> {
+        let mut v: Vec<_> = self
+            .edges
+            .iter()
+            .filter(|(_, links)| links.len() > 1)
+            .map(|(c, links)| {
+                let parents = links
+                    .iter()
+                    .map(|l| (l.parent.clone(), l.samples))
+                    .collect();
+                (c.clone(), parents)
+            })
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// Whether `target` is `frame` or above it through any parent.
+    fn reaches(&self, frame: &str, target: &str) -> bool {
+        let mut todo = vec![(frame.to_string(), 0)];
+        while let Some((f, depth)) = todo.pop() {
+            if f == target {
+                return true;
+            }
+            if depth < 64 {
+                for l in self.edges.get(&f).into_iter().flatten() {
+                    todo.push((l.parent.clone(), depth + 1));
+                }
+            }
+        }
+        false
+    }
+
+    /// The parent a look-up towards `target` follows above `child`: the only one, else the first
+    /// seen of those that lead to `target`, else the first seen.
+    pub fn parent_towards(&self, child: &str, target: &str) -> Option<&str> {
+        let links = self.edges.get(child.trim_start_matches('/'))?;
+        let target = target.trim_start_matches('/');
+        links
+            .iter()
+            .find(|l| links.len() == 1 || self.reaches(&l.parent, target))
+            .or(links.first())
+            .map(|l| l.parent.as_str())
+    }
+
+    /// `root_from_frame` at `t` and the root's name, or why not; through frames with several
+    /// parents along the one towards `target`.
+    fn to_root(
+        &self,
+        frame: &str,
+        t: f64,
+        target: &str,
+    ) -> Result<(Isometry3<f64>, String), String> {
         let mut pose = Isometry3::identity();
         let mut at = frame.to_string();
         for _ in 0..64 {
-            let Some((parent, edge)) = self.edges.get(&at) else {
+            let Some(parent) = self.parent_towards(&at, target) else {
                 return Ok((pose, at));
             };
-            let hop = match edge {
+            let link = self.edges[&at]
+                .iter()
+                .find(|l| l.parent == parent)
+                .expect("a parent of this frame");
+            let hop = match &link.edge {
                 Edge::Static(p) => *p,
                 Edge::Dynamic(_) => {
-                    let traj = self.sealed.get(&at).ok_or("the TF tree is not sealed")?;
+                    let traj = self
+                        .sealed
+                        .get(&(at.clone(), parent.to_string()))
+                        .ok_or("the TF tree is not sealed")?;
                     traj.at_within(t, TF_MAX_GAP_S).ok_or_else(|| {
                         let (a, b) = traj.span().unwrap_or((f64::NAN, f64::NAN));
                         format!(
@@ -98,7 +173,7 @@ impl TfTree {
                 }
             };
             pose = hop * pose;
-            at = parent.clone();
+            at = parent.to_string();
         }
         Err(format!("the TF tree has a loop above {frame}"))
     }
@@ -110,8 +185,13 @@ impl TfTree {
             target.trim_start_matches('/'),
             source.trim_start_matches('/'),
         );
-        let known =
-            |f: &str| self.edges.contains_key(f) || self.edges.values().any(|(p, _)| p == f);
+        let known = |f: &str| {
+            self.edges.contains_key(f)
+                || self
+                    .edges
+                    .values()
+                    .any(|links| links.iter().any(|l| l.parent == f))
+        };
         for f in [target, source] {
             if !known(f) {
                 return Err(format!(
@@ -121,10 +201,10 @@ impl TfTree {
             }
         }
         let (root_from_source, r1) = self
-            .to_root(source, t)
+            .to_root(source, t, target)
             .map_err(|e| format!("no transform from {target} to {source} at {t:.6} s: {e}"))?;
         let (root_from_target, r2) = self
-            .to_root(target, t)
+            .to_root(target, t, target)
             .map_err(|e| format!("no transform from {target} to {source} at {t:.6} s: {e}"))?;
         if r1 != r2 {
             return Err(format!(
@@ -139,10 +219,25 @@ impl TfTree {
         let mut v: Vec<String> = self
             .edges
             .iter()
-            .flat_map(|(c, (p, _))| [c.clone(), p.clone()])
+            .flat_map(|(c, links)| {
+                std::iter::once(c.clone()).chain(links.iter().map(|l| l.parent.clone()))
+            })
             .collect();
         v.sort();
         v.dedup();
+        v
+    }
+
+    /// The frames directly below `frame`, sorted.
+    pub fn children(&self, frame: &str) -> Vec<String> {
+        let frame = frame.trim_start_matches('/');
+        let mut v: Vec<String> = self
+            .edges
+            .iter()
+            .filter(|(_, links)| links.iter().any(|l| l.parent == frame))
+            .map(|(c, _)| c.clone())
+            .collect();
+        v.sort();
         v
     }
 }
@@ -198,5 +293,54 @@ mod tests {
         );
         let e = tf.lookup("map", "camera_depth_frame", 0.5).unwrap_err();
         assert!(e.contains("no frame camera_depth_frame"), "{e}");
+    }
+
+    #[test]
+    fn a_frame_under_two_parents_follows_one_chain_and_names_both() {
+        // Odometry publishes odom -> base_link, another localizer map -> base_link, both at 10 Hz,
+        // interleaved; map -> odom comes from a SLAM at 1 Hz. Neither chain may borrow the other's
+        // samples.
+        let mut tf = TfTree::default();
+        let by_odom = |t: f64| Isometry3::translation(t, 0.0, 0.0);
+        let by_map = |t: f64| Isometry3::translation(t, 5.0, 0.0);
+        for i in 0..=20 {
+            let t = i as f64 * 0.1;
+            tf.add("odom", "base_link", t, by_odom(t), false);
+            tf.add("map", "base_link", t + 0.05, by_map(t + 0.05), false);
+        }
+        tf.add(
+            "map",
+            "odom",
+            0.0,
+            Isometry3::translation(0.0, 1.0, 0.0),
+            false,
+        );
+        tf.add(
+            "map",
+            "odom",
+            3.0,
+            Isometry3::translation(0.0, 1.0, 0.0),
+            false,
+        );
+        tf.add("base_link", "camera", 0.0, Isometry3::identity(), true);
+        tf.seal();
+        assert_eq!(
+            tf.several_parents(),
+            vec![(
+                "base_link".to_string(),
+                vec![("odom".to_string(), 21), ("map".to_string(), 21)]
+            )]
+        );
+        // Towards `map`, both parents lead there: the first seen (odom) is followed throughout.
+        assert_eq!(tf.parent_towards("base_link", "map"), Some("odom"));
+        let got = tf.lookup("map", "camera", 1.23).unwrap();
+        assert!((got.translation.vector - Vector3::new(1.23, 1.0, 0.0)).norm() < 1e-9);
+        // Towards `odom` only odom's chain leads: the same samples, every one of them (a mix would
+        // have left each parent's edge only the samples since the other's last).
+        let got = tf.lookup("odom", "camera", 0.0).unwrap();
+        assert!(got.translation.vector.norm() < 1e-9);
+        let got = tf.lookup("odom", "camera", 1.95).unwrap();
+        assert!((got.translation.vector.x - 1.95).abs() < 1e-9);
+        assert_eq!(tf.children("base_link"), vec!["camera".to_string()]);
     }
 }

@@ -323,6 +323,58 @@ pub fn save(map: &Map, path: &Path) -> Result<(), PipelineError> {
     result
 }
 
+/// What `path` is when a map cannot be read from it: "no such file", "a folder", "a FIFO (named
+/// pipe)", "a character device" (`/dev/zero`), "a block device", "a socket"; `None` for a regular
+/// file or a link to one (and when the path cannot be examined: opening it then says why). Checked
+/// before a map is opened, because reading a FIFO waits for a writer and a device never ends.
+pub fn not_a_regular_file(path: &Path) -> Option<&'static str> {
+    let kind = match std::fs::metadata(path) {
+        Ok(m) => m.file_type(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Some("no such file"),
+        Err(_) => return None,
+    };
+    if kind.is_file() {
+        return None;
+    }
+    if kind.is_dir() {
+        return Some("a folder");
+    }
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if kind.is_fifo() {
+            return Some("a FIFO (named pipe)");
+        }
+        if kind.is_char_device() {
+            return Some("a character device");
+        }
+        if kind.is_block_device() {
+            return Some("a block device");
+        }
+        if kind.is_socket() {
+            return Some("a socket");
+        }
+    }
+    Some("not a regular file")
+}
+
+/// Open a map file for reading, refusing what is not a regular file by what it is.
+fn open_map(path: &Path) -> Result<File, PipelineError> {
+    if let Some(what) = not_a_regular_file(path) {
+        return Err(bad(path, not_a_map_file(what)));
+    }
+    File::open(path).map_err(io(path))
+}
+
+/// The sentence for a path that is not a regular file ([`not_a_regular_file`]'s answer).
+pub fn not_a_map_file(what: &str) -> String {
+    if what == "no such file" {
+        what.to_string()
+    } else {
+        format!("{what}, not a map file (give the file `pntr build-db --out` wrote)")
+    }
+}
+
 fn write_to(map: &Map, path: &Path) -> Result<(), PipelineError> {
     let file = File::create(path).map_err(io(path))?;
     let mut out = BufWriter::with_capacity(1 << 20, file);
@@ -350,9 +402,16 @@ fn write_to(map: &Map, path: &Path) -> Result<(), PipelineError> {
     h.put(&(map.images.len() as u64).to_le_bytes())
         .map_err(io(path))?;
     let mut w = Writer::new();
-    for im in &map.images {
+    for (i, im) in map.images.iter().enumerate() {
         w.bytes.clear();
         encode_image(im, &mut w);
+        // The reader's own checks on every record: a map the server would refuse is never written.
+        decode_image(&w.bytes, i, FORMAT_VERSION, &map.header.intrinsics).map_err(|m| {
+            bad(
+                path,
+                format!("refusing to write a map that could not be loaded: {m}"),
+            )
+        })?;
         h.put(&(w.bytes.len() as u64).to_le_bytes())
             .map_err(io(path))?;
         h.put(&w.bytes).map_err(io(path))?;
@@ -372,7 +431,7 @@ fn write_to(map: &Map, path: &Path) -> Result<(), PipelineError> {
 
 /// Read only the header of a map file (fast: for `pntr info`-style listings and start-up checks).
 pub fn read_header(path: &Path) -> Result<MapHeader, PipelineError> {
-    let mut r = BufReader::new(File::open(path).map_err(io(path))?);
+    let mut r = BufReader::new(open_map(path)?);
     check_magic(&mut r, path)?;
     let (tag, payload) = small_section(&mut r, path)?;
     if &tag != b"HEAD" {
@@ -487,7 +546,7 @@ pub fn load(
     path: &Path,
     onnx: impl FnOnce(usize) -> Result<OnnxGlobal, pntr_retrieval::RetrievalError>,
 ) -> Result<Map, PipelineError> {
-    let mut r = BufReader::with_capacity(1 << 20, File::open(path).map_err(io(path))?);
+    let mut r = BufReader::with_capacity(1 << 20, open_map(path)?);
     let version = check_magic(&mut r, path)?;
     let (tag, head) = small_section(&mut r, path)?;
     expect(&tag, b"HEAD", path)?;

@@ -201,7 +201,7 @@ fn agree(x: &Proposal, y: &Proposal, p: &MergeParams) -> bool {
 /// The transform from `b`'s map frame into `a`'s, found by localizing `b`'s images in `a` (see the
 /// module's documentation), and the map of both in `a`'s frame.
 ///
-/// Errors: a map of several scenes; maps whose images are described differently (another extractor
+/// Errors: B mostly A's own images (the same map given twice); a map of several scenes; maps whose images are described differently (another extractor
 /// or descriptor: rebuild B with A's preset); an ONNX global descriptor (it needs the images, which
 /// maps do not keep); too few agreeing images (the message says how many were tried, verified and
 /// agreed: sessions of different places, or too little overlap between them); two different
@@ -223,6 +223,23 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         return Err(PipelineError::Refused(
             "the maps' descriptors differ in length: rebuild B with A's preset".into(),
         ));
+    }
+    // The same map or session given twice (`maps merge A A`) would hold every image twice.
+    let in_a: std::collections::HashMap<&str, &crate::map::MapImage> =
+        a.images.iter().map(|im| (im.id.as_str(), im)).collect();
+    let twice = b
+        .images
+        .iter()
+        .filter(|im| {
+            in_a.get(im.id.as_str())
+                .is_some_and(|x| x.keypoints == im.keypoints && x.descriptors == im.descriptors)
+        })
+        .count();
+    if twice * 2 > b.images.len() {
+        return Err(PipelineError::Refused(format!(
+            "{twice} of map B's {} images are already in map A, unchanged (the same map or session given twice, as in `maps merge A A`): nothing to merge",
+            b.images.len()
+        )));
     }
     let (a_axes, b_axes) = (a.header.axes(), b.header.axes());
     let n = b.images.len();

@@ -69,9 +69,9 @@ pub enum AdminError {
     /// The named file does not exist on the server.
     #[error("{0}: no such file on the server (paths are the server's; relative ones from its working folder)")]
     NoFile(PathBuf),
-    /// The named path is a folder.
-    #[error("{0} is a folder: give a map file (`pntr build-db --out`)")]
-    NotAFile(PathBuf),
+    /// The named path is a folder, a FIFO, a device ([`pntr_pipeline::mapfile::not_a_regular_file`]).
+    #[error("{0} is {1}, not a map file: give a map file (`pntr build-db --out`)")]
+    NotAFile(PathBuf, &'static str),
     /// The file could not be made ready to serve.
     #[error(transparent)]
     Prepare(#[from] PrepareError),
@@ -104,7 +104,7 @@ impl From<AdminError> for Status {
         let m = e.to_string();
         match e {
             AdminError::Loading => Status::unavailable(m),
-            AdminError::Missing(_) | AdminError::NotAFile(_) => Status::invalid_argument(m),
+            AdminError::Missing(_) | AdminError::NotAFile(..) => Status::invalid_argument(m),
             AdminError::NoFile(_) | AdminError::Install(InstallError::Missing(_)) => {
                 Status::not_found(m)
             }
@@ -150,11 +150,10 @@ async fn install(
     if file.as_os_str().is_empty() {
         return Err(AdminError::Missing("file"));
     }
-    if file.is_dir() {
-        return Err(AdminError::NotAFile(file));
-    }
-    if !file.is_file() {
-        return Err(AdminError::NoFile(file));
+    match pntr_pipeline::mapfile::not_a_regular_file(&file) {
+        None => {}
+        Some("no such file") => return Err(AdminError::NoFile(file)),
+        Some(what) => return Err(AdminError::NotAFile(file, what)),
     }
     if let Some(id) = &replacing {
         // Refused before minutes of loading when the map is not there to replace.
@@ -227,6 +226,8 @@ pub struct Extension {
     pub trajectories: Vec<PathBuf>,
     /// Units per metre of integer depth (`None`: the recording's own).
     pub depth_units_per_m: Option<f64>,
+    /// A bag's topics and TF frames (the reader's defaults where not given).
+    pub topics: pntr_dataset::bag::Topics,
 }
 
 /// Add the keyframes of `ext`'s recordings to loaded map `map_id`, write the result over the map's
@@ -295,6 +296,7 @@ pub async fn extend(
             let opts = pntr_dataset::recording::RecordingOptions {
                 trajectory: ext.trajectories.get(i).cloned(),
                 depth_units_per_m: ext.depth_units_per_m,
+                topics: ext.topics.clone(),
                 ..Default::default()
             };
             let rec = pntr_dataset::recording::Recording::open(path, &opts)
@@ -438,10 +440,27 @@ impl proto::map_admin_server::MapAdmin for MapAdminService {
         request: Request<proto::ExtendMapRequest>,
     ) -> Result<Response<proto::MapChange>, Status> {
         let r = request.into_inner();
+        let defaults = pntr_dataset::bag::Topics::default();
+        let or = |given: &str, default: String| {
+            if given.is_empty() {
+                default
+            } else {
+                given.to_string()
+            }
+        };
+        let topics = pntr_dataset::bag::Topics {
+            rgb: or(&r.rgb_topic, defaults.rgb),
+            depth: or(&r.depth_topic, defaults.depth),
+            info: or(&r.info_topic, defaults.info),
+            pose: (!r.pose_topic.is_empty()).then(|| r.pose_topic.clone()),
+            map_frame: or(&r.map_frame, defaults.map_frame),
+            camera_frame: (!r.camera_frame.is_empty()).then(|| r.camera_frame.clone()),
+        };
         let ext = Extension {
             sequences: r.sequence.iter().map(PathBuf::from).collect(),
             trajectories: r.trajectory.iter().map(PathBuf::from).collect(),
             depth_units_per_m: (r.depth_scale > 0.0).then_some(r.depth_scale),
+            topics,
         };
         if !(r.depth_scale.is_finite() && r.depth_scale >= 0.0) {
             return Err(Status::invalid_argument(

@@ -540,8 +540,12 @@ impl Settings {
             return bad("no --db given: pass a map file from `pntr build-db` (--db, PNTR_DB or `db` in the config file)");
         }
         for (i, p) in self.db.iter().enumerate() {
-            if !p.is_file() {
-                return bad(format!("--db {}: no such file", p.display()));
+            if let Some(what) = pntr_pipeline::mapfile::not_a_regular_file(p) {
+                return bad(format!(
+                    "--db {}: {}",
+                    p.display(),
+                    pntr_pipeline::mapfile::not_a_map_file(what)
+                ));
             }
             if self.db[..i].contains(p) {
                 return bad(format!("--db {} is given twice", p.display()));

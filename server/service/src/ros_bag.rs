@@ -182,6 +182,7 @@ impl BagRecording {
                     kv("inliers", o.inliers.to_string()),
                     kv("mode", o.mode.into()),
                     kv("matched_image_id", o.matched_image_id.into()),
+                    kv("map_version", o.map_version.into()),
                     kv("request_id", o.request_id.into()),
                 ],
             }],

@@ -253,7 +253,12 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
             maps_state.engine().map_or_else(Vec::new, |e| {
                 e.maps()
                     .iter()
-                    .map(|m| (m.id.clone(), m.version.label.clone(), m.map.images.len()))
+                    .map(|m| telemetry::MapSeries {
+                        map_id: m.id.clone(),
+                        version: m.version.label.clone(),
+                        images: m.map.images.len(),
+                        calibration_stale: m.calibration_stale,
+                    })
                     .collect()
             })
         }),

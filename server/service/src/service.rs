@@ -23,7 +23,7 @@ use crate::decode::{self, Limits};
 use crate::engine::{Engine, Job, LoadedMap, Outcome, SubmitError};
 use crate::proto;
 use crate::telemetry::{
-    ANSWERS_BY_MODE, IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION, STREAMS_ACTIVE,
+    ANSWERS_BY_MODE, ANSWER_CONFIDENCE, IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION, STREAMS_ACTIVE,
 };
 use crate::wire;
 
@@ -196,6 +196,13 @@ fn count(status: &'static str, code: Code, map_id: &str) {
 /// Count an answer: LOCALIZED, or NOT_LOCALIZED with its `cause` label
 /// ([`pntr_pipeline::pipeline::Cause::name`]).
 fn count_answer(r: &proto::LocalizeResponse, map_id: &str) {
+    let status = if r.status == proto::Status::Localized as i32 {
+        "LOCALIZED"
+    } else {
+        "NOT_LOCALIZED"
+    };
+    metrics::histogram!(ANSWER_CONFIDENCE, "status" => status, "map_id" => map_id.to_string())
+        .record(r.confidence);
     if r.status == proto::Status::Localized as i32 {
         count("LOCALIZED", Code::Ok, map_id);
     } else {
@@ -824,6 +831,7 @@ impl LocalizerService {
                 picture: Some((crate::visual::Picture::Raw(rgb), k)),
                 request_id: &request_id,
                 map_id: &response.map_id,
+                map_version: &response.map_version,
                 status: if localized {
                     "LOCALIZED"
                 } else {

@@ -43,6 +43,18 @@ pub const STREAMS_ACTIVE: &str = "pntr_streams_active";
 /// `map_id`.
 pub const ANSWERS_BY_MODE: &str = "pntr_answers_total";
 
+/// Histogram of answers' calibrated confidence (`status` = LOCALIZED or NOT_LOCALIZED, `map_id`):
+/// how close a fleet's answers sit to the map's LOCALIZED threshold.
+pub const ANSWER_CONFIDENCE: &str = "pntr_answer_confidence";
+/// Gauge, 1 when a loaded map's own confidence calibration is stale (the map changed since it was
+/// fitted: extended on a server, merged) and 0 otherwise (`map_id`); rendered at each scrape.
+pub const MAP_CALIBRATION_STALE: &str = "pntr_map_calibration_stale";
+
+/// Bucket bounds of the confidence histogram.
+const CONFIDENCE_BUCKETS: [f64; 13] = [
+    0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99, 0.999, 1.0,
+];
+
 /// Bucket bounds of the stage histogram, seconds.
 const BUCKETS: [f64; 16] = [
     0.001, 0.002, 0.005, 0.01, 0.02, 0.035, 0.05, 0.075, 0.1, 0.15, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
@@ -56,6 +68,12 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
         .get_or_init(|| {
             let builder = PrometheusBuilder::new()
                 .set_buckets_for_metric(Matcher::Full(STAGE_DURATION.into()), &BUCKETS)
+                .and_then(|b| {
+                    b.set_buckets_for_metric(
+                        Matcher::Full(ANSWER_CONFIDENCE.into()),
+                        &CONFIDENCE_BUCKETS,
+                    )
+                })
                 .map_err(|e| e.to_string())?;
             let handle = builder.install_recorder().map_err(|e| {
                 format!("installing the metrics recorder (is another one installed?): {e}")
@@ -68,6 +86,10 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
             metrics::describe_counter!(
                 REQUESTS_TOTAL,
                 "Finished requests by outcome and gRPC code"
+            );
+            metrics::describe_histogram!(
+                ANSWER_CONFIDENCE,
+                "Calibrated confidence of answers, by status"
             );
             metrics::describe_gauge!(IN_FLIGHT, "Requests being handled (queued or running)");
             metrics::describe_gauge!(QUEUE_DEPTH, "Requests waiting for a worker");
@@ -105,10 +127,23 @@ pub fn register_map(map_id: &str) {
     }
 }
 
-/// The per-map series, in Prometheus text: [`MAP_INFO`] and [`MAP_IMAGES`] for each `(map_id,
-/// version, images)`. They are written from the maps loaded at the time of the scrape rather than
-/// kept in the recorder, so a map that was unloaded or replaced leaves no stale series behind.
-pub fn render_maps(maps: &[(String, String, usize)]) -> String {
+/// One loaded map as the per-map series show it.
+pub struct MapSeries {
+    /// Its id.
+    pub map_id: String,
+    /// Its version label.
+    pub version: String,
+    /// Database images.
+    pub images: usize,
+    /// Whether its own calibration is stale.
+    pub calibration_stale: bool,
+}
+
+/// The per-map series, in Prometheus text: [`MAP_INFO`], [`MAP_IMAGES`] and
+/// [`MAP_CALIBRATION_STALE`] for each loaded map. They are written from the maps loaded at the
+/// time of the scrape rather than kept in the recorder, so a map that was unloaded or replaced
+/// leaves no stale series behind.
+pub fn render_maps(maps: &[MapSeries]) -> String {
     let escape = |v: &str| {
         v.replace('\\', "\\\\")
             .replace('"', "\\\"")
@@ -117,18 +152,32 @@ pub fn render_maps(maps: &[(String, String, usize)]) -> String {
     let mut out = format!(
         "# HELP {MAP_INFO} Version of each loaded map (always 1)\n# TYPE {MAP_INFO} gauge\n"
     );
-    for (id, version, _) in maps {
+    for m in maps {
         out += &format!(
             "{MAP_INFO}{{map_id=\"{}\",version=\"{}\"}} 1\n",
-            escape(id),
-            escape(version)
+            escape(&m.map_id),
+            escape(&m.version)
         );
     }
     out += &format!(
         "# HELP {MAP_IMAGES} Database images of each loaded map\n# TYPE {MAP_IMAGES} gauge\n"
     );
-    for (id, _, images) in maps {
-        out += &format!("{MAP_IMAGES}{{map_id=\"{}\"}} {images}\n", escape(id));
+    for m in maps {
+        out += &format!(
+            "{MAP_IMAGES}{{map_id=\"{}\"}} {}\n",
+            escape(&m.map_id),
+            m.images
+        );
+    }
+    out += &format!(
+        "# HELP {MAP_CALIBRATION_STALE} 1 when a loaded map's own confidence calibration is stale (the map changed since it was fitted)\n# TYPE {MAP_CALIBRATION_STALE} gauge\n"
+    );
+    for m in maps {
+        out += &format!(
+            "{MAP_CALIBRATION_STALE}{{map_id=\"{}\"}} {}\n",
+            escape(&m.map_id),
+            u8::from(m.calibration_stale)
+        );
     }
     out
 }
@@ -139,7 +188,7 @@ pub async fn serve_metrics(
     listener: TcpListener,
     handle: PrometheusHandle,
     mut stop: tokio::sync::watch::Receiver<bool>,
-    maps: std::sync::Arc<dyn Fn() -> Vec<(String, String, usize)> + Send + Sync>,
+    maps: std::sync::Arc<dyn Fn() -> Vec<MapSeries> + Send + Sync>,
 ) {
     let upkeep = handle.clone();
     let upkeep_task = tokio::spawn(async move {

@@ -14,7 +14,8 @@
 //! - `/tf` (foxglove.FrameTransforms): `map -> camera_optical` for every LOCALIZED answer;
 //! - `/pntr/pose` (foxglove.PoseInFrame): the answered pose, LOCALIZED frames only;
 //! - `/pntr/ground_truth` (foxglove.PoseInFrame): the true pose, when the caller knows it;
-//! - `/pntr/answer` (JSON, schema `pntr.Answer`): status, reason, confidence, inliers, mode, map,
+//! - `/pntr/answer` (JSON, schema `pntr.Answer`): status, reason, confidence, inliers, mode, map and
+//!   its version,
 //!   matched image, the pose and its 6x6 covariance (ROS order, in the `map` frame), and the error
 //!   against the ground truth;
 //! - `/pntr/map/cameras` (foxglove.PosesInFrame): the poses of the map's images, in frame `map`.
@@ -68,6 +69,7 @@ const ANSWER_SCHEMA: &str = r#"{
     "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}},
     "request_id": {"type": "string"},
     "map_id": {"type": "string"},
+    "map_version": {"type": "string", "description": "the version of the map that answered: it changes when the map is replaced or extended while serving"},
     "status": {"type": "string", "enum": ["LOCALIZED", "NOT_LOCALIZED", "ERROR"]},
     "reason": {"type": "string"},
     "confidence": {"type": "number"},
@@ -109,6 +111,9 @@ pub struct Observation<'a> {
     pub request_id: &'a str,
     /// The map that answered.
     pub map_id: &'a str,
+    /// The version of that map that answered (it changes with a live replace or extend; empty
+    /// where unknown).
+    pub map_version: &'a str,
     /// LOCALIZED, NOT_LOCALIZED or ERROR.
     pub status: &'a str,
     /// Why it is not LOCALIZED (or the error).
@@ -280,6 +285,7 @@ impl View {
                 "timestamp": {"sec": ts.sec(), "nsec": ts.nsec()},
                 "request_id": o.request_id,
                 "map_id": o.map_id,
+                "map_version": o.map_version,
                 "status": o.status,
                 "reason": o.reason,
                 "confidence": o.confidence,

@@ -3,13 +3,15 @@
     import pntr_client
 
     with pntr_client.Client("127.0.0.1:50051", token=None, tls_ca=None) as c:
-        a = c.localize(rgb, depth, intrinsics=(fx, fy, cx, cy))  # HxWx3 uint8, HxW float32 metres
+        # rgb: HxWx3 uint8; depth: HxW float32 metres, or uint16 millimetres (0 = missing)
+        a = c.localize(rgb, depth, intrinsics=(fx, fy, cx, cy))
         if a.localized:
-            world_from_camera = a.pose                            # 4x4 float64, metres
+            world_from_camera = a.pose  # 4x4 float64, metres
 
 `Client(addr, frame_convention="ros")` answers in ROS conventions (z-up map frame, optical camera
 axes: the pose is map_from_camera_optical); `map_to_ros` / `ros_to_map` convert a pose yourself.
-`Client.localize_stream(frames)` sends a stream of frames over one call, `Client.map_info()`
+`Client.localize_stream(frames)` sends a stream of frames over one call (a `Frame` with
+`relocalize=True` is searched over the whole map, ignoring the stream's track), `Client.map_info()`
 describes the map. A `Prior` (or `answer.as_prior(radius_m)`) restricts the search to where the
 camera roughly is. gRPC failures raise `PntrError` subclasses (see `pntr_client.errors`); malformed
 inputs raise ValueError before anything is sent. `pntr_client.hpointloc` reads HPointLoc files (needs

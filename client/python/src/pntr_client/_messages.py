@@ -16,7 +16,13 @@ from pntr_client._values import Answer, Frame, MapInfo, Prior
 # The camera the server assumes when a request has no intrinsics (HPointLoc), and the only size it
 # accepts then.
 HPOINTLOC_SIZE = (256, 256)
-_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id")
+_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id", "relocalize")
+# The plausible median of a frame's valid depth, metres: the server refuses a frame whose median lies
+# outside (the proto's DepthEncoding), naming the unit the values look like; the client does the same
+# before sending, on the same sample (every `stride`-th pixel, `stride` = pixels // 8192, at least 1).
+MIN_MEDIAN_DEPTH_M = 0.05
+MAX_MEDIAN_DEPTH_M = 50.0
+_DEPTH_SAMPLE = 8192
 
 
 def check_rgb(rgb: Any, where: str = "") -> npt.NDArray[np.uint8]:
@@ -46,36 +52,95 @@ def check_rgb(rgb: Any, where: str = "") -> npt.NDArray[np.uint8]:
     return np.ascontiguousarray(a)
 
 
-def check_depth(depth: Any, rgb_shape: tuple[int, ...], where: str = "") -> npt.NDArray[np.float32]:
-    """`depth` as a C-contiguous HxW little-endian float32 array in metres, the size of the rgb image.
+def _sampled_median(valid_of_sample: npt.NDArray[Any]) -> float:
+    """The median of the valid values of a strided sample (the upper one of an even count, as the
+    server takes it)."""
+    mid = valid_of_sample.size // 2
+    return float(np.partition(valid_of_sample, mid)[mid])
 
-    Any floating dtype is accepted (converted to float32); an HxWx1 array is squeezed. ValueError for
-    integer depth (uint16 is named as millimetres), a wrong shape, a size differing from rgb's, or no
-    valid pixel at all (every value 0, negative or not finite).
+
+def check_depth(
+    depth: Any, rgb_shape: tuple[int, ...], where: str = ""
+) -> npt.NDArray[np.float32] | npt.NDArray[np.uint16]:
+    """`depth` as a C-contiguous HxW little-endian array, the size of the rgb image, in one of the two
+    raw encodings the server reads: float32 metres (FLOAT32_METERS) or uint16 millimetres
+    (UINT16_MILLIMETERS).
+
+    Any floating dtype is taken as metres and converted to float32; uint16 (either byte order) is
+    taken as millimetres and kept as uint16 (a RealSense or ROS 16UC1 image, 0 = missing); an HxWx1
+    array is squeezed. ValueError for any other dtype (other integers name the conversion), a wrong
+    shape, a size differing from rgb's, no valid pixel at all (every value 0, negative or not
+    finite), or values whose median is implausible for their unit (outside 0.05 .. 50 m, the
+    server's own rule): float millimetres, metres stored in uint16, normalised depth.
     """
     a = np.asarray(depth)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
     s = tuple(a.shape)
     if a.ndim != 2:
-        raise ValueError(f"{where}depth has shape {s}: expected HxW (one value per pixel, metres)")
-    if a.dtype == np.uint16:
         raise ValueError(
-            f"{where}depth has dtype uint16, which looks like millimetres (e.g. a 16UC1 or RealSense "
-            f"image): convert it to float32 metres first: depth.astype(np.float32) / 1000"
+            f"{where}depth has shape {s}: expected HxW (one value per pixel: float metres or uint16 millimetres)"
         )
-    if not np.issubdtype(a.dtype, np.floating):
-        raise ValueError(f"{where}depth has dtype {a.dtype}: expected float32 metres")
+    millimetres = a.dtype.kind == "u" and a.dtype.itemsize == 2
+    if not millimetres and a.dtype.kind != "f":
+        if a.dtype.kind in "iu":
+            hint = (
+                "; integer depth must be uint16 millimetres: for millimetres in another integer type use "
+                "np.clip(depth, 0, 65535).astype(np.uint16), for metres depth.astype(np.float32)"
+            )
+        else:
+            hint = ""
+        raise ValueError(
+            f"{where}depth has dtype {a.dtype}: expected float metres (float32) or uint16 millimetres{hint}"
+        )
     h, w = rgb_shape[:2]
     if s != (h, w):
         raise ValueError(
             f"{where}depth is {s[0]}x{s[1]} (HxW) but rgb is {h}x{w}: depth must be pixel-aligned "
             f"with rgb and of the same size (register it to the colour camera)"
         )
+    stride = max(a.size // _DEPTH_SAMPLE, 1)
+    if millimetres:
+        mm = np.ascontiguousarray(a, dtype="<u2")
+        if not np.any(mm):
+            raise ValueError(f"{where}depth (uint16 millimetres) has no valid pixel (every value is 0)")
+        sample = mm.ravel()[::stride]
+        sample = sample[sample > 0]
+        if sample.size:
+            median_m = _sampled_median(sample) / 1000.0
+            if median_m < MIN_MEDIAN_DEPTH_M:
+                raise ValueError(
+                    f"{where}depth (uint16 millimetres) has a median valid depth of {median_m * 1000:.0f} mm, "
+                    f"below the plausible {MIN_MEDIAN_DEPTH_M * 1000:.0f} mm: these look like metres stored "
+                    f"in a millimetre image: send float metres (depth.astype(np.float32)) or millimetres"
+                )
+            if median_m > MAX_MEDIAN_DEPTH_M:
+                raise ValueError(
+                    f"{where}depth (uint16 millimetres) has a median valid depth of {median_m:.1f} m, beyond "
+                    f"the plausible {MAX_MEDIAN_DEPTH_M:g} m: these look like a unit finer than millimetres "
+                    f"(e.g. 0.1 mm): convert to millimetres"
+                )
+        return mm
     d = np.ascontiguousarray(a, dtype="<f4")
     with np.errstate(invalid="ignore"):
         if not np.any(np.isfinite(d) & (d > 0.0)):
             raise ValueError(f"{where}depth has no valid pixel (every value is 0, negative or not finite)")
+        sample = d.ravel()[::stride]
+        sample = sample[np.isfinite(sample) & (sample > 0.0)]
+    if sample.size:
+        median_m = _sampled_median(sample)
+        if median_m > MAX_MEDIAN_DEPTH_M:
+            raise ValueError(
+                f"{where}depth (float, metres) has a median valid depth of {median_m:.1f} m, beyond the "
+                f"plausible {MAX_MEDIAN_DEPTH_M:g} m: these look like millimetres: divide by 1000, or send "
+                f"uint16 millimetres (np.round(depth).astype(np.uint16))"
+            )
+        if median_m < MIN_MEDIAN_DEPTH_M:
+            raise ValueError(
+                f"{where}depth (float, metres) has a median valid depth of {median_m:.4f} m, below the "
+                f"plausible {MIN_MEDIAN_DEPTH_M:g} m: these look like a unit larger than metres, or "
+                f"normalised or inverse depth: send metres"
+            )
     return d
 
 
@@ -131,26 +196,31 @@ def prior_message(prior: Prior) -> pb2.Prior:
 
 def make_request(
     rgb: npt.NDArray[np.uint8],
-    depth: npt.NDArray[np.float32],
+    depth: npt.NDArray[np.floating[Any]] | npt.NDArray[np.uint16],
     intrinsics: Sequence[float] | None = None,
     map_id: str = "",
     prior: Prior | None = None,
     request_id: str = "",
     *,
     frame_convention: str | None = None,
+    relocalize: bool = False,
     where: str = "",
 ) -> pb2.LocalizeRequest:
-    """A LocalizeRequest (RAW_RGB8 colour, FLOAT32_METERS depth) after checking every input.
+    """A LocalizeRequest (RAW_RGB8 colour; FLOAT32_METERS or UINT16_MILLIMETERS depth) after checking
+    every input.
 
     Args:
         rgb: HxWx3 uint8, R G B.
-        depth: HxW float32 metres, pixel-aligned with rgb (0 / negative / NaN / inf = missing).
+        depth: HxW, pixel-aligned with rgb: float metres, sent as FLOAT32_METERS (0 / negative / NaN
+            / inf = missing), or uint16 millimetres, sent as UINT16_MILLIMETERS (0 = missing).
         intrinsics: (fx, fy, cx, cy) pixels, optionally + (k1, k2, p1, p2[, k3]); None = HPointLoc camera.
         map_id: the map to localize in; "" = the server's only map.
         prior: optional `Prior`.
         request_id: optional id echoed in the answer.
         frame_convention: "map" or "ros" for the answer's pose, covariance and the prior; None = the
             server's default.
+        relocalize: LocalizeStream only: search the whole map for this frame, ignoring the stream's
+            tracking state (the server ignores it in a unary Localize call, which is always global).
         where: prefix of error messages (e.g. "frame 3: ").
 
     Raises ValueError naming the first mistake found.
@@ -165,12 +235,16 @@ def make_request(
         )
     if not isinstance(map_id, str) or not isinstance(request_id, str):
         raise ValueError(f"{where}map_id and request_id must be strings")
+    if not isinstance(relocalize, (bool, np.bool_)):
+        raise ValueError(f"{where}relocalize must be True or False, got {relocalize!r}")
     h, w = rgb_a.shape[:2]
+    depth_encoding = pb2.UINT16_MILLIMETERS if depth_a.dtype == np.dtype("<u2") else pb2.FLOAT32_METERS
     req = pb2.LocalizeRequest(
         map_id=map_id,
         request_id=request_id,
         rgb=pb2.Image(width=w, height=h, encoding=pb2.RAW_RGB8, data=rgb_a.tobytes()),
-        depth=pb2.Depth(width=w, height=h, encoding=pb2.FLOAT32_METERS, data=depth_a.tobytes()),
+        depth=pb2.Depth(width=w, height=h, encoding=depth_encoding, data=depth_a.tobytes()),
+        relocalize=bool(relocalize),
     )
     if frame_convention is not None:
         req.frame_convention = frame_convention_value(frame_convention, where)
@@ -238,6 +312,7 @@ def answer_from_response(resp: pb2.LocalizeResponse) -> Answer:
         reason=resp.reason,
         matched_image_id=resp.matched_image_id,
         map_id=resp.map_id,
+        map_version=resp.map_version,
         request_id=resp.request_id,
         min_confidence=resp.min_confidence,
         mode=_enum_name(pb2.Mode, resp.mode),

@@ -1,9 +1,11 @@
 """The client's value types: what goes in (`Frame`, `Prior`) and what comes back (`Answer`, `MapInfo`).
 
 Conventions: poses are 4x4 float64 `world_from_camera` matrices (they map points from the camera's
-frame into the map's world frame, with the camera axes of the map's dataset, e.g. Habitat axes x
-right, y up, z backwards for HPointLoc maps), metres; covariances are 6x6 row-major in ROS order
-(x, y, z, rotation about x, y, z), metres² and radians²; times are milliseconds.
+frame into the map's world frame), metres, in the frame convention of the call: "map" (the map's
+world frame with the camera axes of the map's dataset, e.g. Habitat axes x right, y up, z backwards
+for HPointLoc maps) or "ros" (the map frame turned z-up, optical camera axes x right, y down, z
+forward: map_from_camera_optical); covariances are 6x6 row-major in ROS order (x, y, z, rotation
+about x, y, z), metres² and radians², in the same world frame; times are milliseconds.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -51,8 +54,10 @@ class Prior:
     verifies (`Answer.mode` says which path answered). A prior never makes a pose LOCALIZED by itself.
 
     Attributes:
-        pose: 4x4 float64 world_from_camera in the map's frame (metres). A (3,) position is accepted
-            and stored with the identity rotation (only the position is used to choose map images).
+        pose: 4x4 float64 world_from_camera (metres), in the request's frame convention (the map's
+            own frame, or the ROS z-up frame under frame_convention="ros"; an answer's pose is
+            already in the convention it was asked in). A (3,) position is accepted and stored with
+            the identity rotation (only the position is used to choose map images).
         covariance: optional 6x6 pose covariance (metres², radians²; 36 flat values are accepted).
             Without `radius_m` the region's radius is three standard deviations of the position.
         radius_m: optional radius of the region, metres, > 0; takes precedence over `covariance`.
@@ -96,19 +101,26 @@ class Frame:
 
     Attributes:
         rgb: HxWx3 uint8 colour image, R G B order.
-        depth: HxW float32 depth in metres (planar depth along the optical axis), pixel-aligned with
-            `rgb`; 0, negative, NaN or infinite pixels are missing depth.
+        depth: HxW planar depth (along the optical axis), pixel-aligned with `rgb` and of its size:
+            float metres (any float dtype, sent as float32; 0, negative, NaN or infinite pixels are
+            missing depth) or uint16 millimetres (a RealSense / ROS 16UC1 image, sent as is; 0 is
+            missing depth).
         intrinsics: (fx, fy, cx, cy) in pixels, optionally followed by 4 or 5 distortion
             coefficients (k1, k2, p1, p2[, k3]); None means the HPointLoc camera (256x256 frames only).
         prior: optional `Prior` for this frame.
         request_id: optional id echoed in the answer (the server makes one when empty).
+        relocalize: search the whole map for this frame, ignoring the stream's tracking state (the
+            robot was carried elsewhere, or a benchmark of global localization); the frame's own
+            `prior` is still used, and a LOCALIZED answer becomes the stream's new state. Only a
+            stream has such a state: a unary `Client.localize` call is always global.
     """
 
     rgb: npt.NDArray[np.uint8]
-    depth: npt.NDArray[np.float32]
+    depth: npt.NDArray[np.floating[Any]] | npt.NDArray[np.uint16]
     intrinsics: Sequence[float] | None = None
     prior: Prior | None = None
     request_id: str = ""
+    relocalize: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,17 +129,24 @@ class Answer:
 
     Attributes:
         status: "LOCALIZED" or "NOT_LOCALIZED".
-        pose: 4x4 float64 world_from_camera (metres) when LOCALIZED, else None.
+        pose: 4x4 float64 world_from_camera (metres) when LOCALIZED, else None, in the convention
+            `frame_convention` names: the map's own world frame and camera axes (`MapInfo.up_axis`,
+            `MapInfo.camera_axes`), or under "ros" the z-up map frame and optical camera axes
+            (map_from_camera_optical).
         confidence: calibrated probability in [0, 1] that the best pose found is within 1 m and 10
             degrees of the truth (reported for NOT_LOCALIZED answers too; 0 when no pose was found).
-        covariance: 6x6 float64 covariance of `pose` (metres², radians², ROS order, map frame) when
-            the server sends it (LOCALIZED answers), else None.
+        covariance: 6x6 float64 covariance of `pose` (metres², radians², ROS order, in the world
+            frame of `pose`) when the server sends it (LOCALIZED answers), else None.
         inliers: registration inliers of the matched map image.
         stage_ms: server time per stage, milliseconds, in the server's order (e.g. "queue",
             "resampling", "extraction", "retrieval", "matching", "registration", "verification", "total").
         reason: why the frame is NOT_LOCALIZED; empty when LOCALIZED.
         matched_image_id: the map image the pose was registered against (LOCALIZED only).
         map_id: the map that answered.
+        map_version: the version of the map that answered (`MapInfo.version`, e.g.
+            "20261203T041500Z-3f2a9c1e0b7d4a55"): after the map is replaced on the server, answers
+            to frames already being localized carry the old version, later ones the new; empty from
+            a server that does not report it.
         request_id: the request's id (the caller's, or one the server made).
         min_confidence: the server's LOCALIZED threshold on `confidence`.
         mode: which path answered: "GLOBAL", "PRIOR", "TRACKING" ("MODE_UNSPECIFIED" from a server
@@ -158,6 +177,7 @@ class Answer:
     retrieved_image_ids: tuple[str, ...] = field(default_factory=tuple)
     frame_convention: str = "map"
     cause: str = ""
+    map_version: str = ""
 
     def __post_init__(self) -> None:
         if self.pose is not None:
@@ -202,10 +222,12 @@ class MapInfo:
         images: database images in the map.
         points: distinct (scene, Point) pairs the images come from.
         scenes: scene names the map covers.
-        preset: the preset the map was built with and the server runs (e.g. "fast").
+        preset: the preset the server runs for the map (e.g. "fast"): the one it was built with
+            unless `pntr-server --preset` names a compatible one.
         extractor, matcher: local feature extractor and matcher of that preset.
         global_descriptor: retrieval descriptor (vlad, bow, onnx).
-        camera_axes: camera axes of the map's poses and of `Answer.pose` ("habitat" for HPointLoc).
+        camera_axes: camera axes of the map's poses, and of `Answer.pose` under the "map"
+            convention: "habitat" (HPointLoc, `pntr synth`) or "opencv" (maps built from recordings).
         intrinsics: the database images' camera (fx, fy, cx, cy, *distortion), pixels, or None.
         image_width, image_height: the database images' size, pixels.
         build_seconds: how long building the map took, seconds.

@@ -121,7 +121,7 @@ class Client:
     def localize(
         self,
         rgb: npt.NDArray[np.uint8],
-        depth: npt.NDArray[np.float32],
+        depth: npt.NDArray[np.floating[Any]] | npt.NDArray[np.uint16],
         intrinsics: Sequence[float] | None = None,
         map_id: str = "",
         prior: Prior | None = None,
@@ -134,9 +134,12 @@ class Client:
 
         Args:
             rgb: HxWx3 uint8 colour image, R G B order (OpenCV's BGR needs rgb = bgr[..., ::-1]).
-            depth: HxW float32 depth in metres (planar, along the optical axis), pixel-aligned with
-                rgb; 0, negative, NaN or infinite pixels are missing depth. Other float dtypes are
-                converted; uint16 millimetres are refused (convert: depth.astype(np.float32) / 1000).
+            depth: HxW planar depth (along the optical axis), pixel-aligned with rgb and of its
+                size: float metres (float32; other float dtypes are converted), where 0, negative,
+                NaN or infinite pixels are missing depth; or uint16 millimetres (a RealSense or ROS
+                16UC1 image), sent as is, where 0 is missing depth. Other dtypes are refused, and so
+                are values implausible for their unit (a median outside 0.05 .. 50 m: float
+                millimetres, metres in uint16).
             intrinsics: (fx, fy, cx, cy) in pixels (OpenCV convention), optionally followed by 4 or 5
                 plumb_bob distortion coefficients (k1, k2, p1, p2[, k3]); None means the HPointLoc
                 camera (fx = fy = 128, cx = cy = 127.5), accepted for 256x256 frames only.
@@ -175,8 +178,9 @@ class Client:
 
         Args:
             frames: `Frame`s, or dicts with the same keys (rgb, depth, intrinsics, prior,
-                request_id), consumed lazily as the server takes them: a generator reading a camera
-                works.
+                request_id, relocalize), consumed lazily as the server takes them: a generator
+                reading a camera works. A frame with `relocalize=True` is searched over the whole
+                map whatever the stream's state (after the robot was carried elsewhere).
             map_id: the map to localize every frame in; "" means the server's only map.
             timeout_s: deadline of the whole stream, seconds; None (default) for none.
             frame_convention: "map" or "ros" for every frame's answer and prior [the client's].
@@ -205,6 +209,7 @@ class Client:
                         f.prior,
                         f.request_id,
                         frame_convention=convention,
+                        relocalize=f.relocalize,
                         where=f"frame {i}: ",
                     )
             except Exception as e:  # noqa: BLE001 - re-raised in the caller's thread below

@@ -1,5 +1,7 @@
-"""gRPC stubs of proto/pntr/v1/localizer.proto, generated when the package is built (see setup.py).
+"""gRPC stubs of proto/pntr/v1/localizer.proto, generated ahead of time and shipped in the package.
 
-`localizer_pb2` (messages, with a `.pyi`) and `localizer_pb2_grpc` (`LocalizerStub`) are written here
-by `grpc_tools.protoc` during the build and shipped in the wheel; they are not kept in the repository.
+`localizer_pb2` (messages, with a `.pyi`) and `localizer_pb2_grpc` (`LocalizerStub`, `MapAdminStub`)
+are written by `client/python/generate_proto.py` (grpc_tools.protoc) and committed; do not edit them.
+After a change to the proto, run that script; `generate_proto.py --check` (run by
+tests/python_client.rs) fails while they differ from the proto.
 """
