@@ -119,6 +119,27 @@ fn sessions_extend_and_merge_maps() {
     let other_id = ["--extend", a.to_str().unwrap(), "--map-id", "other"];
     let msg = build_db_refused(&seq(&second), &ext, &other_id);
     assert!(msg.contains("--map-id"), "{msg}");
+    // A drive of another apartment whose poses overlap this map's coordinates: the map's own views
+    // contradict its new images where they look at the same places; refused, naming the share,
+    // whether or not the check runs, and nothing is written.
+    let other = dir.path().join("other.pntrmap");
+    let msg = build_db_refused(
+        &seq(&elsewhere),
+        &other,
+        &[
+            "--extend",
+            a.to_str().unwrap(),
+            "--no-check",
+            "--no-self-calibration",
+            "--models",
+            MODELS,
+        ],
+    );
+    assert!(
+        msg.contains("are contradicted by them") && msg.contains("another building"),
+        "{msg}"
+    );
+    assert!(!other.exists());
 
     // An extend killed while it writes the new version leaves the map file as it was (it writes a
     // temporary file and renames it), so a server restarted then serves the old map.

@@ -57,6 +57,8 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
         gt.len()
     );
     assert!(s["skipped"]["covered"].as_u64().unwrap() > 0, "{s}");
+    // Right poses never look contradicted by their images.
+    assert!(s["skipped"]["pose_disagrees"].is_null(), "{s}");
     assert_eq!(s["map_id"], "lab");
     assert_eq!(s["camera_axes"], "opencv");
     // The drive's world is y-up, read from the cameras' own "down" axes.
@@ -137,6 +139,79 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
         n2 * 10 >= images * 9 && n2 * 10 <= images * 11,
         "{n2} vs {images}"
     );
+
+    // Pose sources that fail while the camera records on, found from the images themselves (no
+    // check, no self-calibration): a stalled publisher repeating one pose for 4 s, and a
+    // motion-capture dropout putting three frames 5 m off. Their frames are left out, named in a
+    // warning, and every map image stays where it was taken.
+    let rows: Vec<String> = std::fs::read_to_string(seq.join("groundtruth.txt"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(String::from)
+        .collect();
+    let faulty = |name: &str, edit: &dyn Fn(usize, &mut Vec<String>)| {
+        let mut out = Vec::new();
+        for (k, row) in rows.iter().enumerate() {
+            let mut v: Vec<String> = row.split_whitespace().map(String::from).collect();
+            edit(k, &mut v);
+            out.push(v.join(" "));
+        }
+        let path = dir.path().join(format!("{name}.txt"));
+        std::fs::write(&path, out.join("\n") + "\n").unwrap();
+        path
+    };
+    let stall_from = rows.len() / 3;
+    let stalled: Vec<String> = rows[stall_from]
+        .split_whitespace()
+        .map(String::from)
+        .collect();
+    let frozen = faulty("frozen", &|k, v| {
+        if (stall_from..stall_from + 40).contains(&k) {
+            v[1..].clone_from_slice(&stalled[1..]);
+        }
+    });
+    let jump_at = 2 * rows.len() / 3;
+    let jumped = faulty("jumped", &|k, v| {
+        if (jump_at..jump_at + 3).contains(&k) {
+            let x: f64 = v[1].parse().unwrap();
+            v[1] = format!("{}", x + 5.0);
+        }
+    });
+    for (name, trajectory, at_least) in [("frozen", &frozen, 10), ("jumped", &jumped, 3)] {
+        let out_map = dir.path().join(format!("{name}.pntrmap"));
+        let args = [
+            "--sequence",
+            seq_s,
+            "--trajectory",
+            trajectory.to_str().unwrap(),
+            "--no-check",
+            "--no-self-calibration",
+            "--json",
+        ];
+        let r: serde_json::Value = serde_json::from_str(&build_db(&out_map, &args)).unwrap();
+        let left_out = r["skipped"]["pose_disagrees"].as_u64().unwrap_or(0);
+        assert!(left_out >= at_least, "{name}: {left_out} left out: {r}");
+        assert!(
+            r["warnings"]
+                .to_string()
+                .contains("disagree with their own images"),
+            "{name}: {r}"
+        );
+        for im in map_info(&out_map, &["--images"])["image_list"]
+            .as_array()
+            .unwrap()
+        {
+            let stamp = im["stamp"].as_f64().unwrap();
+            let (_, t, _) = gt.iter().find(|g| (g.0 - stamp).abs() < 1e-6).unwrap();
+            let pose = json_pose(&im["translation"], &im["rotation_wxyz"]);
+            let off = (pose.translation.vector - t).norm();
+            assert!(
+                off < 0.25,
+                "{name}: a map image {off:.2} m from where it was taken: {im}"
+            );
+        }
+    }
 
     // Depth in the wrong unit is named, with the flag that fixes it; so is a missing trajectory
     // and a mismatch of trajectories and sequences.

@@ -11,7 +11,7 @@
 use nalgebra::{Isometry3, Vector3};
 use pntr_core::{convert_axes, CameraAxes};
 
-use crate::map::Map;
+use crate::map::MapImage;
 use crate::prior::{PoseIndex, Region};
 use crate::verify::{dense_check, DenseCounts, Thumb};
 
@@ -62,24 +62,44 @@ impl Agreement {
     }
 }
 
-/// The agreement of the map's views with the frame `thumb` at `world_from_camera` (map frame,
-/// OpenCV camera axes): up to [`MAX_VIEWS`] map images within [`VIEW_RADIUS_M`] whose optical axis
-/// is within [`VIEW_MAX_DEG`] of the pose's (`axes`: the map's camera axes, `index`: the map's
-/// camera positions). `None` when no view decides ([`Agreement::deciding`]: the map has no view of
-/// what the frame sees from there, nothing to judge by).
+/// The agreement of the map's views (`images`) with the frame `thumb` at `world_from_camera` (map
+/// frame, OpenCV camera axes): the counts of [`nearby_views`]. `None` when no view decides
+/// ([`Agreement::deciding`]: the map has no view of what the frame sees from there, nothing to judge
+/// by).
 pub fn map_agreement(
-    map: &Map,
+    images: &[MapImage],
     index: &PoseIndex,
     axes: CameraAxes,
     thumb: &Thumb,
     world_from_camera: &Isometry3<f64>,
 ) -> Option<Agreement> {
-    let region = Region::new(world_from_camera.translation.vector, VIEW_RADIUS_M).ok()?;
+    let a = Agreement {
+        each: nearby_views(images, index, axes, thumb, world_from_camera),
+    };
+    (a.deciding() > 0).then_some(a)
+}
+
+/// The frame `thumb` at `world_from_camera` (map frame, OpenCV camera axes) moved into each of up to
+/// [`MAX_VIEWS`] map images (`images`, `axes`: their camera axes, `index`: their camera positions)
+/// within [`VIEW_RADIUS_M`] whose optical axis is within [`VIEW_MAX_DEG`] of the pose's, nearest
+/// first: each one's [`dense_check`] counts.
+pub fn nearby_views(
+    images: &[MapImage],
+    index: &PoseIndex,
+    axes: CameraAxes,
+    thumb: &Thumb,
+    world_from_camera: &Isometry3<f64>,
+) -> Vec<DenseCounts> {
+    let Ok(region) = Region::new(world_from_camera.translation.vector, VIEW_RADIUS_M) else {
+        return Vec::new();
+    };
     let axis = world_from_camera.rotation * Vector3::z();
     let cos_max = VIEW_MAX_DEG.to_radians().cos();
     let mut each = Vec::new();
     for i in index.within(&region) {
-        let im = &map.images[i];
+        let Some(im) = images.get(i) else {
+            continue;
+        };
         let world_from_view = convert_axes(&im.world_from_camera, axes, CameraAxes::OpenCv);
         if (world_from_view.rotation * Vector3::z()).dot(&axis) < cos_max {
             continue;
@@ -93,8 +113,7 @@ pub fn map_agreement(
             break;
         }
     }
-    let a = Agreement { each };
-    (a.deciding() > 0).then_some(a)
+    each
 }
 
 #[cfg(test)]

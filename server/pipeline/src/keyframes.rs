@@ -79,6 +79,8 @@ pub enum Skip {
     NoPose,
     /// Its data could not be decoded.
     Unreadable,
+    /// Its recorded pose disagrees with its own images ([`crate::pose_check`]).
+    PoseDisagrees,
 }
 
 impl Skip {
@@ -91,6 +93,7 @@ impl Skip {
             Skip::LittleDepth => "little_depth",
             Skip::NoPose => "no_pose",
             Skip::Unreadable => "unreadable",
+            Skip::PoseDisagrees => "pose_disagrees",
         }
     }
 }

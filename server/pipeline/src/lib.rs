@@ -43,6 +43,7 @@ pub mod mapfile;
 pub mod merge;
 pub mod odometry;
 pub mod pipeline;
+pub mod pose_check;
 pub mod preset;
 pub mod prior;
 pub mod recording_map;

@@ -651,7 +651,7 @@ impl Pipeline {
     pub fn map_agreement(&self, thumb: &Thumb, pose: &Isometry3<f64>) -> Option<Agreement> {
         let world_from_camera = convert_axes(pose, self.axes, CameraAxes::OpenCv);
         map_agreement(
-            &self.map,
+            &self.map.images,
             &self.pose_index,
             self.axes,
             thumb,

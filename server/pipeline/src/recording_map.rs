@@ -25,6 +25,7 @@ use crate::map::{Map, MapBuilder, NewImage, SessionRecord};
 use crate::pipeline::{Pipeline, Query};
 use crate::preset::Preset;
 use crate::prior::LocalizeOptions;
+use crate::verify::Thumb;
 use crate::PipelineError;
 
 /// One recording to build from, with the camera its frames are read with.
@@ -256,12 +257,85 @@ pub fn extend(
             report.frames, report.skipped
         )));
     }
+    refuse_contradicted(builder.images(), builder.base_len(), axes, sessions)?;
     report.places = selector.places();
     let t = Instant::now();
     let mut map = builder.finish_extension()?;
     map.header.sessions.extend(added);
     record_seconds(&mut report, seconds, t.elapsed().as_secs_f64());
     Ok((map, report))
+}
+
+/// Share of an extension's new images that the map's own views may contradict before the
+/// extension is refused (among those the views can judge).
+pub const MAX_CONTRADICTED_SHARE: f64 = 0.5;
+/// Fewest new images the map's views must judge before an extension can be refused.
+pub const MIN_JUDGED: usize = 3;
+/// A new image is contradicted when even the map view that agrees best with it agrees on less than
+/// this share of the samples that land on its depth. Measured (the best view's share, per judged
+/// image): right sessions 0.55-0.99, median 0.70 (a rendered apartment's other route under other
+/// lighting) and 0.85-0.96 (real Kinect, 7-Scenes redkitchen 250-499 onto 0-249); other apartments
+/// with overlapping coordinates median 0.07, 0.25 and 0.42 (rendered seeds 45, 9 and 5 onto 44's).
+pub const MIN_BEST_AGREEMENT: f64 = 0.5;
+
+/// Refuse an extension whose new images (`images[base_len..]`) the map's own images
+/// (`images[..base_len]`) contradict where they see the same places: a drive of another building
+/// whose poses happen to overlap the map's coordinates, or poses in another frame. Each new image's
+/// thumbnail is moved into the map's images near its pose and looking its way (those of
+/// [`crate::agreement::map_agreement`]); a view judges when at least a third of the image's samples
+/// land on its depth, and the image is contradicted when even the best of them agrees on less than
+/// [`MIN_BEST_AGREEMENT`] of those. Images the map has no view of (a new wing) are not judged; depth
+/// does not change with the lighting, so a session under other lighting agrees.
+fn refuse_contradicted(
+    images: &[crate::map::MapImage],
+    base_len: usize,
+    axes: CameraAxes,
+    sessions: &[Session<'_>],
+) -> Result<(), PipelineError> {
+    let (base, new) = images.split_at(base_len);
+    let index = crate::prior::PoseIndex::new(
+        base.iter()
+            .map(|im| im.world_from_camera.translation.vector)
+            .collect(),
+    );
+    let mut judged = 0usize;
+    let mut contradicted = Vec::new();
+    for im in new {
+        let pose = pntr_core::pose::convert_axes(&im.world_from_camera, axes, CameraAxes::OpenCv);
+        let views = crate::agreement::nearby_views(base, &index, axes, &im.thumb, &pose);
+        let best = views
+            .iter()
+            .filter(|c| c.inside >= crate::agreement::MIN_INSIDE && c.overlap() >= 1.0 / 3.0)
+            .map(|c| c.agree_share())
+            .max_by(f64::total_cmp);
+        tracing::debug!(id = %im.id, ?best, "a new image against the map's views");
+        let Some(best) = best else {
+            continue;
+        };
+        judged += 1;
+        if best < MIN_BEST_AGREEMENT {
+            contradicted.push(im.id.as_str());
+        }
+    }
+    tracing::debug!(
+        judged,
+        contradicted = contradicted.len(),
+        "new images against the map's views"
+    );
+    if judged >= MIN_JUDGED && contradicted.len() as f64 > MAX_CONTRADICTED_SHARE * judged as f64 {
+        let names: Vec<String> = sessions
+            .iter()
+            .map(|s| s.recording.path.display().to_string())
+            .collect();
+        return Err(PipelineError::Refused(format!(
+            "{} of the {judged} new images the map's own views can judge ({:.0}%) are contradicted by them: where both see, their depth disagrees with the map's (first: {}): {} is not of this map's place in this map's frame (another building, or poses in another frame: `pntr maps merge` joins a session in another frame); nothing was written",
+            contradicted.len(),
+            100.0 * contradicted.len() as f64 / judged as f64,
+            contradicted[..contradicted.len().min(3)].join(", "),
+            names.join(", ")
+        )));
+    }
+    Ok(())
 }
 
 fn record_seconds(report: &mut BuildReport, seconds: [f64; 3], index_s: f64) {
@@ -294,8 +368,12 @@ fn collect(
     let mut down_sum = Vector3::zeros();
     let mut posed = 0usize;
     let mut unreadable_logged = 0;
+    let mut pose_check = crate::pose_check::PoseCheck::default();
     for (si, s) in sessions.iter().enumerate() {
         selector.new_session();
+        pose_check.new_session();
+        // Frames whose recorded pose their images contradict: (frame, stamp, why).
+        let mut disagreeing: Vec<(usize, f64, String)> = Vec::new();
         let rec = s.recording;
         for w in rec.warnings() {
             report.warnings.push(format!("{}: {w}", rec.path.display()));
@@ -357,6 +435,18 @@ fn collect(
             posed += 1;
             let t = Instant::now();
             let (rgb, depth, camera) = rectified(rgb, depth, &s.camera, max_pixels);
+            let stamp = rec.timestamp(i);
+            if let crate::pose_check::Verdict::Disagrees(why) =
+                pose_check.judge(Thumb::new(&rgb, &depth, &camera), &pose, stamp)
+            {
+                seconds[1] += t.elapsed().as_secs_f64();
+                *report
+                    .skipped
+                    .entry(Skip::PoseDisagrees.name().into())
+                    .or_default() += 1;
+                disagreeing.push((i, stamp, why));
+                continue;
+            }
             let verdict = selector.judge(&rgb, &depth, &camera, &pose);
             seconds[1] += t.elapsed().as_secs_f64();
             match verdict {
@@ -366,7 +456,6 @@ fn collect(
                 }
                 Ok(place) => {
                     let t = Instant::now();
-                    let stamp = rec.timestamp(i);
                     let id = format!("{name}/place{place}/{stamp:.6}");
                     if known.contains(&id) {
                         // The same frame of the same recording, already in the map.
@@ -394,6 +483,29 @@ fn collect(
                     seconds[2] += t.elapsed().as_secs_f64();
                 }
             }
+        }
+        if let Some((first, first_stamp, why)) = disagreeing.first() {
+            let n = disagreeing.len();
+            let frames: Vec<String> = disagreeing
+                .iter()
+                .take(8)
+                .map(|(i, _, _)| i.to_string())
+                .collect();
+            let said = format!(
+                "{n} of {session_posed} posed frames' poses disagree with their own images (frames {}{}; the first, frame {first} at {first_stamp:.3} s: {why}): a pose source that stalled or jumped, or poses of another frame than the camera's",
+                frames.join(", "),
+                if n > frames.len() { ", ..." } else { "" }
+            );
+            if n >= 10 && 2 * n > session_posed {
+                return Err(PipelineError::Config(format!(
+                    "{}: {said}; refused, since most frames disagree (check --camera-frame, --pose-topic or the trajectory's time base)",
+                    rec.path.display()
+                )));
+            }
+            tracing::warn!("{}: {said}; they are left out", rec.path.display());
+            report
+                .warnings
+                .push(format!("{}: {said}; they are left out", rec.path.display()));
         }
         if session_posed == 0 {
             let why = rec
