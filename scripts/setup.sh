@@ -5,7 +5,8 @@
 # Installs:
 #   - apt: cmake, ccache, libopenblas-dev (faiss), libhdf5-dev + pkg-config (system HDF5, kept for tools;
 #     the build links HDF5 2.2 statically, compiled from source by hdf5-metno), iproute2 and util-linux
-#     (`ip` and `unshare`: the pntr-ros test keeps its DDS traffic in a private network namespace)
+#     (`ip` and `unshare`: the pntr-ros test keeps its DDS traffic in a private network namespace), wget
+#     (the Kubernetes init container's script fetches maps from a URL with it; the deployment test runs it)
 #   - the ONNX Runtime shared library from the onnxruntime PyPI wheel, into .deps/onnxruntime/ (git-ignored)
 #   - OpenVINO's CPU runtime from the openvino PyPI wheel (C library, CPU plugin, ONNX reader, TBB), into
 #     .deps/openvino/ (git-ignored): the engine of the `xfeat-bf16` extractor
@@ -49,7 +50,7 @@ SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 
 # --- apt packages -------------------------------------------------------------------------------
-APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv openssl iproute2 util-linux)
+APT_PACKAGES=(cmake ccache libopenblas-dev libhdf5-dev pkg-config unzip python3-venv openssl iproute2 util-linux wget)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then

@@ -29,11 +29,17 @@ Topics (log time of every message == its header stamp, messages written in time 
       world_from_camera of the optical frame) on T at each image stamp.
 All colour/depth/camera_info messages of one frame carry the rgb stamp and frame_id
 camera_color_optical_frame. Frames outside the groundtruth time range are dropped.
+The bag looks like a robot's (REP 103, REP 105): its `map` frame is z-up, whatever the TUM world's
+up axis (read from the cameras: their mean down axis, optical +y, points along -up; a y-up render,
+a y-down KinectFusion world and a z-up mocap world all give a z-up map, so base_link stands upright),
+and stamps that are not wall-clock time (before 2001, as a render's 0.1 s) are moved to start on
+2026-01-01 UTC. --keep-tum-frame keeps the TUM world and stamps as they are (for comparing a bag's
+map pose for pose with the folder's own map); the conversion is said on stderr.
 Splitting (--max-messages-per-file N) follows rosbag2: files <bag>_0.mcap, <bag>_1.mcap, ...
 of at most N messages each, every file registering all topics; metadata.yaml lists them all.
 
 Usage: tum_to_rosbag2.py TUM_DIR OUT_BAG_DIR [--colour png|jpeg] [--max-messages-per-file N]
-       [--tf-offset S] [--no-tf --pose-topic /ground_truth] [--bag-version 8|9]
+       [--tf-offset S] [--no-tf --pose-topic /ground_truth] [--bag-version 8|9] [--keep-tum-frame]
        tum_to_rosbag2.py --selftest
 """
 import argparse, bisect, io, math, shutil, struct, sys, tempfile, zlib
@@ -57,6 +63,8 @@ STATIC = [('base_link', 'camera_link', (0.10, 0.0, 0.30), (0.0, 0.0, 0.0, 1.0)),
           ('camera_link', OPTICAL, (0.0, 0.0, 0.0), (-0.5, 0.5, -0.5, 0.5))]
 MAP_ODOM = (np.array([0.5, -0.2, 0.0]), np.array([0.0, 0.0, math.sin(math.radians(5)), math.cos(math.radians(5))]))
 ODOM_NS, MAP_NS, PAIR_NS = 50_000_000, 500_000_000, 20_000_000
+# Stamps before this (2001-09-09) are not wall-clock time; they are moved to start at ROBOT_EPOCH_NS.
+WALL_CLOCK_NS, ROBOT_EPOCH_NS = 10**18, 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z
 
 
 # ---- rigid transforms: (t[3], q[4] as x,y,z,w), meaning parent_from_child ----
@@ -89,6 +97,36 @@ def interp(stamps, poses, t):
     return t0 + a * (t1 - t0), slerp(q0, q1, a)
 
 BASE_OPTICAL = compose(*[(np.array(t), np.array(q)) for _, _, t, q in STATIC])
+
+def rotation_to_z(up):
+    """The shortest rotation (x,y,z,w) taking the unit vector `up` to +z."""
+    c = float(np.clip(up[2], -1.0, 1.0))
+    axis = np.cross(up, [0.0, 0.0, 1.0])
+    if np.linalg.norm(axis) < 1e-12:  # up is +z (identity) or -z (half a turn about x)
+        return np.array([0.0, 0.0, 0.0, 1.0]) if c > 0 else np.array([1.0, 0.0, 0.0, 0.0])
+    axis = axis / np.linalg.norm(axis); half = math.acos(c) / 2
+    return np.array([*(axis * math.sin(half)), math.cos(half)])
+
+def world_up(poses):
+    """The TUM world's up axis as a signed unit axis: against the cameras' mean down axis (optical +y)."""
+    down = np.mean([qrot(q, (0.0, 1.0, 0.0)) for _, q in poses], axis=0)
+    k = int(np.argmax(np.abs(down)))
+    up = np.zeros(3); up[k] = -math.copysign(1.0, down[k])
+    return up
+
+def to_robot_frame(frames, gt):
+    """A z-up `map` (REP 103) and wall-clock stamps: (frames, gt, what was done, in words)."""
+    (stamps, poses), said = gt, []
+    up = world_up(poses)
+    r = rotation_to_z(up)
+    if not np.allclose(r, [0, 0, 0, 1]):
+        poses = [(qrot(r, t), qmul(r, q)) for t, q in poses]
+        said.append(f"the TUM world's {'+-'[int(up.sum() < 0)]}{'xyz'[int(np.argmax(np.abs(up)))]} up turned to the map's +z (REP 103)")
+    shift = ROBOT_EPOCH_NS if frames[0][0] < WALL_CLOCK_NS else 0
+    if shift:
+        said.append(f'stamps moved by +{shift // 10**9} s to start on 2026-01-01 UTC')
+    frames = [(t + shift, *rest) for t, *rest in frames]
+    return frames, ([t + shift for t in stamps], poses), said
 
 
 # ---- TUM input ----
@@ -245,8 +283,11 @@ def write_bag(events, out, topics, max_per_file, version, colour, calib):
 
 
 def convert(tum_dir, out, colour='png', max_per_file=None, tf_offset='0', pose_topic=None, version=9,
-            odom_topic=None):
+            odom_topic=None, keep_tum_frame=False):
     frames, gt, calib = load_tum(tum_dir)
+    if not keep_tum_frame:
+        frames, gt, said = to_robot_frame(frames, gt)
+        for line in said: print(line, file=sys.stderr)
     topics = {COLOR: (IMG, qos()), DEPTH: (IMG, qos()), INFO: ('sensor_msgs/msg/CameraInfo', qos())}
     if odom_topic: topics.update({odom_topic: ('nav_msgs/msg/Odometry', qos()),
                                   '/tf_static': (TFM, qos(QosDurability.TRANSIENT_LOCAL, 1))})
@@ -310,7 +351,7 @@ def selftest():
     check('REP 103 body_from_optical: z->x, x->-y, y->-z', np.allclose([qrot(BASE_OPTICAL[1], e) for e in np.eye(3)],
                                                                       [[0, -1, 0], [0, 0, -1], [1, 0, 0]]))
     bag = tmp / 'bag_png'
-    convert(tum, bag, 'png', max_per_file=25)
+    convert(tum, bag, 'png', max_per_file=25, keep_tum_frame=True)
     msgs, conns = read(bag)
     meta = YAML(typ='safe').load((bag / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
     want = {COLOR: (IMG, 20), DEPTH: (IMG, 20), INFO: ('sensor_msgs/msg/CameraInfo', 20), '/tf': (TFM, 23), '/tf_static': (TFM, 1)}
@@ -334,7 +375,7 @@ def selftest():
     tf_check(msgs, 'tf-offset 0')
 
     bag = tmp / 'bag_jpeg'
-    convert(tum, bag, 'jpeg', tf_offset='0.025', version=8)
+    convert(tum, bag, 'jpeg', tf_offset='0.025', version=8, keep_tum_frame=True)
     msgs, conns = read(bag)
     check('jpeg bag (v8, tf-offset 0.025): counts', conns['/tf'] == (TFM, 24) and conns[COLOR] == (IMG, 20), str(conns))
     err = max(abs((np.asarray(Image.open(io.BytesIO(bytes(m.data)))) - rgbs[t].astype(float)).mean(axis=(0, 1))).max()
@@ -343,12 +384,52 @@ def selftest():
     tf_check(msgs, 'tf-offset 0.025, interpolated')
 
     bag = tmp / 'bag_pose'
-    convert(tum, bag, 'png', pose_topic='/ground_truth')
+    convert(tum, bag, 'png', pose_topic='/ground_truth', keep_tum_frame=True)
     msgs, conns = read(bag)
     check('pose bag: no TF, PoseStamped per frame', set(conns) == {COLOR, DEPTH, INFO, '/ground_truth'} and conns['/ground_truth'] == (POSE, 20))
     err = max(pose_err((vec(m.pose.position.x, m.pose.position.y, m.pose.position.z), vec(m.pose.orientation.x, m.pose.orientation.y,
               m.pose.orientation.z, m.pose.orientation.w)), t) for tp, t, m in msgs if tp == '/ground_truth' and m.header.frame_id == 'map')
     check('PoseStamped (frame map) == groundtruth', err < 1e-6, f'max err {err:.1e} m|rad')
+
+    # A render's y-up world and stamps from 0.1 s, as `pntr synth` writes them: by default the bag's
+    # map is z-up with base_link upright, and its stamps are wall-clock time.
+    yup = tmp / 'tum_yup'
+    shutil.copytree(tum, yup)
+    def level(t):  # world_from_optical of a level camera turning about the world's +y
+        a = 0.4 * (t - t0) / 1e9  # half a turn about z (optical y to the world's -y), then the yaw
+        return np.array([1.0 + 0.1 * a, 1.3, -2.0]), qmul([0.0, math.sin(a / 2), 0.0, math.cos(a / 2)], [0.0, 0.0, 1.0, 0.0])
+    new_sec = lambda t: sec(t - t0 + 100_000_000)  # 0.100000, 0.150000, ...
+    for k in ('rgb', 'depth'):
+        rows = [ln.split() for ln in (yup / f'{k}.txt').read_text().splitlines()[1:]]
+        (yup / f'{k}.txt').write_text('# ' + k + '\n' + ''.join(f'{new_sec(to_ns(r[0]))} {r[1]}\n' for r in rows))
+    (yup / 'groundtruth.txt').write_text('# timestamp tx ty tz qx qy qz qw\n' + ''.join(
+        ' '.join([new_sec(t)] + [f'{x:.17g}' for x in np.concatenate(level(t))]) + '\n'
+        for t in range(t0 - 100_000_000, t0 + nf * ODOM_NS + 100_000_000, 25_000_000) if t - t0 + 100_000_000 >= 0))
+    bag = tmp / 'bag_robot'
+    convert(yup, bag, 'png')
+    msgs, conns = read(bag)
+    img_t = [t for tp, t, _ in msgs if tp == COLOR]
+    check('robot bag: stamps on 2026-01-01 UTC, the TUM times kept after it',
+          img_t[0] == ROBOT_EPOCH_NS + 100_000_000 and all(b - a == ODOM_NS for a, b in zip(img_t, img_t[1:])), str(img_t[:2]))
+    static, samples = {}, {'odom': ([], []), 'map': ([], [])}
+    for topic, t, m in msgs:
+        for x in (m.transforms if topic.startswith('/tf') else []):
+            tr, q = x.transform.translation, x.transform.rotation
+            tq = (vec(tr.x, tr.y, tr.z), vec(q.x, q.y, q.z, q.w))
+            if topic == '/tf_static': static[x.child_frame_id] = tq
+            else: samples[x.header.frame_id][0].append(t); samples[x.header.frame_id][1].append(tq)
+    to_z = rotation_to_z(np.array([0.0, 1.0, 0.0]))
+    worst_up = worst_pose = 0.0
+    for t in img_t:
+        base = compose(interp(*samples['map'], t), interp(*samples['odom'], t))
+        worst_up = max(worst_up, float(np.linalg.norm(qrot(base[1], (0, 0, 1)) - [0, 0, 1])))
+        cam = compose(compose(base, static['camera_link']), static[OPTICAL])
+        ref = level(t - ROBOT_EPOCH_NS - 100_000_000 + t0)
+        ref = (qrot(to_z, ref[0]), qmul(to_z, ref[1]))
+        qe = qmul(qconj(ref[1]), cam[1])
+        worst_pose = max(worst_pose, np.linalg.norm(cam[0] - ref[0]), 2 * math.atan2(np.linalg.norm(qe[:3]), abs(qe[3])))
+    check('robot bag: base_link upright in a z-up map (REP 103)', worst_up < 1e-6, f'max |z_base - z_map| {worst_up:.1e}')
+    check("robot bag: TF chain == the TUM poses turned y-up -> z-up", worst_pose < 1e-6, f'max err {worst_pose:.1e} m|rad')
     shutil.rmtree(tmp)
     print('selftest passed')
 
@@ -367,13 +448,16 @@ def main(argv=None):
     ap.add_argument('--pose-topic', help='with --no-tf: the PoseStamped topic (default /ground_truth)')
     ap.add_argument('--odometry-topic', help='poses as nav_msgs/Odometry of base_link in map (20 Hz) with /tf_static, no /tf')
     ap.add_argument('--bag-version', type=int, choices=[8, 9], default=9, help='rosbag2 metadata version')
+    ap.add_argument('--keep-tum-frame', action='store_true',
+                    help="keep the TUM world as the map frame and the TUM stamps (default: a z-up map, REP 103, and wall-clock stamps)")
     ap.add_argument('--selftest', action='store_true', help='write small bags into a temporary folder and check them')
     a = ap.parse_args(argv)
     if a.selftest: return selftest()
     if not (a.tum_dir and a.out_bag_dir): ap.error('TUM_DIR and OUT_BAG_DIR are required')
     if a.pose_topic and not a.no_tf: ap.error('--pose-topic requires --no-tf')
     n = convert(a.tum_dir, a.out_bag_dir, a.colour, a.max_messages_per_file, a.tf_offset,
-                (a.pose_topic or '/ground_truth') if a.no_tf else None, a.bag_version, a.odometry_topic)
+                (a.pose_topic or '/ground_truth') if a.no_tf else None, a.bag_version, a.odometry_topic,
+                a.keep_tum_frame)
     print(f'wrote {n} messages to {a.out_bag_dir}')
 
 

@@ -444,47 +444,119 @@ fn check_fetch_map(what: &str, dep: &Value, maps: &[String]) {
         s.replace("/map-source", src.to_str().unwrap())
             .replace("/maps", dst.to_str().unwrap())
     };
+    // Each map file as pntr writes it begins with its magic; the rest stands for the map.
+    let content = |m: &str| format!("PNTRMAP\0{m}");
     for m in maps {
-        std::fs::write(src.join(&m["/maps/".len()..]), m).unwrap();
+        std::fs::write(src.join(&m["/maps/".len()..]), content(m)).unwrap();
     }
-    // A file the server does not read stays behind.
-    std::fs::write(src.join("other.pntrmap"), "other").unwrap();
-    let run = |db: &str| {
-        std::process::Command::new("sh")
-            .args(["-c", &local(cmd[2])])
-            .env("PNTR_DB", local(db))
-            .output()
-            .unwrap()
+    // A file the server does not read stays behind; an error page is not a map.
+    std::fs::write(src.join("other.pntrmap"), content("other")).unwrap();
+    std::fs::write(src.join("page.pntrmap"), "<html>403 Forbidden</html>").unwrap();
+    // The same folder over HTTP, for MAP_SOURCE_URL (busybox's wget in the pod, this machine's here).
+    let url = serve_folder(&src);
+    let run = |db: &str, url: Option<&str>| {
+        let mut c = std::process::Command::new("sh");
+        c.args(["-c", &local(cmd[2])]).env("PNTR_DB", local(db));
+        match url {
+            Some(u) => c.env("MAP_SOURCE_URL", u),
+            None => c.env_remove("MAP_SOURCE_URL"),
+        };
+        c.output().unwrap()
     };
-    let out = run(&maps.join(","));
-    assert!(
-        out.status.success(),
-        "{what}: fetch-map: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let copied: BTreeSet<String> = std::fs::read_dir(&dst)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().into_string().unwrap())
-        .collect();
     let want: BTreeSet<String> = maps
         .iter()
         .map(|m| m["/maps/".len()..].to_string())
         .collect();
-    assert_eq!(copied, want, "{what}: fetch-map copied other files");
-    for m in maps {
+    for source in [None, Some(url.as_str())] {
+        for e in std::fs::read_dir(&dst).unwrap() {
+            std::fs::remove_file(e.unwrap().path()).unwrap();
+        }
+        let out = run(&maps.join(","), source);
+        assert!(
+            out.status.success(),
+            "{what}: fetch-map from {source:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let copied: BTreeSet<String> = std::fs::read_dir(&dst)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
         assert_eq!(
-            std::fs::read_to_string(dst.join(&m["/maps/".len()..])).unwrap(),
-            *m
+            copied, want,
+            "{what}: fetch-map from {source:?} copied other files"
+        );
+        for m in maps {
+            assert_eq!(
+                std::fs::read_to_string(dst.join(&m["/maps/".len()..])).unwrap(),
+                content(m)
+            );
+        }
+        // Not a map (an error page), or nothing there (404): the pod stops, naming the source,
+        // and nothing is left under the map's name or half-written beside it.
+        let page = format!("{}/page.pntrmap", dst.display());
+        for (db, says) in [
+            ("/maps/page.pntrmap", "is not a pntr map"),
+            ("/maps/missing.pntrmap", "missing.pntrmap"),
+        ] {
+            let out = run(db, source);
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(
+                !out.status.success() && err.contains(says),
+                "{what}: {db} from {source:?}: {err}"
+            );
+        }
+        assert!(!Path::new(&page).exists() && !Path::new(&format!("{page}.partial")).exists());
+        assert!(
+            !run("/etc/passwd", source).status.success(),
+            "{what}: fetch-map copied from outside /maps"
+        );
+        assert!(
+            !run("", source).status.success(),
+            "{what}: fetch-map accepted an empty PNTR_DB"
         );
     }
-    assert!(
-        !run("/etc/passwd").status.success(),
-        "{what}: fetch-map copied from outside /maps"
-    );
-    assert!(
-        !run("").status.success(),
-        "{what}: fetch-map accepted an empty PNTR_DB"
-    );
+}
+
+/// Serve the files of `dir` over HTTP/1.0 on 127.0.0.1 (a thread, for the rest of the test run):
+/// 200 with the file, 404 for anything else. Returns the base URL.
+fn serve_folder(dir: &Path) -> String {
+    use std::io::BufRead;
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let base = format!("http://{}", listener.local_addr().unwrap());
+    let dir = dir.to_path_buf();
+    std::thread::spawn(move || {
+        for stream in listener.incoming().flatten() {
+            let mut reader = std::io::BufReader::new(stream);
+            let mut line = String::new();
+            if reader.read_line(&mut line).is_err() {
+                continue;
+            }
+            // Read the rest of the request head.
+            let mut header = String::new();
+            while reader.read_line(&mut header).is_ok_and(|n| n > 2) {
+                header.clear();
+            }
+            let name = line
+                .split_whitespace()
+                .nth(1)
+                .unwrap_or("/")
+                .trim_start_matches('/');
+            let file = (!name.contains(".."))
+                .then(|| std::fs::read(dir.join(name)).ok())
+                .flatten();
+            let mut stream = reader.into_inner();
+            let _ = match file {
+                Some(body) => stream
+                    .write_all(
+                        format!("HTTP/1.0 200 OK\r\nContent-Length: {}\r\n\r\n", body.len())
+                            .as_bytes(),
+                    )
+                    .and_then(|()| stream.write_all(&body)),
+                None => stream.write_all(b"HTTP/1.0 404 Not Found\r\nContent-Length: 0\r\n\r\n"),
+            };
+        }
+    });
+    base
 }
 
 /// The checks every rendering of deploy/k8s must pass: well-formed objects; only PNTR_* variables the

@@ -806,10 +806,73 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
         let running = pntr_service::start(s).await.unwrap();
         running.ready().await.unwrap();
         let ws_addr = running.foxglove_addr.expect("the live view is on");
-        let mut req = format!("ws://{ws_addr}").into_client_request().unwrap();
-        req.headers_mut()
-            .insert("sec-websocket-protocol", "foxglove.sdk.v1".parse().unwrap());
-        let (mut ws, _) = tokio_tungstenite::connect_async(req).await.unwrap();
+        let offering = |protocol: Option<&str>| {
+            let mut req = format!("ws://{ws_addr}").into_client_request().unwrap();
+            if let Some(p) = protocol {
+                req.headers_mut()
+                    .insert("sec-websocket-protocol", p.parse().unwrap());
+            }
+            req
+        };
+        // A viewer offering nothing the view speaks is told which names work.
+        for offer in [None, Some("graphql-ws")] {
+            let e = tokio_tungstenite::connect_async(offering(offer))
+                .await
+                .unwrap_err();
+            let tokio_tungstenite::tungstenite::Error::Http(r) = e else {
+                panic!("{offer:?}: {e}");
+            };
+            assert_eq!(r.status(), 400);
+            let body =
+                String::from_utf8_lossy(r.body().as_deref().unwrap_or_default()).into_owned();
+            assert!(
+                body.contains("foxglove.sdk.v1") && body.contains("foxglove.websocket.v1"),
+                "{body}"
+            );
+        }
+        // A viewer that subscribes to everything and never reads (a stalled laptop on Wi-Fi): its
+        // messages are dropped, the robots' answers and the other viewer go on.
+        let (mut stalled, r) = tokio_tungstenite::connect_async(offering(Some("foxglove.sdk.v1")))
+            .await
+            .unwrap();
+        assert_eq!(r.headers()["sec-websocket-protocol"], "foxglove.sdk.v1");
+        let mut stalled_channels = Vec::new();
+        while stalled_channels.len() < 7 {
+            if let Some(Ok(Message::Text(t))) = stalled.next().await {
+                let v: serde_json::Value = serde_json::from_str(&t).unwrap();
+                if v["op"] == "advertise" {
+                    stalled_channels.extend(
+                        v["channels"]
+                            .as_array()
+                            .unwrap()
+                            .iter()
+                            .map(|c| c["id"].as_u64().unwrap()),
+                    );
+                }
+            }
+        }
+        let all: Vec<_> = stalled_channels
+            .iter()
+            .enumerate()
+            .map(|(i, c)| serde_json::json!({"id": i, "channelId": c}))
+            .collect();
+        stalled
+            .send(Message::Text(
+                serde_json::json!({"op": "subscribe", "subscriptions": all})
+                    .to_string()
+                    .into(),
+            ))
+            .await
+            .unwrap();
+        // The viewer followed below asks for the protocol's earlier name, as older Foxglove and
+        // Lichtblick do, and is answered under it.
+        let (mut ws, r) = tokio_tungstenite::connect_async(offering(Some("foxglove.websocket.v1")))
+            .await
+            .unwrap();
+        assert_eq!(
+            r.headers()["sec-websocket-protocol"],
+            "foxglove.websocket.v1"
+        );
         // serverInfo, then the advertisements.
         let mut channels: BTreeMap<String, (u64, String)> = BTreeMap::new();
         let deadline = Instant::now() + Duration::from_secs(20);
@@ -887,6 +950,48 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
         // ROS conventions: the y-up scene's camera height is the pose's z.
         let z = a["pose"]["position"][2].as_f64().unwrap();
         assert!((0.5..2.0).contains(&z), "{a}");
+        // Many more frames while the stalled viewer still reads nothing: every one answered, and
+        // the reading viewer keeps up to the end (a frame may be skipped when the view's thread is
+        // busy, so frames go on until one of the 40th or later is shown).
+        let late = |i: usize| proto::LocalizeRequest {
+            request_id: format!("late-{i}"),
+            ..request(&f.queries[i % f.queries.len()], "")
+        };
+        for i in 0..40 {
+            c.localize(late(i)).await.unwrap();
+        }
+        let (deadline, mut i) = (Instant::now() + Duration::from_secs(60), 40);
+        'shown: loop {
+            assert!(
+                Instant::now() < deadline,
+                "late frames never reached the reading viewer"
+            );
+            while let Ok(Some(Ok(m))) =
+                tokio::time::timeout(Duration::from_millis(300), ws.next()).await
+            {
+                let Message::Binary(b) = m else { continue };
+                if u32::from_le_bytes(b[1..5].try_into().unwrap()) != 1 {
+                    continue;
+                }
+                let a: serde_json::Value = serde_json::from_slice(&b[13..]).unwrap();
+                let n = a["request_id"]
+                    .as_str()
+                    .and_then(|r| r.strip_prefix("late-"));
+                if n.and_then(|n| n.parse::<usize>().ok())
+                    .is_some_and(|n| n >= 39)
+                {
+                    break 'shown;
+                }
+            }
+            c.localize(late(i)).await.unwrap();
+            i += 1;
+        }
+        assert_eq!(
+            running.state.live().map(|l| l.clients()),
+            Some(2),
+            "both viewers are still connected"
+        );
+        drop(stalled);
         stop(running).await;
     });
 }

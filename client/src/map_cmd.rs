@@ -724,8 +724,16 @@ pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
 /// Write `text` to `path` atomically.
 pub fn write_text(path: &Path, text: &str) -> Result<()> {
     let tmp = PathBuf::from(format!("{}.partial-{}", path.display(), std::process::id()));
-    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+    let written = std::fs::write(&tmp, text)
+        .with_context(|| format!("writing {}", tmp.display()))
+        .and_then(|()| {
+            std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))
+        });
+    if written.is_err() {
+        // A full disk: no half-written file left beside the one asked for.
+        let _ = std::fs::remove_file(&tmp);
+    }
+    written
 }
 
 /// Localise queries of `scenes` through `remote`.

@@ -445,7 +445,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         ..map_frames
     };
     let to_ros = |p: &Isometry3<f64>| optical.pose_to_ros(p);
-    let recording = match &args.record {
+    let mut record_errors: Vec<String> = Vec::new();
+    let mut recording = match &args.record {
         Some(path) => Some(crate::map_cmd::start_recording(
             path,
             args.db.as_deref(),
@@ -453,7 +454,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         )?),
         None => None,
     };
-    let bag = match &args.record_bag {
+    let mut bag = match &args.record_bag {
         Some(path) => Some(
             pntr_service::ros_bag::BagRecording::create(path)
                 .map_err(|e| anyhow::anyhow!("--record-bag {e}"))?,
@@ -577,13 +578,15 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                 covariance: &covariance,
                 truth: seq.world_from_camera(i).as_ref().map(to_ros),
             };
-            if let Some(rec) = &recording {
-                rec.observe(&observation)
-                    .map_err(|e| anyhow::anyhow!("--record: {e}"))?;
+            // A recording that cannot be written (a full disk) is abandoned at its first error,
+            // said once; the replay goes on, its report is written, and the run fails at the end.
+            if let Some(Err(e)) = recording.as_ref().map(|r| r.observe(&observation)) {
+                recording = None;
+                abandon_recording("--record", e, &mut record_errors);
             }
-            if let Some(b) = &bag {
-                b.observe(&observation)
-                    .map_err(|e| anyhow::anyhow!("--record-bag: {e}"))?;
+            if let Some(Err(e)) = bag.as_ref().map(|b| b.observe(&observation)) {
+                bag = None;
+                abandon_recording("--record-bag", e, &mut record_errors);
             }
         }
         out.push(Answered {
@@ -631,14 +634,16 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     }
     crate::map_cmd::write_text(&args.trajectory, &traj)?;
     if let Some(b) = bag {
-        let path = b
-            .finish()
-            .map_err(|e| anyhow::anyhow!("--record-bag {e}"))?;
-        eprintln!("ROS 2 bag written to {}", path.display());
+        match b.finish() {
+            Ok(path) => eprintln!("ROS 2 bag written to {}", path.display()),
+            Err(e) => abandon_recording("--record-bag", e, &mut record_errors),
+        }
     }
     if let Some(rec) = recording {
-        let path = rec.finish().map_err(|e| anyhow::anyhow!("--record {e}"))?;
-        eprintln!("recording written to {}", path.display());
+        match rec.finish() {
+            Ok(path) => eprintln!("recording written to {}", path.display()),
+            Err(e) => abandon_recording("--record", e, &mut record_errors),
+        }
     }
     if let Some(path) = &args.frames_log {
         crate::map_cmd::write_text(path, &frames_log(&out))?;
@@ -688,6 +693,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             else { "the stream's tracking".to_string() },
         "sequence": args.sequence.display().to_string(),
         "effects": args.effects,
+        "record_errors": record_errors,
     });
     crate::map_cmd::write_json(&args.json, &report)?;
     println!(
@@ -735,5 +741,20 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         )?;
         eprintln!("{} pictures written to {}", files.len(), dir.display());
     }
+    if !record_errors.is_empty() {
+        anyhow::bail!(
+            "the replay ran and its report is written, but {}",
+            record_errors.join("; ")
+        );
+    }
     Ok(())
+}
+
+/// Say once that a recording (`flag`: `--record` or `--record-bag`) could not be written and is
+/// abandoned (its partial file or folder is removed when it is dropped), and keep the error for the
+/// report and the exit status.
+fn abandon_recording(flag: &str, error: String, errors: &mut Vec<String>) {
+    let message = format!("{flag} {error}: nothing recorded (the partial output is removed)");
+    eprintln!("error: {message}; the replay goes on");
+    errors.push(message);
 }

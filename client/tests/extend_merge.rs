@@ -379,6 +379,7 @@ fn sessions_extend_and_merge_maps() {
     ok(&Command::new(&python)
         .arg(repo_root().join("scripts/tum_to_rosbag2.py"))
         .args([second_seq.as_os_str(), bag.as_os_str()])
+        .arg("--keep-tum-frame")
         .output()
         .unwrap());
     ok(&Command::new(&python)
@@ -441,6 +442,20 @@ fn sessions_extend_and_merge_maps() {
         "{msg}"
     );
     assert!(!dir.path().join("twice.pntrmap").exists());
+    // A map extended from A (A's images and more) is the merge already: said so.
+    let msg = err(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        ext.to_str().unwrap(),
+        "--out",
+        dir.path().join("grown.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(
+        msg.contains("was extended from A") && msg.contains("merged map already"),
+        "{msg}"
+    );
+    assert!(!dir.path().join("grown.pntrmap").exists());
 }
 
 /// groundtruth.txt rows: (stamp, position).

@@ -259,5 +259,66 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     assert!(!bad.status.success());
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("rgb.txt"), "{err}");
+
+    // A full disk under `--record` and `--record-bag`: one error line each, naming the file and
+    // the cause, not a warning per message; the replay's report still written; nothing half
+    // written left behind. The disk fills here by a file-size limit (`ulimit -f`, the signal it
+    // raises ignored, so writes fail with EFBIG as they would with ENOSPC on a full disk): the
+    // recordings pass it within a few frames, the report and trajectory stay below it.
+    let (full_mcap, full_bag) = (dir.path().join("full.mcap"), dir.path().join("full-bag"));
+    let (full_txt, full_json) = (dir.path().join("full.txt"), dir.path().join("full.json"));
+    let out = std::process::Command::new("sh")
+        .arg("-c")
+        .arg("trap '' XFSZ; ulimit -f 400 && exec \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_pntr"))
+        .args([
+            "replay",
+            "--addr",
+            &addr,
+            "--sequence",
+            seq.to_str().unwrap(),
+        ])
+        .args(["--trajectory", full_txt.to_str().unwrap()])
+        .args(["--json", full_json.to_str().unwrap(), "--rate", "50"])
+        .args(["--record", full_mcap.to_str().unwrap()])
+        .args(["--record-bag", full_bag.to_str().unwrap()])
+        .env_remove("PNTR_TOKEN")
+        .output()
+        .unwrap();
+    let err = support::fails_cleanly(&out);
+    let lines: Vec<&str> = err.lines().filter(|l| l.starts_with("error:")).collect();
+    assert!(
+        lines.iter().any(|l| l.contains("--record ")
+            && l.contains("full.mcap")
+            && l.contains("File too large")),
+        "{err}"
+    );
+    assert!(
+        lines.iter().any(|l| l.contains("--record-bag ")
+            && l.contains("full-bag")
+            && l.contains("File too large")),
+        "{err}"
+    );
+    assert!(
+        !err.contains("WARN") && !err.contains("attempted another write"),
+        "one error per recording, not one per message: {err}"
+    );
+    let r = read_json(&full_json);
+    assert_eq!(r["frames"], 50, "{r}");
+    assert_eq!(r["record_errors"].as_array().map(Vec::len), Some(2), "{r}");
+    assert_eq!(
+        tum_rows(&full_txt).len(),
+        (r["localized_share"].as_f64().unwrap() * 50.0).round() as usize
+    );
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains("full") && !n.starts_with("full.txt") && n != "full.json")
+        .collect();
+    assert!(
+        left.is_empty(),
+        "half-written recordings left behind: {left:?}"
+    );
     stop(&rt, [server]);
 }

@@ -16,7 +16,15 @@ use support::{
     repo_root, runtime, serve, stop, tum_rows, MODELS,
 };
 
+/// The drive as a bag in the TUM folder's own frame and stamps (`--keep-tum-frame`), so its map
+/// compares pose for pose with the folder's.
 fn to_bag(seq: &Path, out: &Path, extra: &[&str]) {
+    to_robot_bag(seq, out, &[extra, &["--keep-tum-frame"]].concat());
+}
+
+/// The drive as a robot would record it (the script's default): a z-up `map` (REP 103) and
+/// wall-clock stamps. Returns the script's stderr (what it converted).
+fn to_robot_bag(seq: &Path, out: &Path, extra: &[&str]) -> String {
     // `$PNTR_PYTHON` or set-up's venv, which has `rosbags`.
     let o = Command::new(support::python_importing("rosbags, numpy, PIL"))
         .arg(repo_root().join("scripts/tum_to_rosbag2.py"))
@@ -26,6 +34,24 @@ fn to_bag(seq: &Path, out: &Path, extra: &[&str]) {
         .output()
         .unwrap();
     ok(&o);
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// The converter's own checks (a TUM folder it writes, converted three ways and in the robot's
+/// frame, read back with `rosbags`): TF chains equal to the ground truth, split files, encodings,
+/// and a y-up render's world turned z-up with base_link upright and wall-clock stamps.
+#[test]
+fn the_stand_in_bag_converter_passes_its_self_test() {
+    let o = Command::new(support::python_importing("rosbags, numpy, PIL"))
+        .arg(repo_root().join("scripts/tum_to_rosbag2.py"))
+        .arg("--selftest")
+        .output()
+        .unwrap();
+    let out = ok(&o);
+    assert!(
+        out.contains("selftest passed") && out.contains("base_link upright"),
+        "{out}"
+    );
 }
 
 /// A map's images by stamp (ms): (translation, rotation w x y z).
@@ -111,6 +137,50 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         bag_images.len()
     );
 
+    // The same drive as a robot records it (the converter's default): the render's y-up world is
+    // a z-up map (REP 103) and the stamps are wall-clock time. The map is built without flags, its
+    // up axis read as z, every keyframe the TUM map's turned +90 degrees about x at its stamp
+    // moved to 2026-01-01 UTC.
+    let robot = dir.path().join("bag_robot");
+    let said = to_robot_bag(&seq, &robot, &["--colour", "png"]);
+    assert!(
+        said.contains("+y up turned to the map's +z") && said.contains("2026-01-01"),
+        "{said}"
+    );
+    let (r, robot_images) = build(&robot, &dir.path().join("robot.pntrmap"), &[]);
+    assert_eq!(r["up_axis"], "z", "{r}");
+    assert!(!r["warnings"].to_string().contains("upside down"), "{r}");
+    let h = std::f64::consts::FRAC_1_SQRT_2;
+    let turned = tum_images
+        .iter()
+        .filter(|(stamp, (t, q))| {
+            robot_images
+                .get(&(**stamp + 1_767_225_600_000))
+                .is_some_and(|(bt, bq)| {
+                    // (x, y, z) -> (x, -z, y); rotation (h, h, 0, 0) * q (w x y z).
+                    let want_t = [t[0], -t[2], t[1]];
+                    let want_q = [
+                        h * (q[0] - q[1]),
+                        h * (q[1] + q[0]),
+                        h * (q[2] - q[3]),
+                        h * (q[3] + q[2]),
+                    ];
+                    let dt = (0..3)
+                        .map(|i| (want_t[i] - bt[i]).powi(2))
+                        .sum::<f64>()
+                        .sqrt();
+                    let dot: f64 = want_q.iter().zip(bq).map(|(a, b)| a * b).sum();
+                    dt < 1e-3 && (2.0 * dot.abs().min(1.0).acos()).to_degrees() < 0.01
+                })
+        })
+        .count();
+    assert!(
+        turned * 100 >= 98 * tum_images.len(),
+        "{turned} of {} TUM keyframes turned z-up in the robot bag's map ({} images)",
+        tum_images.len(),
+        robot_images.len()
+    );
+
     // Two sessions in one frame (the folder and the bag of the same drive): the second adds frames,
     // not keyframes, since the first already has every view.
     let (both, _) = build(
@@ -152,6 +222,26 @@ fn rosbag2_folders_with_compressed_images_and_tf_build_the_same_map_as_the_tum_f
         &["--pose-topic", "/ground_truth"],
     );
     assert_eq!(p["images"], tum["images"], "{p}");
+    // A pose publisher that never filled the orientation in: every pose left out, and the refusal
+    // says so (not that the topic is empty).
+    let zero = dir.path().join("bag_zero_poses");
+    ok(&Command::new(support::python_importing("rosbags"))
+        .arg(repo_root().join("client/tests/support/bag_faults.py"))
+        .args([posed.as_os_str(), zero.as_os_str()])
+        .arg("zero-poses")
+        .output()
+        .unwrap());
+    let e = build_db_refused(
+        &zero,
+        &dir.path().join("zero.pntrmap"),
+        &["--pose-topic", "/ground_truth"],
+    );
+    assert!(
+        e.contains("no usable poses on /ground_truth")
+            && e.contains("are left out")
+            && e.contains("a quaternion of norm 0.0000"),
+        "{e}"
+    );
 
     // Poses from the body's nav_msgs/Odometry (between the images), carried to the camera by the
     // static transforms.

@@ -14,6 +14,8 @@ FAULT:
   bad-poses     among the odom -> base_link transforms, the 10th has a NaN position, the 20th an
                 all-zero quaternion, the 30th a NaN in its quaternion, and every 7th a quaternion
                 scaled by 1.003 (within tf2's tolerance: normalised, not left out).
+  zero-poses    every geometry_msgs/msg/PoseStamped has an all-zero quaternion (a pose publisher
+                that never filled the orientation in).
 """
 import math
 import sys
@@ -45,6 +47,9 @@ def rewrite(src, dst, fault):
                 p[0] *= 1.2
                 p[5] *= 1.2
                 msg.k, msg.p = k, p
+            if fault == 'zero-poses' and c.msgtype == 'geometry_msgs/msg/PoseStamped':
+                o = msg.pose.orientation
+                o.x = o.y = o.z = o.w = 0.0
             if c.topic == '/tf':
                 for x in msg.transforms:
                     if (x.header.frame_id, x.child_frame_id) != ('odom', 'base_link'):
@@ -78,7 +83,7 @@ def rewrite(src, dst, fault):
 
 
 def main():
-    if len(sys.argv) != 4 or sys.argv[3] not in ('two-parents', 'info-frame', 'bad-poses', 'renamed'):
+    if len(sys.argv) != 4 or sys.argv[3] not in ('two-parents', 'info-frame', 'bad-poses', 'renamed', 'zero-poses'):
         sys.exit(__doc__)
     rewrite(Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3])
 

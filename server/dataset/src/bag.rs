@@ -332,8 +332,14 @@ impl LeftOut {
 
     fn warnings(&self) -> impl Iterator<Item = String> + '_ {
         self.0.iter().map(|(topic, (n, t, frame, why))| {
+            // tf2 itself reads only TF; a pose topic's poses are held to the same rule.
+            let rule = if topic.starts_with("/tf") {
+                "as tf2 leaves them out"
+            } else {
+                "by tf2's rule for transforms"
+            };
             format!(
-                "{topic}: {n} pose{} left out, as tf2 leaves them out (the first at {t:.6} s, {frame}: {why}); frames are posed from the samples around the gap{}",
+                "{topic}: {n} pose{} left out, {rule} (the first at {t:.6} s, {frame}: {why}); frames are posed from the samples around the gap{}",
                 if *n == 1 { "" } else { "s" },
                 if *n == 1 { "" } else { "s" }
             )
@@ -784,11 +790,14 @@ impl Bag {
             Some(Err(e)) => (None, Some(e.to_string())),
             Some(Ok(i)) => match (camera(path, &i), &camera_frame) {
                 // A CameraInfo of another camera (the depth camera's, another lens) would build the
-                // map with the wrong intrinsics, silently: refused, naming both frames.
+                // map with the wrong intrinsics, silently: refused, naming both frames (unless it
+                // is of the frame the caller named as the camera's with --camera-frame).
                 (Ok(_), Some(images))
                     if !i.header.frame_id.is_empty()
                         && i.header.frame_id.trim_start_matches('/')
-                            != images.trim_start_matches('/') =>
+                            != images.trim_start_matches('/')
+                        && topics.camera_frame.as_deref().map(|f| f.trim_start_matches('/'))
+                            != Some(i.header.frame_id.trim_start_matches('/')) =>
                 {
                     (
                         None,
@@ -818,7 +827,9 @@ impl Bag {
                 topics.map_frame
             ));
         }
-        if let Some(given) = &topics.camera_frame {
+        // (Poses from a PoseStamped topic are the camera's as they are: TF is not asked then.)
+        let poses_from_tf = topics.pose.is_none() || odometry_child.is_some();
+        if let Some(given) = topics.camera_frame.as_ref().filter(|_| poses_from_tf) {
             let optical = |f: &str| f.contains("optical");
             if !optical(given) {
                 // A body frame (x forward) whose child is the optical frame (z forward): poses of
@@ -858,13 +869,17 @@ impl Bag {
             .unwrap_or_else(|| "camera_color_optical_frame".into());
         let trajectory = (!poses.is_empty()).then(|| crate::tum::Trajectory::from_poses(poses));
         if topics.pose.is_some() && trajectory.is_none() {
+            let topic = topics.pose.as_deref().unwrap_or("");
+            // Every pose there left out: say why, rather than that the topic is empty.
+            if let Some((n, t, frame, why)) = left_out.0.get(topic) {
+                return Err(bad(
+                    path,
+                    format!("no usable poses on {topic}: all {n} are left out (the first at {t:.6} s, {frame}: {why})"),
+                ));
+            }
             return Err(bad(
                 path,
-                format!(
-                    "no poses on {}; the bag has: {}",
-                    topics.pose.as_deref().unwrap_or(""),
-                    listing()
-                ),
+                format!("no poses on {topic}; the bag has: {}", listing()),
             ));
         }
         let mut pose_problem = None;

@@ -5,6 +5,7 @@
 //! the Python `rosbags` package and Foxglove open it. The folder is written under a temporary name
 //! and renamed into place when finished: an interrupted run leaves no half bag under the name.
 
+use crate::write_guard::{FirstError, GuardedWriter};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -189,7 +190,9 @@ pub struct BagWriter {
     dir: PathBuf,
     tmp: PathBuf,
     file_name: String,
-    writer: mcap::Writer<std::io::BufWriter<std::fs::File>>,
+    writer: mcap::Writer<GuardedWriter<std::io::BufWriter<std::fs::File>>>,
+    /// The file's first failed write (a full disk): the bag is abandoned at it.
+    failed: FirstError,
     schemas: BTreeMap<MessageType, u16>,
     topics: BTreeMap<String, Topic>,
     first_ns: Option<u64>,
@@ -234,16 +237,18 @@ impl BagWriter {
         let file_name = format!("{name}_0.mcap");
         let path = tmp.join(&file_name);
         let file = std::fs::File::create(&path).map_err(io(&path))?;
+        let (file, failed) = GuardedWriter::new(std::io::BufWriter::new(file));
         let writer = mcap::WriteOptions::new()
             .profile("ros2")
             .compression(Some(mcap::Compression::Zstd))
-            .create(std::io::BufWriter::new(file))
+            .create(file)
             .map_err(|e| layout(&path, format!("writing MCAP: {e}")))?;
         Ok(Self {
             dir: dir.to_path_buf(),
             tmp,
             file_name,
             writer,
+            failed,
             schemas: BTreeMap::new(),
             topics: BTreeMap::new(),
             first_ns: None,
@@ -313,6 +318,9 @@ impl BagWriter {
                 &data,
             )
             .map_err(mcap_err)?;
+        if let Some(e) = self.failed.get() {
+            return Err(layout(&path, format!("writing MCAP: {e}")));
+        }
         self.sequence = self.sequence.wrapping_add(1);
         if let Some(t) = self.topics.get_mut(topic) {
             t.count += 1;
@@ -328,6 +336,9 @@ impl BagWriter {
         self.writer
             .finish()
             .map_err(|e| layout(&path, format!("writing MCAP: {e}")))?;
+        if let Some(e) = self.failed.get() {
+            return Err(layout(&path, format!("writing MCAP: {e}")));
+        }
         let start = self.first_ns.unwrap_or(0);
         let duration = self.last_ns.saturating_sub(start);
         let total: u64 = self.topics.values().map(|t| t.count).sum();
@@ -352,6 +363,15 @@ impl BagWriter {
         std::fs::write(&meta, text).map_err(io(&meta))?;
         std::fs::rename(&self.tmp, &self.dir).map_err(io(&self.dir))?;
         Ok(self.dir.clone())
+    }
+}
+
+impl Drop for BagWriter {
+    /// A bag not finished (its run failed: a full disk, an error elsewhere) leaves nothing behind:
+    /// its hidden partial folder is removed. After [`BagWriter::finish`] the folder has its name
+    /// already and nothing is removed.
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.tmp);
     }
 }
 

@@ -37,6 +37,7 @@ pub mod recording;
 pub mod sevenscenes;
 pub mod tf;
 pub mod tum;
+pub mod write_guard;
 mod writer;
 
 pub use error::DatasetError;

@@ -111,17 +111,23 @@ impl TfTree {
         v
     }
 
-    /// Whether `target` is `frame` or above it through any parent.
+    /// Whether `target` is `frame` or above it through any parent. Each frame is visited once, so
+    /// a cycle in a broken recording's TF (`a -> b -> a`) or frames with many parents end the search.
     fn reaches(&self, frame: &str, target: &str) -> bool {
-        let mut todo = vec![(frame.to_string(), 0)];
-        while let Some((f, depth)) = todo.pop() {
+        let mut seen = std::collections::BTreeSet::new();
+        let mut todo = vec![frame];
+        while let Some(f) = todo.pop() {
             if f == target {
                 return true;
             }
-            if depth < 64 {
-                for l in self.edges.get(&f).into_iter().flatten() {
-                    todo.push((l.parent.clone(), depth + 1));
-                }
+            if seen.insert(f) {
+                todo.extend(
+                    self.edges
+                        .get(f)
+                        .into_iter()
+                        .flatten()
+                        .map(|l| l.parent.as_str()),
+                );
             }
         }
         false
@@ -342,5 +348,30 @@ mod tests {
         let got = tf.lookup("odom", "camera", 1.95).unwrap();
         assert!((got.translation.vector.x - 1.95).abs() < 1e-9);
         assert_eq!(tf.children("base_link"), vec!["camera".to_string()]);
+    }
+
+    #[test]
+    fn a_loop_in_a_broken_recording_is_named_and_many_parents_stay_cheap() {
+        // A loop (a -> b -> a, two nodes publishing the same pair both ways) and a ladder of frames
+        // with two parents each (2^40 paths upwards, if the search walked every one).
+        let mut tf = TfTree::default();
+        tf.add("a", "b", 0.0, Isometry3::identity(), true);
+        tf.add("b", "a", 0.0, Isometry3::identity(), true);
+        tf.add("a", "camera", 0.0, Isometry3::identity(), true);
+        for i in 0..40 {
+            let (low, up) = (
+                format!("l{i}"),
+                [format!("l{}", i + 1), format!("r{}", i + 1)],
+            );
+            for parent in &up {
+                tf.add(parent, &low, 0.0, Isometry3::identity(), true);
+            }
+            tf.add(&up[0], &format!("r{i}"), 0.0, Isometry3::identity(), true);
+        }
+        tf.seal();
+        let e = tf.lookup("map", "camera", 0.0).unwrap_err();
+        assert!(e.contains("loop") || e.contains("map"), "{e}");
+        assert_eq!(tf.parent_towards("l0", "nowhere"), Some("l1"));
+        assert!(tf.lookup("l40", "l0", 0.0).is_ok());
     }
 }

@@ -235,6 +235,13 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
                 .is_some_and(|x| x.keypoints == im.keypoints && x.descriptors == im.descriptors)
         })
         .count();
+    if twice == a.images.len() && b.images.len() > twice {
+        // B grew from A (`build-db --extend` of A written as B): it is already the merge.
+        return Err(PipelineError::Refused(format!(
+            "map B holds every one of map A's {twice} images, unchanged, and {} more (B was extended from A): it is the merged map already; serve or replace with B instead of merging",
+            b.images.len() - twice
+        )));
+    }
     if twice * 2 > b.images.len() {
         return Err(PipelineError::Refused(format!(
             "{twice} of map B's {} images are already in map A, unchanged (the same map or session given twice, as in `maps merge A A`): nothing to merge",

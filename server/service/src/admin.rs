@@ -320,7 +320,7 @@ pub async fn extend(
             .collect();
         let preset = base.header.preset.clone();
         let stage = engine.map_stage(&preset).map_err(&failed)?;
-        let (map, _) = pntr_pipeline::recording_map::extend(
+        let (map, report) = pntr_pipeline::recording_map::extend(
             base,
             &sessions,
             pntr_pipeline::keyframes::KeyframeParams::default(),
@@ -329,6 +329,11 @@ pub async fn extend(
             &mut |_, _| {},
         )
         .map_err(|e| failed(e.to_string()))?;
+        // What build-db would print as warnings (frames left out, a pose source that disagrees
+        // with the images, ...) goes to the server's log, where its operator reads.
+        for w in &report.warnings {
+            tracing::warn!(map_id = %map.header.map_id, warning = %w, "extending the map");
+        }
         let added = map.images.len() - before;
         pntr_pipeline::mapfile::save(&map, &file)
             .map_err(|e| failed(format!("writing {}: {e}", file.display())))?;

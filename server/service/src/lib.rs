@@ -21,6 +21,10 @@
 //! - **Operable.** Settings from flags, `PNTR_*` variables and a TOML/JSON file, validated at start
 //!   ([`config`]); Prometheus metrics on their own port and tracing spans carrying the request id
 //!   ([`telemetry`]); graceful drain on SIGTERM/SIGINT; optional TLS (rustls) and bearer token.
+//! - **Watching costs the robots nothing.** The live Foxglove view (`--foxglove`) draws frames on a
+//!   thread of its own behind a queue of two, and each viewer's backlog is bounded: a slow viewer
+//!   loses frames, never the robots' latency or the server's memory ([`visual::Live`]; its front
+//!   door also serves clients asking for the protocol's earlier name, [`live_proxy`]).
 //! - **One wire definition for clients too.** [`wire`] builds requests from pntr's image types, so the
 //!   tests and `pntr eval --remote` encode frames exactly as the server decodes them. Clients use the
 //!   re-exported [`tonic`] (and health / reflection clients) so their versions always match.
@@ -30,6 +34,7 @@ pub mod config;
 pub mod decode;
 pub mod demo;
 pub mod engine;
+pub mod live_proxy;
 pub mod ros_bag;
 pub mod server;
 pub mod service;

@@ -234,7 +234,7 @@ impl Recorder {
         match self {
             Self::Foxglove(r) => {
                 r.view().observe(o);
-                Ok(())
+                r.error().map_or(Ok(()), Err)
             }
             Self::RosBag(b) => b.observe(o),
         }

@@ -822,33 +822,33 @@ impl LocalizerService {
             frame_convention: proto::FrameConvention::Map as i32,
             cause: wire::cause_message(loc.cause.filter(|_| !localized)) as i32,
         };
-        if let Some((live, rgb, k)) = &watched {
-            let covariance = frames.covariance_to_ros(&response.covariance);
-            live.view().observe(&crate::visual::Observation {
+        if let Some((live, rgb, k)) = watched {
+            // Handed to the live view's thread; drawing never holds up the answer.
+            live.show(crate::visual::Shown {
                 time_s: std::time::SystemTime::now()
                     .duration_since(std::time::UNIX_EPOCH)
                     .map_or(0.0, |d| d.as_secs_f64()),
-                picture: Some((crate::visual::Picture::Raw(rgb), k)),
-                request_id: &request_id,
-                map_id: &response.map_id,
-                map_version: &response.map_version,
+                rgb,
+                intrinsics: k,
+                request_id: request_id.clone(),
+                map_id: response.map_id.clone(),
+                map_version: response.map_version.clone(),
                 status: if localized {
                     "LOCALIZED"
                 } else {
                     "NOT_LOCALIZED"
                 },
-                reason: &response.reason,
+                reason: response.reason.clone(),
                 confidence: response.confidence,
                 inliers: response.inliers,
                 mode: loc.mode.name(),
-                matched_image_id: &response.matched_image_id,
+                matched_image_id: response.matched_image_id.clone(),
                 pose: loc
                     .pose
                     .as_ref()
                     .filter(|_| localized)
                     .map(|p| frames.pose_to_ros(p)),
-                covariance: &covariance,
-                truth: None,
+                covariance: frames.covariance_to_ros(&response.covariance),
             });
         }
         let outside_map = !localized

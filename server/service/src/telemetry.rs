@@ -49,6 +49,9 @@ pub const ANSWER_CONFIDENCE: &str = "pntr_answer_confidence";
 /// Gauge, 1 when a loaded map's own confidence calibration is stale (the map changed since it was
 /// fitted: extended on a server, merged) and 0 otherwise (`map_id`); rendered at each scrape.
 pub const MAP_CALIBRATION_STALE: &str = "pntr_map_calibration_stale";
+/// Counter: answered frames the live Foxglove view did not draw because it was still drawing
+/// earlier ones (a slow viewer, or images larger than it can encode at the frame rate).
+pub const LIVE_VIEW_DROPPED: &str = "pntr_live_view_frames_dropped_total";
 
 /// Bucket bounds of the confidence histogram.
 const CONFIDENCE_BUCKETS: [f64; 13] = [
@@ -102,11 +105,16 @@ pub fn prometheus() -> Result<PrometheusHandle, String> {
                 ANSWERS_BY_MODE,
                 "Answers (LOCALIZED or NOT_LOCALIZED) by the path that produced them"
             );
+            metrics::describe_counter!(
+                LIVE_VIEW_DROPPED,
+                "Answered frames the live Foxglove view skipped while still drawing earlier ones"
+            );
             // Register the series so a scrape shows them before the first request.
             metrics::gauge!(IN_FLIGHT).set(0.0);
             metrics::gauge!(QUEUE_DEPTH).set(0.0);
             metrics::gauge!(BUSY_WORKERS).set(0.0);
             metrics::gauge!(STREAMS_ACTIVE).set(0.0);
+            metrics::counter!(LIVE_VIEW_DROPPED).increment(0);
             Ok(handle)
         })
         .clone()

@@ -36,6 +36,7 @@ use foxglove::messages::{
 use foxglove::{Channel, Context, McapWriterHandle, RawChannel, Schema, WebSocketServerHandle};
 use nalgebra::Isometry3;
 use pntr_core::{Intrinsics, RgbImage};
+use pntr_dataset::write_guard::{FirstError, GuardedWriter};
 
 /// The frame id of the world (z-up, REP 103).
 pub const FRAME_MAP: &str = "map";
@@ -343,11 +344,15 @@ fn calibration(k: &Intrinsics, time_s: f64) -> CameraCalibration {
 }
 
 /// An MCAP file being written: [`Recording::finish`] closes it under its name; until then it is
-/// `<name>.partial`, so an interrupted run never leaves a file that looks complete.
+/// `<name>.partial`, so an interrupted run never leaves a file that looks complete. The first write
+/// that fails (a full disk, a file-size limit) is kept and reported once by [`Recording::error`];
+/// the recording is dead from there (later writes are dropped, not retried and warned about one by
+/// one), and a recording dropped or failed at its finish removes its partial file.
 pub struct Recording {
     view: View,
-    writer: McapWriterHandle<BufWriter<File>>,
+    writer: Option<McapWriterHandle<GuardedWriter<BufWriter<File>>>>,
     _ctx: Arc<Context>,
+    failed: FirstError,
     partial: PathBuf,
     out: PathBuf,
 }
@@ -362,14 +367,17 @@ impl Recording {
         let _ = std::fs::remove_file(&partial);
         let ctx = Context::new();
         let view = View::new(&ctx);
+        let file = File::create_new(&partial).map_err(|e| format!("{}: {e}", partial.display()))?;
+        let (file, failed) = GuardedWriter::new(BufWriter::new(file));
         let writer = ctx
             .mcap_writer()
-            .create_new_buffered_file(&partial)
+            .create(file)
             .map_err(|e| format!("{}: {e}", partial.display()))?;
         Ok(Self {
             view,
-            writer,
+            writer: Some(writer),
             _ctx: ctx,
+            failed,
             partial,
             out: out.to_path_buf(),
         })
@@ -380,22 +388,119 @@ impl Recording {
         &self.view
     }
 
-    /// Close the file and move it to its name.
-    pub fn finish(self) -> Result<PathBuf, String> {
-        self.writer
-            .close()
-            .map_err(|e| format!("{}: {e}", self.partial.display()))?;
+    /// The first write that failed, as `<partial file>: <cause>`; `None` while all is well. Writes
+    /// are buffered, so a failure shows some messages after the one that caused it.
+    pub fn error(&self) -> Option<String> {
+        self.failed
+            .get()
+            .map(|e| format!("{}: {e}", self.partial.display()))
+    }
+
+    /// Close the file and move it to its name. Errors (the first failed write, or the close) name
+    /// the file and the cause; the partial file is removed then.
+    pub fn finish(mut self) -> Result<PathBuf, String> {
+        if let Some(w) = self.writer.take() {
+            w.close()
+                .map_err(|e| format!("{}: {e}", self.partial.display()))?;
+        }
+        if let Some(e) = self.error() {
+            return Err(e);
+        }
         std::fs::rename(&self.partial, &self.out)
             .map_err(|e| format!("{} -> {}: {e}", self.partial.display(), self.out.display()))?;
-        Ok(self.out)
+        Ok(self.out.clone())
+    }
+}
+
+impl Drop for Recording {
+    fn drop(&mut self) {
+        // Unfinished or failed: close the writer, then remove what it wrote (after a successful
+        // finish the partial file has its final name already and nothing is removed).
+        if let Some(w) = self.writer.take() {
+            drop(w.close());
+        }
+        let _ = std::fs::remove_file(&self.partial);
+    }
+}
+
+/// Messages a live viewer may have queued before the oldest are dropped (the Foxglove SDK's
+/// per-client backlog; its default, 1024, held about 45 MB per viewer that never read at 256x256
+/// and far more at 640x480). 64 is about nine frames' messages: a viewer that falls behind sees the
+/// newest frames, not a growing delay.
+pub const LIVE_BACKLOG_MESSAGES: usize = 64;
+/// Answered frames waiting for the live view's thread; a frame arriving while it is full is not
+/// shown (counted in `pntr_live_view_frames_dropped_total`), so drawing never holds up an answer.
+pub const LIVE_QUEUE_FRAMES: usize = 2;
+
+/// One answered frame as the live view shows it, owned, so the request goes on without it (the
+/// borrowed form is [`Observation`]). Everything in ROS conventions.
+#[derive(Debug, Clone)]
+pub struct Shown {
+    /// Seconds since the Unix epoch.
+    pub time_s: f64,
+    /// The frame's colour image.
+    pub rgb: RgbImage,
+    /// Its camera.
+    pub intrinsics: Intrinsics,
+    /// The caller's id of the frame.
+    pub request_id: String,
+    /// The map that answered.
+    pub map_id: String,
+    /// That map's version.
+    pub map_version: String,
+    /// LOCALIZED or NOT_LOCALIZED.
+    pub status: &'static str,
+    /// Why it is not LOCALIZED.
+    pub reason: String,
+    /// The calibrated confidence.
+    pub confidence: f64,
+    /// Registration inliers.
+    pub inliers: u32,
+    /// GLOBAL, PRIOR or TRACKING.
+    pub mode: &'static str,
+    /// The map image the pose was registered against.
+    pub matched_image_id: String,
+    /// `map_from_camera_optical` (z-up), LOCALIZED only.
+    pub pose: Option<Isometry3<f64>>,
+    /// 6x6 covariance of `pose` (ROS order), or empty.
+    pub covariance: Vec<f64>,
+}
+
+impl Shown {
+    fn observation(&self) -> Observation<'_> {
+        Observation {
+            time_s: self.time_s,
+            picture: Some((Picture::Raw(&self.rgb), &self.intrinsics)),
+            request_id: &self.request_id,
+            map_id: &self.map_id,
+            map_version: &self.map_version,
+            status: self.status,
+            reason: &self.reason,
+            confidence: self.confidence,
+            inliers: self.inliers,
+            mode: self.mode,
+            matched_image_id: &self.matched_image_id,
+            pose: self.pose,
+            covariance: &self.covariance,
+            truth: None,
+        }
     }
 }
 
 /// The live Foxglove WebSocket view of a server (`pntr-server --foxglove ADDR`).
+///
+/// Viewers connect to `ADDR`, which hands each connection to the Foxglove SDK's server on an
+/// ephemeral local port ([`crate::live_proxy`]: clients asking for the protocol's earlier name,
+/// `foxglove.websocket.v1`, are served too). Frames are drawn (PNG-encoded, serialised) on a thread
+/// of their own, fed by [`Live::show`] through a queue of [`LIVE_QUEUE_FRAMES`]; each viewer's
+/// backlog holds at most [`LIVE_BACKLOG_MESSAGES`], oldest dropped first. So a slow or stalled
+/// viewer costs neither the robots' latency nor memory without bound.
 pub struct Live {
-    view: View,
+    view: Arc<View>,
     handle: Option<WebSocketServerHandle>,
     addr: SocketAddr,
+    frames: Option<std::sync::mpsc::SyncSender<Shown>>,
+    front: tokio::task::JoinHandle<()>,
     _ctx: Arc<Context>,
 }
 
@@ -403,20 +508,40 @@ impl Live {
     /// Listen on `addr` (port 0: an ephemeral one; see [`Live::addr`]). Errors say why (the
     /// address is taken, say).
     pub async fn start(addr: SocketAddr) -> Result<Self, String> {
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|e| format!("--foxglove {addr}: {e}"))?;
+        let bound = listener
+            .local_addr()
+            .map_err(|e| format!("--foxglove {addr}: {e}"))?;
         let ctx = Context::new();
-        let view = View::new(&ctx);
+        let view = Arc::new(View::new(&ctx));
         let handle = foxglove::WebSocketServer::new()
             .name(format!("pntr-server {}", env!("CARGO_PKG_VERSION")))
             .context(&ctx)
-            .bind(addr.ip().to_string(), addr.port())
+            .message_backlog_size(LIVE_BACKLOG_MESSAGES)
+            .bind("127.0.0.1", 0)
             .start()
             .await
-            .map_err(|e| format!("--foxglove {addr}: {e}"))?;
-        let bound = SocketAddr::new(addr.ip(), handle.port());
+            .map_err(|e| format!("--foxglove {addr}: the Foxglove server: {e}"))?;
+        let inner = SocketAddr::from(([127, 0, 0, 1], handle.port()));
+        let front = tokio::spawn(crate::live_proxy::serve(listener, inner));
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Shown>(LIVE_QUEUE_FRAMES);
+        let drawn = view.clone();
+        std::thread::Builder::new()
+            .name("pntr-live-view".into())
+            .spawn(move || {
+                for shown in rx {
+                    drawn.observe(&shown.observation());
+                }
+            })
+            .map_err(|e| format!("--foxglove {addr}: starting its thread: {e}"))?;
         Ok(Self {
             view,
             handle: Some(handle),
             addr: bound,
+            frames: Some(tx),
+            front,
             _ctx: ctx,
         })
     }
@@ -426,9 +551,23 @@ impl Live {
         self.addr
     }
 
-    /// The channels to log to.
+    /// The channels to log to (for what is drawn rarely, such as the map's cameras; frames go
+    /// through [`Live::show`]).
     pub fn view(&self) -> &View {
         &self.view
+    }
+
+    /// Hand an answered frame to the live view's thread, without waiting. False when it is not
+    /// shown: the thread still draws the frames before it (the frame is counted as dropped).
+    pub fn show(&self, shown: Shown) -> bool {
+        let queued = self
+            .frames
+            .as_ref()
+            .is_some_and(|tx| tx.try_send(shown).is_ok());
+        if !queued {
+            metrics::counter!(crate::telemetry::LIVE_VIEW_DROPPED).increment(1);
+        }
+        queued
     }
 
     /// Live clients connected now.
@@ -445,8 +584,11 @@ impl std::fmt::Debug for Live {
 
 impl Drop for Live {
     fn drop(&mut self) {
+        // The drawing thread ends with its queue; the front door stops accepting.
+        self.frames.take();
+        self.front.abort();
         if let Some(h) = self.handle.take() {
-            // Closes the clients' connections; the listener goes with the runtime.
+            // Closes the clients' connections.
             drop(h.stop());
         }
     }
