@@ -111,6 +111,10 @@ def world_up(poses):
     """The TUM world's up axis as a signed unit axis: against the cameras' mean down axis (optical +y)."""
     down = np.mean([qrot(q, (0.0, 1.0, 0.0)) for _, q in poses], axis=0)
     k = int(np.argmax(np.abs(down)))
+    if abs(down[k]) < 0.9 * np.linalg.norm(down):
+        print(f'warning: the cameras look steeply up or down, or the world is not axis-aligned (mean down axis '
+              f'{np.round(down / np.linalg.norm(down), 2).tolist()}): the up axis read from them may be wrong; '
+              'check base_link in the bag, or give --keep-tum-frame', file=sys.stderr)
     up = np.zeros(3); up[k] = -math.copysign(1.0, down[k])
     return up
 
@@ -285,6 +289,8 @@ def write_bag(events, out, topics, max_per_file, version, colour, calib):
 def convert(tum_dir, out, colour='png', max_per_file=None, tf_offset='0', pose_topic=None, version=9,
             odom_topic=None, keep_tum_frame=False):
     frames, gt, calib = load_tum(tum_dir)
+    if not frames:
+        sys.exit(f'{tum_dir}: no colour frame with depth within 20 ms and a ground-truth pose')
     if not keep_tum_frame:
         frames, gt, said = to_robot_frame(frames, gt)
         for line in said: print(line, file=sys.stderr)

@@ -583,10 +583,12 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             if let Some(Err(e)) = recording.as_ref().map(|r| r.observe(&observation)) {
                 recording = None;
                 abandon_recording("--record", e, &mut record_errors);
+                eprintln!("the replay goes on without it");
             }
             if let Some(Err(e)) = bag.as_ref().map(|b| b.observe(&observation)) {
                 bag = None;
                 abandon_recording("--record-bag", e, &mut record_errors);
+                eprintln!("the replay goes on without it");
             }
         }
         out.push(Answered {
@@ -755,6 +757,6 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
 /// report and the exit status.
 fn abandon_recording(flag: &str, error: String, errors: &mut Vec<String>) {
     let message = format!("{flag} {error}: nothing recorded (the partial output is removed)");
-    eprintln!("error: {message}; the replay goes on");
+    eprintln!("error: {message}");
     errors.push(message);
 }

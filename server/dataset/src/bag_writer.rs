@@ -7,6 +7,7 @@
 
 use crate::write_guard::{FirstError, GuardedWriter};
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::{Serialize, Serializer};
@@ -190,7 +191,8 @@ pub struct BagWriter {
     dir: PathBuf,
     tmp: PathBuf,
     file_name: String,
-    writer: mcap::Writer<GuardedWriter<std::io::BufWriter<std::fs::File>>>,
+    /// Open until [`BagWriter::finish`] takes it.
+    writer: Option<mcap::Writer<GuardedWriter<std::io::BufWriter<std::fs::File>>>>,
     /// The file's first failed write (a full disk): the bag is abandoned at it.
     failed: FirstError,
     schemas: BTreeMap<MessageType, u16>,
@@ -233,6 +235,8 @@ impl BagWriter {
             .ok_or_else(|| layout(dir, "a bag folder needs a name".into()))?
             .to_string();
         let tmp = dir.with_file_name(format!(".{name}.partial-{}", std::process::id()));
+        // A stale folder of an earlier run under the same pid (containers repeat pids) goes first.
+        let _ = std::fs::remove_dir_all(&tmp);
         std::fs::create_dir_all(&tmp).map_err(io(&tmp))?;
         let file_name = format!("{name}_0.mcap");
         let path = tmp.join(&file_name);
@@ -247,7 +251,7 @@ impl BagWriter {
             dir: dir.to_path_buf(),
             tmp,
             file_name,
-            writer,
+            writer: Some(writer),
             failed,
             schemas: BTreeMap::new(),
             topics: BTreeMap::new(),
@@ -255,6 +259,12 @@ impl BagWriter {
             last_ns: 0,
             sequence: 0,
         })
+    }
+
+    fn writer_mut(
+        &mut self,
+    ) -> &mut mcap::Writer<GuardedWriter<std::io::BufWriter<std::fs::File>>> {
+        self.writer.as_mut().expect("open until finished")
     }
 
     /// Write `message` of type `kind` on `topic`, received at `stamp_ns` (ns since the epoch of
@@ -283,7 +293,7 @@ impl BagWriter {
                     Some(s) => *s,
                     None => {
                         let s = self
-                            .writer
+                            .writer_mut()
                             .add_schema(kind.name(), "ros2msg", kind.definition().as_bytes())
                             .map_err(mcap_err)?;
                         self.schemas.insert(kind, s);
@@ -291,7 +301,7 @@ impl BagWriter {
                     }
                 };
                 let channel = self
-                    .writer
+                    .writer_mut()
                     .add_channel(schema, topic, "cdr", &BTreeMap::new())
                     .map_err(mcap_err)?;
                 self.topics.insert(
@@ -307,16 +317,14 @@ impl BagWriter {
         };
         let data = cdr::serialize::<_, _, cdr::CdrLe>(message, cdr::Infinite)
             .map_err(|e| layout(&path, format!("CDR encoding of a {}: {e}", kind.name())))?;
-        self.writer
-            .write_to_known_channel(
-                &mcap::records::MessageHeader {
-                    channel_id: channel,
-                    sequence: self.sequence,
-                    log_time: stamp_ns,
-                    publish_time: stamp_ns,
-                },
-                &data,
-            )
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: self.sequence,
+            log_time: stamp_ns,
+            publish_time: stamp_ns,
+        };
+        self.writer_mut()
+            .write_to_known_channel(&header, &data)
             .map_err(mcap_err)?;
         if let Some(e) = self.failed.get() {
             return Err(layout(&path, format!("writing MCAP: {e}")));
@@ -333,9 +341,14 @@ impl BagWriter {
     /// Close the MCAP file, write `metadata.yaml` and move the folder into place; returns it.
     pub fn finish(mut self) -> Result<PathBuf, DatasetError> {
         let path = self.tmp.join(&self.file_name);
-        self.writer
+        let mut writer = self.writer.take().expect("open until finished");
+        writer
             .finish()
             .map_err(|e| layout(&path, format!("writing MCAP: {e}")))?;
+        // mcap's finish leaves the end of the file buffered: flushed and synced through the guard,
+        // so a disk that fills at the very end is seen.
+        let mut file = writer.into_inner();
+        file.run(|b| b.flush().and_then(|()| b.get_ref().sync_all()));
         if let Some(e) = self.failed.get() {
             return Err(layout(&path, format!("writing MCAP: {e}")));
         }

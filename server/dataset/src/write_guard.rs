@@ -48,6 +48,16 @@ impl<W> GuardedWriter<W> {
     }
 
     /// Run `f` on `inner` unless a call failed before; `false` when it did not run or failed now.
+    /// The inner writer (to flush and sync it after the last write, say).
+    pub fn into_inner(self) -> W {
+        self.inner
+    }
+
+    /// Run `f` on `inner` unless a call failed before; keep its error as the first one.
+    pub fn run(&mut self, f: impl FnOnce(&mut W) -> std::io::Result<()>) {
+        self.guard(f);
+    }
+
     fn guard(&mut self, f: impl FnOnce(&mut W) -> std::io::Result<()>) -> bool {
         let mut first = self.error.0.lock().unwrap_or_else(|e| e.into_inner());
         if first.is_some() {

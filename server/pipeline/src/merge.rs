@@ -235,7 +235,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
                 .is_some_and(|x| x.keypoints == im.keypoints && x.descriptors == im.descriptors)
         })
         .count();
-    if twice == a.images.len() && b.images.len() > twice {
+    if twice > 0 && twice == a.images.len() && b.images.len() > twice {
         // B grew from A (`build-db --extend` of A written as B): it is already the merge.
         return Err(PipelineError::Refused(format!(
             "map B holds every one of map A's {twice} images, unchanged, and {} more (B was extended from A): it is the merged map already; serve or replace with B instead of merging",

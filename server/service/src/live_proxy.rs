@@ -24,13 +24,22 @@ const SDK_NAMES: [&str; 2] = ["foxglove.sdk.v1", "foxglove.sdk.v1.1"];
 const LEGACY_NAME: &str = "foxglove.websocket.v1";
 /// The longest request or response head read (HTTP headers of a browser's upgrade are ~1 KB).
 const MAX_HEAD_BYTES: usize = 16 * 1024;
+/// Time a client has to send its request head (a connection that sends nothing is closed).
+const HEAD_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+/// Viewers connected at once; more wait for one to leave (each holds a socket and a task).
+pub const MAX_VIEWERS: usize = 64;
 
 /// Accept connections on `listener` for ever, each handed to the SDK's server at `inner`.
 pub async fn serve(listener: TcpListener, inner: SocketAddr) {
+    let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(MAX_VIEWERS));
     loop {
+        let Ok(slot) = slots.clone().acquire_owned().await else {
+            return;
+        };
         match listener.accept().await {
             Ok((client, peer)) => {
                 tokio::spawn(async move {
+                    let _slot = slot;
                     if let Err(e) = connection(client, inner).await {
                         tracing::debug!(%peer, error = %e, "live view connection ended");
                     }
@@ -111,24 +120,35 @@ fn route(head: &[u8]) -> Route {
     }
 }
 
-/// `head` with the value of every `header` line replaced by `value`.
+/// `head` with the value of every `header` line replaced by `value`; every other byte as it was
+/// (other headers may hold bytes that are not UTF-8).
 fn replace_header(head: &[u8], header: &str, value: &str) -> Vec<u8> {
-    let text = String::from_utf8_lossy(head);
-    let mut out = String::with_capacity(text.len());
-    for line in text.split_inclusive("\r\n") {
-        let name = line.split(':').next().unwrap_or("");
-        if line.contains(':') && name.trim().eq_ignore_ascii_case(header) {
-            out.push_str(&format!("{name}: {value}\r\n"));
-        } else {
-            out.push_str(line);
+    let mut out = Vec::with_capacity(head.len());
+    let mut rest = head;
+    while !rest.is_empty() {
+        let end = rest
+            .windows(2)
+            .position(|w| w == b"\r\n")
+            .map_or(rest.len(), |i| i + 2);
+        let (line, tail) = rest.split_at(end);
+        let name = line.iter().position(|&b| b == b':').map(|i| &line[..i]);
+        match name {
+            Some(n) if n.trim_ascii().eq_ignore_ascii_case(header.as_bytes()) => {
+                out.extend_from_slice(n);
+                out.extend_from_slice(format!(": {value}\r\n").as_bytes());
+            }
+            _ => out.extend_from_slice(line),
         }
+        rest = tail;
     }
-    out.into_bytes()
+    out
 }
 
 async fn connection(mut client: TcpStream, inner: SocketAddr) -> std::io::Result<()> {
     client.set_nodelay(true)?;
-    let (head, rest) = read_head(&mut client).await?;
+    let (head, rest) = tokio::time::timeout(HEAD_TIMEOUT, read_head(&mut client))
+        .await
+        .map_err(|_| std::io::Error::from(std::io::ErrorKind::TimedOut))??;
     let legacy = match route(&head) {
         Route::AsIs => false,
         Route::Legacy => true,
@@ -151,7 +171,14 @@ async fn connection(mut client: TcpStream, inner: SocketAddr) -> std::io::Result
             return client.shutdown().await;
         }
     };
-    let mut server = TcpStream::connect(inner).await?;
+    let mut server = match TcpStream::connect(inner).await {
+        Ok(s) => s,
+        Err(e) => {
+            let answer = "HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\nConnection: close\r\n\r\n";
+            client.write_all(answer.as_bytes()).await?;
+            return Err(e);
+        }
+    };
     server.set_nodelay(true)?;
     let head = if legacy {
         replace_header(&head, "sec-websocket-protocol", SDK_NAMES[0])
@@ -161,7 +188,9 @@ async fn connection(mut client: TcpStream, inner: SocketAddr) -> std::io::Result
     server.write_all(&head).await?;
     server.write_all(&rest).await?;
     if legacy {
-        let (answer, more) = read_head(&mut server).await?;
+        let (answer, more) = tokio::time::timeout(HEAD_TIMEOUT, read_head(&mut server))
+            .await
+            .map_err(|_| std::io::Error::from(std::io::ErrorKind::TimedOut))??;
         let answer = replace_header(&answer, "sec-websocket-protocol", LEGACY_NAME);
         client.write_all(&answer).await?;
         client.write_all(&more).await?;
@@ -223,5 +252,10 @@ mod tests {
             out.len() + "websocket.v1".len() - "sdk.v1".len(),
             head.len()
         );
+        // Bytes that are not UTF-8 in another header pass unchanged.
+        let raw = b"GET / HTTP/1.1\r\nCookie: \xff\xfe\r\nsec-websocket-protocol:foxglove.websocket.v1\r\n\r\n";
+        let got = replace_header(raw, "sec-websocket-protocol", "foxglove.sdk.v1");
+        let want = b"GET / HTTP/1.1\r\nCookie: \xff\xfe\r\nsec-websocket-protocol: foxglove.sdk.v1\r\n\r\n";
+        assert_eq!(got, want.to_vec());
     }
 }

@@ -24,7 +24,7 @@
 //! client subscribes), so an idle `--foxglove` costs the server nothing per frame.
 
 use std::fs::File;
-use std::io::BufWriter;
+use std::io::{BufWriter, Write};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -391,17 +391,25 @@ impl Recording {
     /// The first write that failed, as `<partial file>: <cause>`; `None` while all is well. Writes
     /// are buffered, so a failure shows some messages after the one that caused it.
     pub fn error(&self) -> Option<String> {
-        self.failed
-            .get()
-            .map(|e| format!("{}: {e}", self.partial.display()))
+        self.failed.get().map(|e| {
+            format!(
+                "{} (written as {}): {e}",
+                self.out.display(),
+                self.partial.display()
+            )
+        })
     }
 
     /// Close the file and move it to its name. Errors (the first failed write, or the close) name
     /// the file and the cause; the partial file is removed then.
     pub fn finish(mut self) -> Result<PathBuf, String> {
         if let Some(w) = self.writer.take() {
-            w.close()
+            // The SDK's close writes the summary and footer but leaves them buffered: flushed and
+            // synced here, through the guard, so a disk that fills at the very end is seen.
+            let mut file = w
+                .close()
                 .map_err(|e| format!("{}: {e}", self.partial.display()))?;
+            file.run(|b| b.flush().and_then(|()| b.get_ref().sync_all()));
         }
         if let Some(e) = self.error() {
             return Err(e);
@@ -431,6 +439,11 @@ pub const LIVE_BACKLOG_MESSAGES: usize = 64;
 /// Answered frames waiting for the live view's thread; a frame arriving while it is full is not
 /// shown (counted in `pntr_live_view_frames_dropped_total`), so drawing never holds up an answer.
 pub const LIVE_QUEUE_FRAMES: usize = 2;
+/// Most frames a second the live view draws, over all streams; the others are not shown (and
+/// counted as dropped). Foxglove's panels show no more to a person, and drawing every frame of a
+/// server answering 150 frames a second took a fifth of its throughput on 2 cores (BENCHMARKS.md,
+/// "Slow Foxglove viewers").
+pub const LIVE_MAX_FRAMES_PER_S: f64 = 15.0;
 
 /// One answered frame as the live view shows it, owned, so the request goes on without it (the
 /// borrowed form is [`Observation`]). Everything in ROS conventions.
@@ -500,6 +513,8 @@ pub struct Live {
     handle: Option<WebSocketServerHandle>,
     addr: SocketAddr,
     frames: Option<std::sync::mpsc::SyncSender<Shown>>,
+    /// When the last frame was handed to the drawing thread.
+    last_shown: std::sync::Mutex<Option<std::time::Instant>>,
     front: tokio::task::JoinHandle<()>,
     _ctx: Arc<Context>,
 }
@@ -524,8 +539,6 @@ impl Live {
             .start()
             .await
             .map_err(|e| format!("--foxglove {addr}: the Foxglove server: {e}"))?;
-        let inner = SocketAddr::from(([127, 0, 0, 1], handle.port()));
-        let front = tokio::spawn(crate::live_proxy::serve(listener, inner));
         let (tx, rx) = std::sync::mpsc::sync_channel::<Shown>(LIVE_QUEUE_FRAMES);
         let drawn = view.clone();
         std::thread::Builder::new()
@@ -536,11 +549,14 @@ impl Live {
                 }
             })
             .map_err(|e| format!("--foxglove {addr}: starting its thread: {e}"))?;
+        let inner = SocketAddr::from(([127, 0, 0, 1], handle.port()));
+        let front = tokio::spawn(crate::live_proxy::serve(listener, inner));
         Ok(Self {
             view,
             handle: Some(handle),
             addr: bound,
             frames: Some(tx),
+            last_shown: std::sync::Mutex::new(None),
             front,
             _ctx: ctx,
         })
@@ -558,12 +574,24 @@ impl Live {
     }
 
     /// Hand an answered frame to the live view's thread, without waiting. False when it is not
-    /// shown: the thread still draws the frames before it (the frame is counted as dropped).
+    /// shown (counted as dropped): the thread still draws the frames before it, or one was shown
+    /// less than 1 / [`LIVE_MAX_FRAMES_PER_S`] ago.
     pub fn show(&self, shown: Shown) -> bool {
-        let queued = self
-            .frames
-            .as_ref()
-            .is_some_and(|tx| tx.try_send(shown).is_ok());
+        let due = {
+            let mut last = self.last_shown.lock().unwrap_or_else(|e| e.into_inner());
+            let now = std::time::Instant::now();
+            let due = last
+                .is_none_or(|t| now.duration_since(t).as_secs_f64() >= 1.0 / LIVE_MAX_FRAMES_PER_S);
+            if due {
+                *last = Some(now);
+            }
+            due
+        };
+        let queued = due
+            && self
+                .frames
+                .as_ref()
+                .is_some_and(|tx| tx.try_send(shown).is_ok());
         if !queued {
             metrics::counter!(crate::telemetry::LIVE_VIEW_DROPPED).increment(1);
         }
