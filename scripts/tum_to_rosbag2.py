@@ -337,7 +337,8 @@ def selftest():
         ref = truth(t); qe = qmul(qconj(ref[1]), est[1])
         return max(np.linalg.norm(est[0] - ref[0]), 2 * math.atan2(np.linalg.norm(qe[:3]), abs(qe[3])))
     vec = lambda *xs: np.array([float(x) for x in xs])
-    def tf_check(msgs, label):
+    def tf_samples(msgs):
+        """The static transforms by child, and the (stamps, transforms) of map->odom and odom->base_link."""
         static, samples = {}, {'odom': ([], []), 'map': ([], [])}
         for topic, t, m in msgs:
             for x in (m.transforms if topic.startswith('/tf') else []):
@@ -345,6 +346,9 @@ def selftest():
                 tq = (vec(tr.x, tr.y, tr.z), vec(q.x, q.y, q.z, q.w))
                 if topic == '/tf_static': static[x.child_frame_id] = tq
                 else: samples[x.header.frame_id][0].append(t); samples[x.header.frame_id][1].append(tq)
+        return static, samples
+    def tf_check(msgs, label):
+        static, samples = tf_samples(msgs)
         img_t = [t for topic, t, _ in msgs if topic == COLOR]
         err = max(pose_err(compose(compose(compose(interp(*samples['map'], t), interp(*samples['odom'], t)),
                                            static['camera_link']), static[OPTICAL]), t) for t in img_t)
@@ -417,13 +421,7 @@ def selftest():
     img_t = [t for tp, t, _ in msgs if tp == COLOR]
     check('robot bag: stamps on 2026-01-01 UTC, the TUM times kept after it',
           img_t[0] == ROBOT_EPOCH_NS + 100_000_000 and all(b - a == ODOM_NS for a, b in zip(img_t, img_t[1:])), str(img_t[:2]))
-    static, samples = {}, {'odom': ([], []), 'map': ([], [])}
-    for topic, t, m in msgs:
-        for x in (m.transforms if topic.startswith('/tf') else []):
-            tr, q = x.transform.translation, x.transform.rotation
-            tq = (vec(tr.x, tr.y, tr.z), vec(q.x, q.y, q.z, q.w))
-            if topic == '/tf_static': static[x.child_frame_id] = tq
-            else: samples[x.header.frame_id][0].append(t); samples[x.header.frame_id][1].append(tq)
+    static, samples = tf_samples(msgs)
     to_z = rotation_to_z(np.array([0.0, 1.0, 0.0]))
     worst_up = worst_pose = 0.0
     for t in img_t:
