@@ -119,6 +119,35 @@ fn sessions_extend_and_merge_maps() {
     let other_id = ["--extend", a.to_str().unwrap(), "--map-id", "other"];
     let msg = build_db_refused(&seq(&second), &ext, &other_id);
     assert!(msg.contains("--map-id"), "{msg}");
+    // The same later session as a robot's bag (REP 103: a z-up map frame) against this map of a
+    // y-up render: poses in another frame, which the map's views cannot judge (they float where no
+    // map camera looks). Refused from the cameras' down directions before any frame is described.
+    let robot_bag = dir.path().join("robot_bag");
+    ok(
+        &Command::new(support::python_importing("rosbags, numpy, PIL"))
+            .arg(support::repo_root().join("scripts/tum_to_rosbag2.py"))
+            .args([seq(&second).as_os_str(), robot_bag.as_os_str()])
+            .output()
+            .unwrap(),
+    );
+    let turned = dir.path().join("turned.pntrmap");
+    let msg = build_db_refused(
+        &robot_bag,
+        &turned,
+        &[
+            "--extend",
+            a.to_str().unwrap(),
+            "--no-check",
+            "--no-self-calibration",
+        ],
+    );
+    assert!(
+        msg.contains("its poses are in another frame than map `lab`'s")
+            && msg.contains(" deg from the map's")
+            && msg.contains("maps merge"),
+        "{msg}"
+    );
+    assert!(!turned.exists());
     // A drive of another apartment whose poses overlap this map's coordinates: the map's own views
     // contradict its new images where they look at the same places; refused, naming the share,
     // whether or not the check runs, and nothing is written.

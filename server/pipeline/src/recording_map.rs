@@ -226,6 +226,7 @@ pub fn extend(
     }
     let added: Vec<SessionRecord> = sessions.iter().map(|s| record_of(s.recording)).collect();
     let axes = base.header.axes();
+    refuse_turned_world(&base, axes, sessions)?;
     let mut selector = Selector::new(params);
     selector.seed(base.images.iter().map(|im| {
         (
@@ -264,6 +265,64 @@ pub fn extend(
     map.header.sessions.extend(added);
     record_seconds(&mut report, seconds, t.elapsed().as_secs_f64());
     Ok((map, report))
+}
+
+/// Largest angle, degrees, between the cameras' mean down direction (optical +y) in a map and in a
+/// recording that extends it. Cameras carried by a robot or a person keep their down axis near the
+/// world's down (a mean within 30 degrees of it, whatever the route); a recording whose world is
+/// another convention's (y-up against z-up: 90 degrees; y-down against y-up: 180) is far beyond.
+pub const MAX_DOWN_ANGLE_DEG: f64 = 60.0;
+/// The mean down direction must be at least this long (of unit vectors) to say anything: cameras
+/// looking every way (a survey of a ceiling and a floor) have no common down.
+pub const MIN_DOWN_CONSISTENCY: f64 = 0.5;
+
+/// Refuse an extension whose recording's world is turned against the map's (another up axis, or
+/// upside down), from the cameras' mean down directions, before any frame is described. The map's
+/// own views cannot judge such poses (they lie where no map camera sees).
+fn refuse_turned_world(
+    base: &Map,
+    axes: CameraAxes,
+    sessions: &[Session<'_>],
+) -> Result<(), PipelineError> {
+    let mean = |downs: &mut dyn Iterator<Item = Vector3<f64>>| {
+        let (sum, n) = downs.fold((Vector3::zeros(), 0usize), |(s, n), d| (s + d, n + 1));
+        (n > 0).then(|| sum / n as f64)
+    };
+    let Some(map_down) = mean(&mut base.images.iter().map(|im| {
+        pntr_core::pose::convert_axes(&im.world_from_camera, axes, CameraAxes::OpenCv).rotation
+            * Vector3::y()
+    })) else {
+        return Ok(());
+    };
+    for s in sessions {
+        let rec = s.recording;
+        let Some(rec_down) = mean(
+            &mut (0..rec.len())
+                .filter_map(|i| rec.world_from_camera(i))
+                .map(|p| p.rotation * Vector3::y()),
+        ) else {
+            continue;
+        };
+        if map_down.norm() < MIN_DOWN_CONSISTENCY || rec_down.norm() < MIN_DOWN_CONSISTENCY {
+            continue;
+        }
+        let angle = map_down.angle(&rec_down).to_degrees();
+        if angle > MAX_DOWN_ANGLE_DEG {
+            let show = |v: &Vector3<f64>| {
+                let u = v.normalize();
+                format!("({:.2}, {:.2}, {:.2})", u.x, u.y, u.z)
+            };
+            return Err(PipelineError::Refused(format!(
+                "{}: its poses are in another frame than map `{}`'s: its cameras' mean down direction {} is {angle:.0} deg from the map's {} (map up axis {}), as when one world is y-up and the other z-up (a REP 103 bag against a y-up render or TUM folder) or upside down. Give the recording's poses in the map's frame, or build a map of it and join the two with `pntr maps merge`; nothing was written",
+                rec.path.display(),
+                base.header.map_id,
+                show(&rec_down),
+                show(&map_down),
+                base.header.up_axis
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Share of an extension's new images that the map's own views may contradict before the

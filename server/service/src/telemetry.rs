@@ -257,9 +257,14 @@ pub async fn bind_metrics(addr: SocketAddr) -> std::io::Result<TcpListener> {
 /// call more than once.
 pub fn init_tracing() {
     use std::io::IsTerminal;
-    let filter = std::env::var("PNTR_LOG")
+    let mut filter = std::env::var("PNTR_LOG")
         .or_else(|_| std::env::var("RUST_LOG"))
         .unwrap_or_else(|_| "info".into());
+    // The Foxglove SDK's "Started server on 127.0.0.1:PORT" names the port behind the live view's
+    // front door, not the one viewers use (which the server logs itself): quiet unless asked for.
+    if !filter.contains("foxglove") {
+        filter.push_str(",foxglove::websocket::server=warn");
+    }
     let _ = tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::new(filter))
         .with_writer(std::io::stderr)

@@ -551,6 +551,7 @@ impl Live {
             .map_err(|e| format!("--foxglove {addr}: starting its thread: {e}"))?;
         let inner = SocketAddr::from(([127, 0, 0, 1], handle.port()));
         let front = tokio::spawn(crate::live_proxy::serve(listener, inner));
+        tracing::info!("live Foxglove view: viewers connect to ws://{bound}");
         Ok(Self {
             view,
             handle: Some(handle),
