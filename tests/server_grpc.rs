@@ -925,8 +925,8 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
                 Instant::now() < deadline,
                 "{answers:?} {poses} {images} {map_cameras}"
             );
-            // The next frame once this one is shown, or after a second (the view draws at most
-            // 15 frames a second and skips the rest).
+            // The next frame once this one is shown, or after a second (a frame is skipped when the
+            // view's thread is busy).
             if sent < f.queries.len()
                 && (answers.len() == sent || last_sent.elapsed() > Duration::from_secs(1))
             {
@@ -957,8 +957,7 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
         assert!((0.5..2.0).contains(&z), "{a}");
         // Many more frames while the stalled viewer still reads nothing: every one answered, and
         // the reading viewer keeps up to the end (frames are skipped when the view's thread is
-        // busy or drew one less than 1/15 s before, so frames go on until one of the 40th or later
-        // is shown).
+        // busy, so frames go on until one of the 40th or later is shown).
         let late = |i: usize| proto::LocalizeRequest {
             request_id: format!("late-{i}"),
             ..request(&f.queries[i % f.queries.len()], "")

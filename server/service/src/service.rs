@@ -712,12 +712,15 @@ impl LocalizerService {
             tracing::error!(error = %e, "decoding the frame failed");
             Status::internal("internal error while decoding the frame (logged)")
         })??;
-        // The frame as the live view shows it, kept only while someone watches.
-        let watched = self
-            .state
-            .live()
-            .filter(|l| l.view().wanted())
-            .map(|l| (l, query.rgb.clone(), query.intrinsics));
+        // The frame as the live view shows it, kept only while someone watches (its image only
+        // when one is due: at most 15 a second).
+        let watched = self.state.live().filter(|l| l.view().wanted()).map(|l| {
+            (
+                l,
+                l.claim_image().then(|| query.rgb.clone()),
+                query.intrinsics,
+            )
+        });
         let (tx, rx) = oneshot::channel();
         let job = Job {
             map: lm.clone(),

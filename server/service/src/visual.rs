@@ -439,11 +439,11 @@ pub const LIVE_BACKLOG_MESSAGES: usize = 64;
 /// Answered frames waiting for the live view's thread; a frame arriving while it is full is not
 /// shown (counted in `pntr_live_view_frames_dropped_total`), so drawing never holds up an answer.
 pub const LIVE_QUEUE_FRAMES: usize = 2;
-/// Most frames a second the live view draws, over all streams; the others are not shown (and
-/// counted as dropped). Foxglove's panels show no more to a person, and drawing every frame of a
-/// server answering 150 frames a second took a fifth of its throughput on 2 cores (BENCHMARKS.md,
-/// "Slow Foxglove viewers").
-pub const LIVE_MAX_FRAMES_PER_S: f64 = 15.0;
+/// Most camera images a second the live view shows, over all streams (every answer, pose and
+/// transform is shown; only images are left out of the frames in between). Foxglove's image panel
+/// shows no more to a person, and PNG-encoding every frame of a server answering 150 frames a
+/// second took a fifth of its throughput on 2 cores (BENCHMARKS.md, "Slow Foxglove viewers").
+pub const LIVE_MAX_IMAGES_PER_S: f64 = 15.0;
 
 /// One answered frame as the live view shows it, owned, so the request goes on without it (the
 /// borrowed form is [`Observation`]). Everything in ROS conventions.
@@ -451,8 +451,8 @@ pub const LIVE_MAX_FRAMES_PER_S: f64 = 15.0;
 pub struct Shown {
     /// Seconds since the Unix epoch.
     pub time_s: f64,
-    /// The frame's colour image.
-    pub rgb: RgbImage,
+    /// The frame's colour image, when it is to be shown ([`Live::claim_image`]).
+    pub rgb: Option<RgbImage>,
     /// Its camera.
     pub intrinsics: Intrinsics,
     /// The caller's id of the frame.
@@ -483,7 +483,10 @@ impl Shown {
     fn observation(&self) -> Observation<'_> {
         Observation {
             time_s: self.time_s,
-            picture: Some((Picture::Raw(&self.rgb), &self.intrinsics)),
+            picture: self
+                .rgb
+                .as_ref()
+                .map(|rgb| (Picture::Raw(rgb), &self.intrinsics)),
             request_id: &self.request_id,
             map_id: &self.map_id,
             map_version: &self.map_version,
@@ -505,7 +508,8 @@ impl Shown {
 /// Viewers connect to `ADDR`, which hands each connection to the Foxglove SDK's server on an
 /// ephemeral local port ([`crate::live_proxy`]: clients asking for the protocol's earlier name,
 /// `foxglove.websocket.v1`, are served too). Frames are drawn (PNG-encoded, serialised) on a thread
-/// of their own, fed by [`Live::show`] through a queue of [`LIVE_QUEUE_FRAMES`]; each viewer's
+/// of their own, fed by [`Live::show`] through a queue of [`LIVE_QUEUE_FRAMES`], images at most
+/// [`LIVE_MAX_IMAGES_PER_S`] a second ([`Live::claim_image`]); each viewer's
 /// backlog holds at most [`LIVE_BACKLOG_MESSAGES`], oldest dropped first. So a slow or stalled
 /// viewer costs neither the robots' latency nor memory without bound.
 pub struct Live {
@@ -513,8 +517,8 @@ pub struct Live {
     handle: Option<WebSocketServerHandle>,
     addr: SocketAddr,
     frames: Option<std::sync::mpsc::SyncSender<Shown>>,
-    /// When the last frame was handed to the drawing thread.
-    last_shown: std::sync::Mutex<Option<std::time::Instant>>,
+    /// When the last image was claimed for showing.
+    last_image: std::sync::Mutex<Option<std::time::Instant>>,
     front: tokio::task::JoinHandle<()>,
     _ctx: Arc<Context>,
 }
@@ -557,7 +561,7 @@ impl Live {
             handle: Some(handle),
             addr: bound,
             frames: Some(tx),
-            last_shown: std::sync::Mutex::new(None),
+            last_image: std::sync::Mutex::new(None),
             front,
             _ctx: ctx,
         })
@@ -574,25 +578,29 @@ impl Live {
         &self.view
     }
 
+    /// Whether this frame's image is to be shown: a viewer watches the images and none was claimed
+    /// in the last 1 / [`LIVE_MAX_IMAGES_PER_S`] s (then this one is). Ask before copying the image.
+    pub fn claim_image(&self) -> bool {
+        if !self.view.wants_images() {
+            return false;
+        }
+        let mut last = self.last_image.lock().unwrap_or_else(|e| e.into_inner());
+        let now = std::time::Instant::now();
+        let due =
+            last.is_none_or(|t| now.duration_since(t).as_secs_f64() >= 1.0 / LIVE_MAX_IMAGES_PER_S);
+        if due {
+            *last = Some(now);
+        }
+        due
+    }
+
     /// Hand an answered frame to the live view's thread, without waiting. False when it is not
-    /// shown (counted as dropped): the thread still draws the frames before it, or one was shown
-    /// less than 1 / [`LIVE_MAX_FRAMES_PER_S`] ago.
+    /// shown (counted as dropped): the thread is still drawing the frames before it.
     pub fn show(&self, shown: Shown) -> bool {
-        let due = {
-            let mut last = self.last_shown.lock().unwrap_or_else(|e| e.into_inner());
-            let now = std::time::Instant::now();
-            let due = last
-                .is_none_or(|t| now.duration_since(t).as_secs_f64() >= 1.0 / LIVE_MAX_FRAMES_PER_S);
-            if due {
-                *last = Some(now);
-            }
-            due
-        };
-        let queued = due
-            && self
-                .frames
-                .as_ref()
-                .is_some_and(|tx| tx.try_send(shown).is_ok());
+        let queued = self
+            .frames
+            .as_ref()
+            .is_some_and(|tx| tx.try_send(shown).is_ok());
         if !queued {
             metrics::counter!(crate::telemetry::LIVE_VIEW_DROPPED).increment(1);
         }
