@@ -157,36 +157,30 @@ pub fn render_maps(maps: &[MapSeries]) -> String {
             .replace('"', "\\\"")
             .replace('\n', "\\n")
     };
-    let mut out = format!(
-        "# HELP {MAP_INFO} Version of each loaded map (always 1)\n# TYPE {MAP_INFO} gauge\n"
+    let mut out = String::new();
+    // One gauge family: its help line, then one sample a map (labels, value).
+    let mut family = |name: &str, help: &str, sample: &dyn Fn(&MapSeries) -> (String, String)| {
+        out += &format!("# HELP {name} {help}\n# TYPE {name} gauge\n");
+        for m in maps {
+            let (labels, value) = sample(m);
+            out += &format!("{name}{{{labels}}} {value}\n");
+        }
+    };
+    let id = |m: &MapSeries| format!("map_id=\"{}\"", escape(&m.map_id));
+    family(MAP_INFO, "Version of each loaded map (always 1)", &|m| {
+        (
+            format!("{},version=\"{}\"", id(m), escape(&m.version)),
+            "1".into(),
+        )
+    });
+    family(MAP_IMAGES, "Database images of each loaded map", &|m| {
+        (id(m), m.images.to_string())
+    });
+    family(
+        MAP_CALIBRATION_STALE,
+        "1 when a loaded map's own confidence calibration is stale (the map changed since it was fitted)",
+        &|m| (id(m), u8::from(m.calibration_stale).to_string()),
     );
-    for m in maps {
-        out += &format!(
-            "{MAP_INFO}{{map_id=\"{}\",version=\"{}\"}} 1\n",
-            escape(&m.map_id),
-            escape(&m.version)
-        );
-    }
-    out += &format!(
-        "# HELP {MAP_IMAGES} Database images of each loaded map\n# TYPE {MAP_IMAGES} gauge\n"
-    );
-    for m in maps {
-        out += &format!(
-            "{MAP_IMAGES}{{map_id=\"{}\"}} {}\n",
-            escape(&m.map_id),
-            m.images
-        );
-    }
-    out += &format!(
-        "# HELP {MAP_CALIBRATION_STALE} 1 when a loaded map's own confidence calibration is stale (the map changed since it was fitted)\n# TYPE {MAP_CALIBRATION_STALE} gauge\n"
-    );
-    for m in maps {
-        out += &format!(
-            "{MAP_CALIBRATION_STALE}{{map_id=\"{}\"}} {}\n",
-            escape(&m.map_id),
-            u8::from(m.calibration_stale)
-        );
-    }
     out
 }
 
