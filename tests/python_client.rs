@@ -725,6 +725,19 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     report["relocalize"] = {"without": [summary(a) for a in c.localize_stream(still)],
                             "with": [summary(a) for a in c.localize_stream(again)]}
 
+    # Capture stamps (seconds on the camera's clock): the stream judges motion by them, so the same
+    # frames sent back to back track when stamped 0.1 s apart and do not when stamped 10 s apart.
+    # Another unit is refused before sending, naming it.
+    assert pc.make_request(rgb, depth, stamp_s=12.5).stamp_s == 12.5
+    assert pc.make_request(rgb, depth, stamp_s=0).HasField("stamp_s")
+    assert not pc.make_request(rgb, depth).HasField("stamp_s")
+    expect_value_error("stamp in milliseconds", lambda: pc.make_request(rgb, depth, stamp_s=1.767e12), "milliseconds")
+    expect_value_error("stamp not a number", lambda: pc.make_request(rgb, depth, stamp_s="12.5"), "stamp_s")
+    close = [{"rgb": rgb, "depth": depth, "stamp_s": 50.0 + 0.1 * j} for j in range(4)]
+    apart = [pc.Frame(rgb, depth, stamp_s=50.0 + 10.0 * j) for j in range(4)]
+    report["stamps"] = {"close": [summary(a) for a in c.localize_stream(close)],
+                        "apart": [summary(a) for a in c.localize_stream(apart)]}
+
     # ROS conventions, per call and per client: the same answer, re-expressed with the package's own
     # conversion; a ROS answer taken as the next prior is read in ROS conventions.
     ros = c.localize(rgb, depth, frame_convention="ros", request_id="ros")
@@ -885,7 +898,7 @@ fn typed_api_against_a_real_server() {
         assert_eq!(e["unauthenticated"], true, "{e}");
         assert!(!e["message"].as_str().unwrap().contains("api-t0ken"), "{e}");
     }
-    assert_eq!(r["value_errors"].as_object().unwrap().len(), 12);
+    assert_eq!(r["value_errors"].as_object().unwrap().len(), 14);
 
     // Priors: answered through the prior region, and still verified.
     for name in ["prior_position", "prior_answer"] {
@@ -975,6 +988,17 @@ fn typed_api_against_a_real_server() {
         "the stream without relocalize did not track, so relocalize cannot be told apart: {reloc}"
     );
     assert_eq!(with, ["GLOBAL"; 4], "{reloc}");
+    let stamps = &r["stamps"];
+    let modes = |k: &str| -> Vec<String> {
+        stamps[k]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| a["mode"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(modes("close")[2..], ["TRACKING"; 2], "{stamps}");
+    assert_eq!(modes("apart"), ["GLOBAL"; 4], "{stamps}");
     let ids: Vec<&str> = reloc["with"]
         .as_array()
         .unwrap()

@@ -566,6 +566,27 @@ fn localizes_reports_and_refuses_bad_input() {
     });
 }
 
+/// The answers of one LocalizeStream call over `frames`, sent one at a time; the first error.
+async fn stream_answers(
+    c: &mut LocalizerClient<Channel>,
+    frames: Vec<proto::LocalizeRequest>,
+) -> Result<Vec<proto::LocalizeResponse>, pntr_service::tonic::Status> {
+    let (tx, rx) = tokio::sync::mpsc::channel(1);
+    let mut out = c
+        .localize_stream(ReceiverStream::new(rx))
+        .await?
+        .into_inner();
+    let mut answers = Vec::new();
+    for frame in frames {
+        tx.send(frame).await.expect("the stream is open");
+        match out.message().await? {
+            Some(r) => answers.push(r),
+            None => break,
+        }
+    }
+    Ok(answers)
+}
+
 fn tokio_stream(
     frames: Vec<proto::LocalizeRequest>,
 ) -> impl pntr_service::tokio_stream::Stream<Item = proto::LocalizeRequest> {
@@ -1275,6 +1296,55 @@ fn priors_fall_back_and_streams_track() {
         let r = out.message().await.unwrap().unwrap();
         assert_eq!(mode_of(&r), proto::Mode::Prior);
         assert!(gauge(&scrape(running.metrics_addr)) >= 1.0);
+
+        // Capture stamps, not arrival, tell how far the camera can have moved. The same frames
+        // sent back to back, stamped 0.1 s apart, are tracked; stamped 10 s apart (every 100th
+        // frame of a recording), no track holds over the gap and each is found on the map alone;
+        // a stamp that goes back (a recording started again) starts afresh.
+        let mut c3 = client(running.addr).await;
+        let stamped = |stamps: &[f64]| -> Vec<proto::LocalizeRequest> {
+            stamps
+                .iter()
+                .map(|&t| proto::LocalizeRequest {
+                    stamp_s: Some(t),
+                    ..request(still, "")
+                })
+                .collect()
+        };
+        let modes_of = |answers: &[proto::LocalizeResponse]| -> Vec<proto::Mode> {
+            answers
+                .iter()
+                .inspect(|r| assert_eq!(r.status, proto::Status::Localized as i32, "{}", r.reason))
+                .map(mode_of)
+                .collect()
+        };
+        let close = stream_answers(
+            &mut c3,
+            stamped(&[100.0, 100.1, 100.2, 100.3, 99.0, 99.1, 99.2]),
+        )
+        .await
+        .unwrap();
+        let tracked = [
+            proto::Mode::Global,
+            proto::Mode::Global,
+            proto::Mode::Tracking,
+            proto::Mode::Tracking,
+        ];
+        assert_eq!(modes_of(&close)[..4], tracked);
+        assert_eq!(modes_of(&close)[4..], tracked[..3], "went back: afresh");
+        let apart = stream_answers(&mut c3, stamped(&[100.0, 110.0, 120.0, 130.0]))
+            .await
+            .unwrap();
+        assert_eq!(modes_of(&apart), [proto::Mode::Global; 4]);
+        // Stamps in another unit are refused by name, in a stream and in a unary call.
+        let e = stream_answers(&mut c3, stamped(&[1.767e12]))
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument);
+        assert!(e.message().contains("milliseconds"), "{}", e.message());
+        let (code, msg) = code_of(&mut c3, stamped(&[1.767e18]).remove(0)).await;
+        assert_eq!(code, Code::InvalidArgument);
+        assert!(msg.contains("nanoseconds"), "{msg}");
         // The client goes away without closing its stream: the server frees the stream's state.
         drop(out);
         drop(tx);

@@ -44,9 +44,16 @@ pub struct ReplayArgs {
     /// 1000): e.g. 1000 for a folder of millimetre PNGs, 4000 for a sensor with 0.25 mm units.
     #[arg(long, value_name = "UNITS_PER_M")]
     pub depth_scale: Option<f64>,
-    /// Frames per second to send at (default: the sequence's own timestamps).
+    /// Frames per second to send at (default: the sequence's own timestamps). Each frame still
+    /// carries its recorded stamp (`stamp_s`), so the server judges the camera's motion by the
+    /// recording's time at any rate.
     #[arg(long)]
     pub rate: Option<f64>,
+    /// Send the frames without their recorded stamps (`LocalizeRequest.stamp_s`): the server then
+    /// judges the camera's motion by when the frames arrive, as for a client that sends none (with
+    /// `--rate`, as if the camera moved at the rate's pace).
+    #[arg(long)]
+    pub no_stamps: bool,
     /// Localize every frame globally (the stream keeps no tracking region): the baseline.
     #[arg(long)]
     pub no_prior: bool,
@@ -536,6 +543,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         req.map_id = args.connect.map_id.clone();
         req.request_id = format!("{:.6}", timestamp);
         req.relocalize = args.no_prior;
+        req.stamp_s = (!args.no_stamps).then_some(timestamp);
         // The recording's ground truth and the prior below are in the map's frame.
         req.frame_convention = proto::FrameConvention::Map as i32;
         // Only the prior's position is sent, which the camera axes do not change.

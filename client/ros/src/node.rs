@@ -316,6 +316,8 @@ async fn request_of(
                     prior: initial.map(|i| i.prior(&base_from_camera)),
                     relocalize: relocalize || initial.is_some(),
                     frame_convention: proto::FrameConvention::Ros as i32,
+                    // The camera's time: the server judges motion by it, not by arrival.
+                    stamp_s: Some(stamp as f64 * 1e-9),
                 };
                 return Ok((request, base_from_camera, odom_from_base));
             }

@@ -77,6 +77,37 @@ pub fn frame_convention(
     }
 }
 
+/// Stamps at or above this many seconds are taken for another unit: 1e11 s is the year 5138, and
+/// Unix time in milliseconds (about 1.8e12 in 2026) or nanoseconds lies above it.
+pub const MAX_STAMP_S: f64 = 1e11;
+
+/// A request's capture stamp (`LocalizeRequest.stamp_s`, seconds; `None`: not given), or what is
+/// wrong with it: INVALID_ARGUMENT for a negative or non-finite value and for one of
+/// [`MAX_STAMP_S`] and more, named as milliseconds, microseconds or nanoseconds.
+pub fn stamp(stamp_s: Option<f64>) -> Result<Option<f64>, Status> {
+    let Some(stamp_s) = stamp_s else {
+        return Ok(None);
+    };
+    if !stamp_s.is_finite() || stamp_s < 0.0 {
+        return invalid(format!(
+            "stamp_s = {stamp_s}: the frame's capture time must be a finite number of seconds >= 0"
+        ));
+    }
+    if stamp_s >= MAX_STAMP_S {
+        let unit = if stamp_s >= 1e17 {
+            "nanoseconds"
+        } else if stamp_s >= 1e14 {
+            "microseconds"
+        } else {
+            "milliseconds"
+        };
+        return invalid(format!(
+            "stamp_s = {stamp_s}: this looks like {unit}; give seconds (a ROS header.stamp is sec + nanosec * 1e-9)"
+        ));
+    }
+    Ok(Some(stamp_s))
+}
+
 /// The search region of a request's prior (`None` without one), or what is wrong with it.
 pub fn prior(req: &proto::LocalizeRequest) -> Result<Option<Region>, Status> {
     let Some(prior) = &req.prior else {
@@ -117,6 +148,7 @@ pub fn status_of(e: PipelineError) -> Status {
 
 /// Turn a request into a pipeline query, or say precisely what is wrong with it.
 pub fn query(req: &proto::LocalizeRequest, limits: &Limits) -> Result<Query, Status> {
+    stamp(req.stamp_s)?;
     let Some(rgb) = &req.rgb else {
         return invalid("rgb is missing");
     };

@@ -328,6 +328,34 @@ pub const ESTABLISH_SPEED_MPS: f64 = 0.5;
 /// ... and within [`ESTABLISH_GAP_DEG`] of its orientation plus this turn rate (degrees per second).
 pub const ESTABLISH_TURN_DEG_PER_S: f64 = 45.0;
 
+/// When something happened to a stream: the server's clock, and the capture stamp of the frame
+/// (`LocalizeRequest.stamp_s`, seconds on the sensor's clock) when the client sent one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Moment {
+    at: Instant,
+    stamp_s: Option<f64>,
+}
+
+impl Moment {
+    /// Now, for a frame captured at `stamp_s` (when known).
+    fn now(stamp_s: Option<f64>) -> Self {
+        Self {
+            at: Instant::now(),
+            stamp_s,
+        }
+    }
+
+    /// Seconds from `earlier` to this moment: by the capture stamps when both frames carry one
+    /// (the camera's own time, however fast the frames were sent or answered), else by the
+    /// server's clock. Never negative.
+    fn since(&self, earlier: &Moment) -> f64 {
+        match (self.stamp_s, earlier.stamp_s) {
+            (Some(now), Some(then)) => (now - then).max(0.0),
+            _ => self.at.saturating_duration_since(earlier.at).as_secs_f64(),
+        }
+    }
+}
+
 /// What a stream remembers between frames: where its last LOCALIZED answer put the camera, whether
 /// that fix is confirmed, the keyframe the next frame registers against ([`pntr_pipeline::odometry`])
 /// and when the chain was last verified against the map. A global fix is confirmed only by a second
@@ -345,12 +373,12 @@ struct Track {
     serial: u64,
     position_m: Vector3<f64>,
     rotation: UnitQuaternion<f64>,
-    at: Instant,
+    at: Moment,
     confirmed: bool,
     keyframe: Option<Arc<Keyframe>>,
-    anchored_at: Instant,
+    anchored_at: Moment,
     /// When a frame last tried the map before the keyframe (re-anchoring), since `anchored_at`.
-    map_tried_at: Option<Instant>,
+    map_tried_at: Option<Moment>,
     /// Calibrated confidence of the map fix the track rests on.
     confidence: f64,
     /// Whether the track's answers are reported LOCALIZED: it rests on a strong map fix
@@ -368,7 +396,7 @@ struct Challenger {
     position_m: Vector3<f64>,
     rotation: UnitQuaternion<f64>,
     confidence: f64,
-    at: Instant,
+    at: Moment,
 }
 
 /// What the stream needs from an answer besides the response: the next keyframe, and whether the
@@ -395,6 +423,8 @@ struct Followup {
     /// [`pntr_pipeline::pipeline::Localization::track_gap`]: how far a re-anchoring map answer lay from the frame's own
     /// odometry pose (metres, degrees).
     track_gap: Option<(f64, f64)>,
+    /// The frame's capture stamp (`LocalizeRequest.stamp_s`), when it carries one.
+    stamp_s: Option<f64>,
 }
 
 /// What the stream's state offers the next frame (all empty for a unary call).
@@ -420,18 +450,17 @@ impl Track {
         let rotation = pose.rotation;
         let global = r.mode == proto::Mode::Global as i32;
         let same_map = previous.is_some_and(|p| p.map_id == r.map_id);
+        let now = Moment::now(f.stamp_s);
         let agrees = same_map
             && previous.is_some_and(|p| {
-                let elapsed_s = p.at.elapsed().as_secs_f64();
+                let elapsed_s = now.since(&p.at);
                 tracking_region(p.position_m, elapsed_s)
                     .is_some_and(|region| region.contains(&position_m))
                     && tracking_heading(p.rotation, elapsed_s)
                         .exceeded_by(&rotation)
                         .is_none()
             });
-        let recent =
-            same_map && previous.is_some_and(|p| p.at.elapsed().as_secs_f64() <= RECONFIRM_AFTER_S);
-        let now = Instant::now();
+        let recent = same_map && previous.is_some_and(|p| now.since(&p.at) <= RECONFIRM_AFTER_S);
         Some(Self {
             map_id: r.map_id.clone(),
             frame: f.frame,
@@ -463,7 +492,7 @@ impl Track {
                     // The keyframe gave the frame no pose: the fix must lie where the camera can
                     // have moved since the track's last pose, at a robot's pace.
                     None => previous.is_some_and(|p| {
-                        let dt = p.at.elapsed().as_secs_f64();
+                        let dt = now.since(&p.at);
                         (position_m - p.position_m).norm()
                             <= ESTABLISH_GAP_M + ESTABLISH_SPEED_MPS * dt
                             && p.rotation.angle_to(&rotation).to_degrees()
@@ -485,7 +514,7 @@ impl Track {
             challenger: previous
                 .filter(|_| same_map)
                 .and_then(|p| p.challenger)
-                .filter(|c| c.at.elapsed().as_secs_f64() <= RECONFIRM_AFTER_S),
+                .filter(|c| now.since(&c.at) <= RECONFIRM_AFTER_S),
         })
     }
 
@@ -501,7 +530,7 @@ impl Track {
         Some(Track {
             position_m: pose.translation.vector,
             rotation: pose.rotation,
-            at: Instant::now(),
+            at: Moment::now(f.stamp_s),
             keyframe: f.keyframe,
             ..self.clone()
         })
@@ -515,11 +544,16 @@ impl Track {
     /// established yet rests on one weak fix: one such answer replaces it, unconfirmed, as a first
     /// fix would start a track. Returns that track; otherwise remembers the answer and returns
     /// `None`.
-    fn challenged(&mut self, pose: &Isometry3<f64>, confidence: f64) -> Option<Track> {
+    fn challenged(
+        &mut self,
+        pose: &Isometry3<f64>,
+        confidence: f64,
+        stamp_s: Option<f64>,
+    ) -> Option<Track> {
         if confidence <= self.confidence {
             return None;
         }
-        let now = Instant::now();
+        let now = Moment::now(stamp_s);
         if !self.established {
             return Some(Track {
                 map_id: self.map_id.clone(),
@@ -544,7 +578,7 @@ impl Track {
             at: now,
         };
         let agrees = self.challenger.is_some_and(|p| {
-            let elapsed_s = p.at.elapsed().as_secs_f64();
+            let elapsed_s = now.since(&p.at);
             elapsed_s <= RECONFIRM_AFTER_S
                 && tracking_region(p.position_m, elapsed_s)
                     .is_some_and(|region| region.contains(&c.position_m))
@@ -579,15 +613,17 @@ impl Track {
     /// [`ODOMETRY_MAX_AGE_S`]; the map first once it is older than [`REANCHOR_AFTER_S`], at most once
     /// per [`REANCHOR_AFTER_S`] (a place the map does not answer costs a map search only on every
     /// few frames).
-    fn next(&self, map_id: &str) -> Tracking {
+    /// `stamp_s`: the next frame's capture stamp, when it carries one.
+    fn next(&self, map_id: &str, stamp_s: Option<f64>) -> Tracking {
         if !self.confirmed || (!map_id.is_empty() && map_id != self.map_id) {
             return Tracking {
                 stream: true,
                 ..Tracking::default()
             };
         }
-        let anchor_age_s = self.anchored_at.elapsed().as_secs_f64();
-        let elapsed_s = self.at.elapsed().as_secs_f64();
+        let now = Moment::now(stamp_s);
+        let anchor_age_s = now.since(&self.anchored_at);
+        let elapsed_s = now.since(&self.at);
 
         Tracking {
             stream: true,
@@ -600,7 +636,7 @@ impl Track {
             map_first: anchor_age_s >= REANCHOR_AFTER_S
                 && self
                     .map_tried_at
-                    .is_none_or(|t| t.elapsed().as_secs_f64() >= REANCHOR_AFTER_S),
+                    .is_none_or(|t| now.since(&t) >= REANCHOR_AFTER_S),
         }
     }
 }
@@ -868,6 +904,7 @@ impl LocalizerService {
             serial: lm.serial,
             track_lost: loc.track_lost,
             track_gap: loc.track_gap,
+            stamp_s: None,
         };
         release(lm);
         Ok((response, followup))
@@ -1041,14 +1078,31 @@ impl proto::localizer_server::Localizer for LocalizerService {
                             t.serial = map.serial;
                         }
                     }
+                    let stamp_s = match decode::stamp(msg.stamp_s) {
+                        Ok(s) => s,
+                        Err(e) => {
+                            count("ERROR", e.code(), &map.id);
+                            let _ = tx.send(Err(e)).await;
+                            break;
+                        }
+                    };
+                    // Stamps that go back belong to a recording started again: where the camera
+                    // was says nothing about where it is now.
+                    if let (Some(t), Some(now)) = (&track, stamp_s) {
+                        if let Some(then) = t.at.stamp_s.filter(|&then| now < then) {
+                            tracing::info!(from = then, to = now,
+                                "the stream's stamps went back; tracking starts afresh");
+                            track = None;
+                        }
+                    }
                     // A relocalizing frame is localized globally, as a unary call would be.
                     let relocalize = msg.relocalize;
                     let tracking = match &mut track {
                         _ if msg.relocalize => Tracking::default(),
                         Some(t) => {
-                            let next = t.next(&msg.map_id);
+                            let next = t.next(&msg.map_id, stamp_s);
                             if next.map_first {
-                                t.map_tried_at = Some(Instant::now());
+                                t.map_tried_at = Some(Moment::now(stamp_s));
                             }
                             next
                         }
@@ -1057,6 +1111,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                             ..Tracking::default()
                         },
                     };
+                    let map_first = tracking.map_first;
                     let result =
                         match id {
                             Ok(id) => this.one(msg, Some(map), id.clone(), deadline, tracking).await.map(
@@ -1070,7 +1125,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 Err(e)
                             }
                         };
-                    let result = result.map(|(mut r, f)| {
+                    let result = result.map(|(mut r, mut f)| {
+                        f.stamp_s = stamp_s;
                         let off_track = f.off_track;
                         let odometry = f.odometry;
                         let gap = f.track_gap;
@@ -1083,7 +1139,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                             track = Some(t);
                         }
                         if let (Some(t), Some((pose, confidence))) = (track.as_mut(), off_track) {
-                            if let Some(moved) = t.challenged(&pose, confidence) {
+                            if let Some(moved) = t.challenged(&pose, confidence, stamp_s) {
                                 tracing::info!(
                                     from = ?t.position_m.as_slice(),
                                     to = ?moved.position_m.as_slice(),
@@ -1100,6 +1156,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                             inliers = r.inliers,
                             confidence = r.confidence,
                             odometry = odometry,
+                            map_first = map_first,
                             gap = ?gap,
                             off_track = ?off_track.map(|(p, c)| (p.translation.vector.as_slice().to_vec(), c)),
                             track = ?track.as_ref().map(|t| (t.position_m.as_slice().to_vec(), t.confirmed, t.established, t.confidence, t.challenger.is_some())),
@@ -1268,7 +1325,7 @@ mod tests {
         // A first global fix is not tracked until a second agrees.
         let first = Track::after(None, &answer(0.0, proto::Mode::Global), odometry(false)).unwrap();
         assert!(!first.confirmed);
-        assert!(first.next("").region.is_none());
+        assert!(first.next("", None).region.is_none());
         let far = Track::after(
             Some(&first),
             &answer(9.0, proto::Mode::Global),
@@ -1285,10 +1342,10 @@ mod tests {
         )
         .unwrap();
         assert!(t.confirmed);
-        let next = t.next("m");
+        let next = t.next("m", None);
         assert!(next.stream && next.region.is_some() && !next.map_first);
         assert!(
-            t.next("other").region.is_none(),
+            t.next("other", None).region.is_none(),
             "another map is not tracked"
         );
         // Odometry keeps the chain's anchor time; a map fix renews it.
@@ -1310,10 +1367,10 @@ mod tests {
             odometry(true),
         )
         .unwrap();
-        aging.anchored_at -= Duration::from_secs_f64(REANCHOR_AFTER_S + 0.1);
-        assert!(aging.next("m").map_first);
-        aging.map_tried_at = Some(Instant::now());
-        assert!(!aging.next("m").map_first, "the map was just tried");
+        aging.anchored_at.at -= Duration::from_secs_f64(REANCHOR_AFTER_S + 0.1);
+        assert!(aging.next("m", None).map_first);
+        aging.map_tried_at = Some(Moment::now(None));
+        assert!(!aging.next("m", None).map_first, "the map was just tried");
         let hop = Track::after(
             Some(&aging),
             &answer(0.36, proto::Mode::Tracking),
@@ -1321,17 +1378,18 @@ mod tests {
         )
         .unwrap();
         assert_eq!(hop.map_tried_at, aging.map_tried_at, "odometry keeps it");
-        aging.map_tried_at = aging
-            .map_tried_at
-            .map(|t| t - Duration::from_secs_f64(REANCHOR_AFTER_S + 0.1));
-        assert!(aging.next("m").map_first, "and tries it again later");
+        aging.map_tried_at = aging.map_tried_at.map(|t| Moment {
+            at: t.at - Duration::from_secs_f64(REANCHOR_AFTER_S + 0.1),
+            ..t
+        });
+        assert!(aging.next("m", None).map_first, "and tries it again later");
         let renewed = Track::after(
             Some(&kept),
             &answer(0.4, proto::Mode::Tracking),
             odometry(false),
         );
         let renewed = renewed.unwrap();
-        assert!(renewed.anchored_at > t.anchored_at);
+        assert!(renewed.anchored_at.at > t.anchored_at.at);
         assert!(renewed.map_tried_at.is_none(), "a map fix starts afresh");
         // A fix turned round (a symmetric room) does not confirm a track, even in the same place.
         let mut turned = answer(0.3, proto::Mode::Global);
@@ -1353,7 +1411,7 @@ mod tests {
             odometry(false),
         );
         let stale = stale.as_mut().unwrap();
-        stale.at -= Duration::from_secs_f64(RECONFIRM_AFTER_S + 0.5);
+        stale.at.at -= Duration::from_secs_f64(RECONFIRM_AFTER_S + 0.5);
         let late = Track::after(
             Some(stale),
             &answer(1.5, proto::Mode::Tracking),
@@ -1370,6 +1428,71 @@ mod tests {
         let mut refused = answer(5.0, proto::Mode::Global);
         refused.status = proto::Status::NotLocalized as i32;
         assert!(Track::after(Some(&kept), &refused, odometry(false)).is_none());
+    }
+
+    #[test]
+    fn a_stream_with_capture_stamps_judges_motion_by_them() {
+        let at = |stamp: f64, odometry: bool| Followup {
+            odometry,
+            stamp_s: Some(stamp),
+            ..Followup::default()
+        };
+        let first = Track::after(None, &answer(0.0, proto::Mode::Global), at(10.0, false)).unwrap();
+        let mut t = Track::after(
+            Some(&first),
+            &answer(0.2, proto::Mode::Global),
+            at(10.1, false),
+        )
+        .unwrap();
+        assert!(t.confirmed);
+        // The frames reached the server long apart (a slow server, a burst), the camera's clock
+        // says 0.1 s: no re-anchoring yet, and the region is what 0.1 s of motion allows.
+        t.at.at -= Duration::from_secs(3);
+        t.anchored_at.at -= Duration::from_secs(3);
+        let soon = t.next("m", Some(10.2));
+        assert!(!soon.map_first);
+        let region = soon.region.expect("tracked");
+        assert!(!region.contains(&Vector3::new(1.5, 0.0, 0.0)));
+        // A replay five times faster than its recording: the server's clock says 0.1 s, the
+        // camera's 0.6 s: the map is tried again, and the region allows 0.5 s of motion.
+        let mut fast = t.clone();
+        fast.at.at = Instant::now();
+        fast.anchored_at.at = Instant::now();
+        let later = fast.next("m", Some(10.7));
+        assert!(later.map_first);
+        assert!(later.region.unwrap().contains(&Vector3::new(1.5, 0.0, 0.0)));
+        // Without a stamp on either side, the server's clock decides, as before.
+        assert!(t.next("m", None).map_first);
+        assert!(!fast.next("m", None).map_first);
+        // A later fix that came 3 s after the last by the server's clock but 0.2 s by the
+        // camera's is recent: it keeps the track's confirmation.
+        let fix = Track::after(Some(&t), &answer(0.3, proto::Mode::Global), at(10.3, false));
+        assert!(fix.unwrap().confirmed);
+        let late = Track::after(Some(&t), &answer(0.3, proto::Mode::Global), at(12.3, false));
+        assert!(
+            !late.unwrap().confirmed,
+            "2.2 s by the camera's clock is a gap"
+        );
+    }
+
+    #[test]
+    fn stamps_in_other_units_are_refused_by_name() {
+        assert_eq!(decode::stamp(None).unwrap(), None);
+        assert_eq!(decode::stamp(Some(0.0)).unwrap(), Some(0.0));
+        assert_eq!(
+            decode::stamp(Some(1_767_225_600.25)).unwrap(),
+            Some(1_767_225_600.25)
+        );
+        for (bad, named) in [
+            (1_767_225_600_250.0, "milliseconds"),
+            (1.767_225_6e18, "nanoseconds"),
+            (-1.0, "finite number of seconds"),
+            (f64::NAN, "finite number of seconds"),
+        ] {
+            let e = decode::stamp(Some(bad)).unwrap_err();
+            assert_eq!(e.code(), Code::InvalidArgument);
+            assert!(e.message().contains(named), "{bad}: {}", e.message());
+        }
     }
 
     #[test]
@@ -1482,13 +1605,13 @@ mod tests {
         let mut t = Track::after(Some(&first), &fix(0.3), Followup::default()).unwrap();
         assert!(t.confirmed && t.established);
         let far = |x: f64| Isometry3::translation(x, 0.0, 0.0);
-        assert!(t.challenged(&far(3.0), 0.7).is_none());
+        assert!(t.challenged(&far(3.0), 0.7, None).is_none());
         assert!(
             t.challenger.is_none(),
             "an answer less confident than the track's fix is a look-alike"
         );
         assert!(
-            t.challenged(&far(3.0), 0.95).is_none(),
+            t.challenged(&far(3.0), 0.95, None).is_none(),
             "one answer is not enough"
         );
         // The track's odometry answers in between keep the challenger.
@@ -1506,15 +1629,15 @@ mod tests {
         .unwrap();
         assert!(t.challenger.is_some());
         assert!(
-            t.challenged(&far(-6.0), 0.95).is_none(),
+            t.challenged(&far(-6.0), 0.95, None).is_none(),
             "two challengers that disagree move nothing"
         );
-        let moved = t.challenged(&far(-5.9), 0.99).expect("two agree");
+        let moved = t.challenged(&far(-5.9), 0.99, None).expect("two agree");
         assert!(moved.confirmed && moved.keyframe.is_none());
         assert_eq!(moved.position_m.x, -5.9);
         assert_eq!(moved.confidence, 0.95);
         assert!(moved
-            .next("m")
+            .next("m", None)
             .region
             .unwrap()
             .contains(&Vector3::new(-5.8, 0.0, 0.0)));
@@ -1531,8 +1654,13 @@ mod tests {
         )
         .unwrap();
         assert!(!weak.established);
-        assert!(weak.challenged(&far(-6.0), 0.7).is_none(), "less confident");
-        let restarted = weak.challenged(&far(-6.0), 0.95).expect("one is enough");
+        assert!(
+            weak.challenged(&far(-6.0), 0.7, None).is_none(),
+            "less confident"
+        );
+        let restarted = weak
+            .challenged(&far(-6.0), 0.95, None)
+            .expect("one is enough");
         assert!(!restarted.confirmed && !restarted.established);
         assert_eq!(restarted.position_m.x, -6.0);
         // The frame whose answer moved the track is not answered with the old track's pose.

@@ -16,7 +16,10 @@ from pntr_client._values import Answer, Frame, MapInfo, Prior
 # The camera the server assumes when a request has no intrinsics (HPointLoc), and the only size it
 # accepts then.
 HPOINTLOC_SIZE = (256, 256)
-_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id", "relocalize")
+_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id", "relocalize", "stamp_s")
+# Stamps at or above this many seconds are another unit (the server refuses them the same way): 1e11 s
+# is the year 5138; Unix time in milliseconds or nanoseconds lies above it.
+MAX_STAMP_S = 1e11
 # The plausible median of a frame's valid depth, metres: the server refuses a frame whose median lies
 # outside (the proto's DepthEncoding), naming the unit the values look like; the client does the same
 # before sending, on the same sample (every `stride`-th pixel, `stride` = pixels // 8192, at least 1).
@@ -204,6 +207,7 @@ def make_request(
     *,
     frame_convention: str | None = None,
     relocalize: bool = False,
+    stamp_s: float | None = None,
     where: str = "",
 ) -> pb2.LocalizeRequest:
     """A LocalizeRequest (RAW_RGB8 colour; FLOAT32_METERS or UINT16_MILLIMETERS depth) after checking
@@ -221,6 +225,9 @@ def make_request(
             server's default.
         relocalize: LocalizeStream only: search the whole map for this frame, ignoring the stream's
             tracking state (the server ignores it in a unary Localize call, which is always global).
+        stamp_s: when the frame was captured, seconds on the sensor's clock (any epoch; a ROS
+            header.stamp is sec + nanosec * 1e-9); None = not given. A stream judges the camera's
+            motion by these stamps when its frames carry them, else by when they arrive.
         where: prefix of error messages (e.g. "frame 3: ").
 
     Raises ValueError naming the first mistake found.
@@ -237,6 +244,7 @@ def make_request(
         raise ValueError(f"{where}map_id and request_id must be strings")
     if not isinstance(relocalize, (bool, np.bool_)):
         raise ValueError(f"{where}relocalize must be True or False, got {relocalize!r}")
+    stamp = check_stamp(stamp_s, where)
     h, w = rgb_a.shape[:2]
     depth_encoding = pb2.UINT16_MILLIMETERS if depth_a.dtype == np.dtype("<u2") else pb2.FLOAT32_METERS
     req = pb2.LocalizeRequest(
@@ -246,6 +254,8 @@ def make_request(
         depth=pb2.Depth(width=w, height=h, encoding=depth_encoding, data=depth_a.tobytes()),
         relocalize=bool(relocalize),
     )
+    if stamp is not None:
+        req.stamp_s = stamp
     if frame_convention is not None:
         req.frame_convention = frame_convention_value(frame_convention, where)
     if k is not None:
@@ -253,6 +263,23 @@ def make_request(
     if prior is not None:
         req.prior.CopyFrom(prior_message(prior))
     return req
+
+
+def check_stamp(stamp_s: Any, where: str = "") -> float | None:
+    """`stamp_s` as float seconds (None stays None); ValueError naming a wrong unit or value."""
+    if stamp_s is None:
+        return None
+    if isinstance(stamp_s, (bool, np.bool_)) or not isinstance(stamp_s, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{where}stamp_s must be seconds as a number, got {stamp_s!r}")
+    s = float(stamp_s)
+    if not math.isfinite(s) or s < 0:
+        raise ValueError(f"{where}stamp_s must be a finite number of seconds >= 0, got {stamp_s!r}")
+    if s >= MAX_STAMP_S:
+        unit = "nanoseconds" if s >= 1e17 else "microseconds" if s >= 1e14 else "milliseconds"
+        raise ValueError(
+            f"{where}stamp_s = {stamp_s!r} looks like {unit}: give seconds (a ROS header.stamp is sec + nanosec * 1e-9)"
+        )
+    return s
 
 
 def frame_convention_value(name: str, where: str = "") -> int:

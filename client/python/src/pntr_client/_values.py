@@ -113,6 +113,13 @@ class Frame:
             robot was carried elsewhere, or a benchmark of global localization); the frame's own
             `prior` is still used, and a LOCALIZED answer becomes the stream's new state. Only a
             stream has such a state: a unary `Client.localize` call is always global.
+        stamp_s: when the frame was captured, seconds on the camera's clock (any epoch: a ROS
+            header.stamp as sec + nanosec * 1e-9, a recording's timestamps); None = not given. The
+            stream judges how far the camera can have moved between two frames by their stamps
+            when both carry one, else by when they reached the server: send stamps whenever the
+            frames do not reach the server at the pace they were taken (a recording sent faster,
+            frames buffered on the way). A stamp earlier than the previous frame's starts the
+            stream's tracking afresh.
     """
 
     rgb: npt.NDArray[np.uint8]
@@ -121,6 +128,7 @@ class Frame:
     prior: Prior | None = None
     request_id: str = ""
     relocalize: bool = False
+    stamp_s: float | None = None
 
 
 @dataclass(frozen=True, eq=False)

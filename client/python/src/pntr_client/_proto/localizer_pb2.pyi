@@ -74,7 +74,7 @@ OUTSIDE_MAP: NotLocalizedCause
 BAD_INPUT: NotLocalizedCause
 
 class LocalizeRequest(_message.Message):
-    __slots__ = ("map_id", "rgb", "depth", "intrinsics", "request_id", "prior", "relocalize", "frame_convention")
+    __slots__ = ("map_id", "rgb", "depth", "intrinsics", "request_id", "prior", "relocalize", "frame_convention", "stamp_s")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     RGB_FIELD_NUMBER: _ClassVar[int]
     DEPTH_FIELD_NUMBER: _ClassVar[int]
@@ -83,6 +83,7 @@ class LocalizeRequest(_message.Message):
     PRIOR_FIELD_NUMBER: _ClassVar[int]
     RELOCALIZE_FIELD_NUMBER: _ClassVar[int]
     FRAME_CONVENTION_FIELD_NUMBER: _ClassVar[int]
+    STAMP_S_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     rgb: Image
     depth: Depth
@@ -91,7 +92,8 @@ class LocalizeRequest(_message.Message):
     prior: Prior
     relocalize: bool
     frame_convention: FrameConvention
-    def __init__(self, map_id: _Optional[str] = ..., rgb: _Optional[_Union[Image, _Mapping]] = ..., depth: _Optional[_Union[Depth, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., request_id: _Optional[str] = ..., prior: _Optional[_Union[Prior, _Mapping]] = ..., relocalize: _Optional[bool] = ..., frame_convention: _Optional[_Union[FrameConvention, str]] = ...) -> None: ...
+    stamp_s: float
+    def __init__(self, map_id: _Optional[str] = ..., rgb: _Optional[_Union[Image, _Mapping]] = ..., depth: _Optional[_Union[Depth, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., request_id: _Optional[str] = ..., prior: _Optional[_Union[Prior, _Mapping]] = ..., relocalize: _Optional[bool] = ..., frame_convention: _Optional[_Union[FrameConvention, str]] = ..., stamp_s: _Optional[float] = ...) -> None: ...
 
 class Prior(_message.Message):
     __slots__ = ("pose", "covariance", "radius_m")
