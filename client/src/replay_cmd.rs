@@ -473,6 +473,12 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .context("opening LocalizeStream")?
         .into_inner();
     let t0 = seq.timestamp(0);
+    if !args.no_stamps && !(0.0..pntr_service::decode::MAX_STAMP_S).contains(&t0) {
+        bail!(
+            "{}: the first frame's stamp is {t0}, not seconds the server takes as a capture time (>= 0, < 1e11): give --no-stamps",
+            args.sequence.display()
+        );
+    }
     let (mut skew, mut jumps, mut unreadable) = (0.0f64, 0usize, 0usize);
     let mut checked = false;
     let start = Instant::now();
@@ -481,14 +487,14 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let mut localized = 0usize;
     for i in 0..n {
         let timestamp = seq.timestamp(i);
-        // A stamp jump (a clock correction, stamps in another unit) is not slept through: the
-        // timeline moves on from the frame after it.
-        if args.rate.is_none() && i > 0 {
+        // A stamp jump (a clock correction, stamps in another unit) is not slept through, nor
+        // sent as a gap: the timeline moves on from the frame after it.
+        if i > 0 {
             let gap = timestamp - seq.timestamp(i - 1);
             if gap > MAX_FRAME_GAP_S {
                 skew += gap;
                 jumps += 1;
-                if jumps == 1 {
+                if jumps == 1 && args.rate.is_none() {
                     eprintln!(
                         "warning: the stamps jump by {gap:.3} s between frames {} and {i}: sent without waiting (more jumps are counted in the report)",
                         i - 1
@@ -543,7 +549,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         req.map_id = args.connect.map_id.clone();
         req.request_id = format!("{:.6}", timestamp);
         req.relocalize = args.no_prior;
-        req.stamp_s = (!args.no_stamps).then_some(timestamp);
+        req.stamp_s = (!args.no_stamps).then_some(timestamp - skew);
         // The recording's ground truth and the prior below are in the map's frame.
         req.frame_convention = proto::FrameConvention::Map as i32;
         // Only the prior's position is sent, which the camera axes do not change.

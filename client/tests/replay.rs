@@ -260,6 +260,44 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("rgb.txt"), "{err}");
 
+    // A recording stamped in milliseconds: its stamps cannot be sent as capture times, and replay
+    // says so before sending anything, naming `--no-stamps`, with which it replays.
+    let ms = dir.path().join("ms");
+    std::fs::create_dir_all(&ms).unwrap();
+    for sub in ["rgb", "depth"] {
+        std::os::unix::fs::symlink(seq.join(sub), ms.join(sub)).unwrap();
+    }
+    std::fs::copy(seq.join("calibration.txt"), ms.join("calibration.txt")).unwrap();
+    for list in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
+        let text = std::fs::read_to_string(seq.join(list)).unwrap();
+        let scaled: Vec<String> = text
+            .lines()
+            .map(|l| match l.split_once(' ') {
+                Some((t, rest)) if !l.starts_with('#') => {
+                    format!("{:.3} {rest}", t.parse::<f64>().unwrap() * 1000.0 + 1.7e12)
+                }
+                _ => l.to_string(),
+            })
+            .collect();
+        std::fs::write(ms.join(list), scaled.join("\n") + "\n").unwrap();
+    }
+    let refused = replay(&addr, &ms, &x_txt, &x_json, &["--frames", "3"]);
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("--no-stamps"), "{err}");
+    let taken = replay(
+        &addr,
+        &ms,
+        &x_txt,
+        &x_json,
+        &["--frames", "3", "--no-stamps", "--rate", "20"],
+    );
+    assert!(
+        taken.status.success(),
+        "{}",
+        String::from_utf8_lossy(&taken.stderr)
+    );
+
     // A full disk under `--record` and `--record-bag`: one error line each, naming the file and
     // the cause, not a warning per message; the replay's report still written; nothing half
     // written left behind. The disk fills here by a file-size limit (`ulimit -f`, the signal it

@@ -346,15 +346,22 @@ impl Moment {
     }
 
     /// Seconds from `earlier` to this moment: by the capture stamps when both frames carry one
-    /// (the camera's own time, however fast the frames were sent or answered), else by the
-    /// server's clock. Never negative.
+    /// (the camera's own time, however fast the frames were sent or answered), but never less
+    /// than [`STAMPED_CLOCK_SHARE`] of the server's clock (stamps that stopped advancing, a client
+    /// repeating one stamp, must not keep a track from ever being checked against the map); else
+    /// by the server's clock. Never negative.
     fn since(&self, earlier: &Moment) -> f64 {
+        let served = self.at.saturating_duration_since(earlier.at).as_secs_f64();
         match (self.stamp_s, earlier.stamp_s) {
-            (Some(now), Some(then)) => (now - then).max(0.0),
-            _ => self.at.saturating_duration_since(earlier.at).as_secs_f64(),
+            (Some(now), Some(then)) => (now - then).max(served * STAMPED_CLOCK_SHARE),
+            _ => served,
         }
     }
 }
+
+/// Between stamped frames, elapsed time is at least this share of the server clock's: a replay up
+/// to ten times slower than its recording is judged by its stamps alone.
+const STAMPED_CLOCK_SHARE: f64 = 0.1;
 
 /// What a stream remembers between frames: where its last LOCALIZED answer put the camera, whether
 /// that fix is confirmed, the keyframe the next frame registers against ([`pntr_pipeline::odometry`])
@@ -461,6 +468,31 @@ impl Track {
                         .is_none()
             });
         let recent = same_map && previous.is_some_and(|p| now.since(&p.at) <= RECONFIRM_AFTER_S);
+        // Whether a map fix follows the camera's motion from the track: the frame's own odometry
+        // pose from the track lies within a few centimetres of it (issue 49: a look-alike's weak
+        // fixes lay 0.3 m apart, near enough for the tracking region, not for the motion).
+        let follows = match f.track_gap {
+            Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
+            // The keyframe gave the frame no pose: the fix must lie where the camera can have
+            // moved since the track's last pose, at a robot's pace.
+            None => previous.is_some_and(|p| {
+                let dt = now.since(&p.at);
+                (position_m - p.position_m).norm() <= ESTABLISH_GAP_M + ESTABLISH_SPEED_MPS * dt
+                    && p.rotation.angle_to(&rotation).to_degrees()
+                        <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
+            }),
+        };
+        // The confidence a challenger must beat. A map fix that follows an established track
+        // corroborates it: the track then rests on both, as sure as the surer of them (a weak
+        // re-anchoring fix once left a track anchored at 0.995 at 0.85, and two look-alike
+        // answers at 0.93 moved it 1 m off for 2 s; BENCHMARKS.md, "Capture stamps"). Odometry
+        // keeps the track's.
+        let kept = previous.filter(|p| same_map && p.established);
+        let confidence = match kept {
+            Some(p) if f.odometry => p.confidence,
+            Some(p) if recent && agrees && follows => p.confidence.max(r.confidence),
+            _ => r.confidence,
+        };
         Some(Self {
             map_id: r.map_id.clone(),
             frame: f.frame,
@@ -487,18 +519,6 @@ impl Track {
             established: if f.odometry {
                 previous.is_some_and(|p| p.established)
             } else {
-                let follows = match f.track_gap {
-                    Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
-                    // The keyframe gave the frame no pose: the fix must lie where the camera can
-                    // have moved since the track's last pose, at a robot's pace.
-                    None => previous.is_some_and(|p| {
-                        let dt = now.since(&p.at);
-                        (position_m - p.position_m).norm()
-                            <= ESTABLISH_GAP_M + ESTABLISH_SPEED_MPS * dt
-                            && p.rotation.angle_to(&rotation).to_degrees()
-                                <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
-                    }),
-                };
                 r.inliers >= STRONG_FIX_INLIERS
                     || (recent && agrees && follows && previous.is_some_and(|p| p.confirmed))
             },
@@ -510,7 +530,7 @@ impl Track {
             map_tried_at: previous
                 .filter(|_| f.odometry && same_map)
                 .and_then(|p| p.map_tried_at),
-            confidence: r.confidence,
+            confidence,
             challenger: previous
                 .filter(|_| same_map)
                 .and_then(|p| p.challenger)
@@ -1027,6 +1047,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
                 // Tracking state, the whole of what a stream keeps: the last verified position and
                 // the keyframe.
                 let mut track: Option<Track> = None;
+                // The stamp of the stream's last stamped frame.
+                let mut last_stamp: Option<f64> = None;
                 loop {
                     // A shutdown ends the stream between frames (the transport has sent GOAWAY
                     // by then), so the robot reconnects at once instead of at the drain's end.
@@ -1088,13 +1110,14 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     };
                     // Stamps that go back belong to a recording started again: where the camera
                     // was says nothing about where it is now.
-                    if let (Some(t), Some(now)) = (&track, stamp_s) {
-                        if let Some(then) = t.at.stamp_s.filter(|&then| now < then) {
+                    if let (Some(then), Some(now)) = (last_stamp, stamp_s) {
+                        if now < then && track.is_some() {
                             tracing::info!(from = then, to = now,
                                 "the stream's stamps went back; tracking starts afresh");
                             track = None;
                         }
                     }
+                    last_stamp = stamp_s.or(last_stamp);
                     // A relocalizing frame is localized globally, as a unary call would be.
                     let relocalize = msg.relocalize;
                     let tracking = match &mut track {
@@ -1447,12 +1470,12 @@ mod tests {
         assert!(t.confirmed);
         // The frames reached the server long apart (a slow server, a burst), the camera's clock
         // says 0.1 s: no re-anchoring yet, and the region is what 0.1 s of motion allows.
-        t.at.at -= Duration::from_secs(3);
-        t.anchored_at.at -= Duration::from_secs(3);
+        t.at.at -= Duration::from_secs(2);
+        t.anchored_at.at -= Duration::from_secs(2);
         let soon = t.next("m", Some(10.2));
         assert!(!soon.map_first);
         let region = soon.region.expect("tracked");
-        assert!(!region.contains(&Vector3::new(1.5, 0.0, 0.0)));
+        assert!(!region.contains(&Vector3::new(1.6, 0.0, 0.0)));
         // A replay five times faster than its recording: the server's clock says 0.1 s, the
         // camera's 0.6 s: the map is tried again, and the region allows 0.5 s of motion.
         let mut fast = t.clone();
@@ -1460,11 +1483,19 @@ mod tests {
         fast.anchored_at.at = Instant::now();
         let later = fast.next("m", Some(10.7));
         assert!(later.map_first);
-        assert!(later.region.unwrap().contains(&Vector3::new(1.5, 0.0, 0.0)));
+        assert!(later.region.unwrap().contains(&Vector3::new(1.6, 0.0, 0.0)));
+        // Stamps that stopped advancing (a client repeating one) count a tenth of the server's
+        // clock: the track is still checked against the map.
+        let mut frozen = fast.clone();
+        frozen.anchored_at = Moment {
+            at: Instant::now() - Duration::from_secs(6),
+            stamp_s: Some(10.1),
+        };
+        assert!(frozen.next("m", Some(10.1)).map_first);
         // Without a stamp on either side, the server's clock decides, as before.
         assert!(t.next("m", None).map_first);
         assert!(!fast.next("m", None).map_first);
-        // A later fix that came 3 s after the last by the server's clock but 0.2 s by the
+        // A later fix that came 2 s after the last by the server's clock but 0.2 s by the
         // camera's is recent: it keeps the track's confirmation.
         let fix = Track::after(Some(&t), &answer(0.3, proto::Mode::Global), at(10.3, false));
         assert!(fix.unwrap().confirmed);
@@ -1473,6 +1504,28 @@ mod tests {
             !late.unwrap().confirmed,
             "2.2 s by the camera's clock is a gap"
         );
+        // Two confident answers elsewhere that reached the server 3 s apart but were taken 0.2 s
+        // apart agree: they move the track (by the server's clock they would not).
+        let mut sure = Track::after(
+            Some(&t),
+            &proto::LocalizeResponse {
+                inliers: 120,
+                confidence: 0.8,
+                ..answer(0.3, proto::Mode::Tracking)
+            },
+            at(10.3, false),
+        )
+        .unwrap();
+        let mut unstamped = sure.clone();
+        let far = Isometry3::translation(-6.0, 0.0, 0.0);
+        let nearby = Isometry3::translation(-5.9, 0.0, 0.0);
+        assert!(sure.challenged(&far, 0.95, Some(20.0)).is_none());
+        sure.challenger.as_mut().unwrap().at.at -= Duration::from_secs(3);
+        let moved = sure.challenged(&nearby, 0.97, Some(20.2));
+        assert_eq!(moved.expect("two agree").position_m.x, -5.9);
+        assert!(unstamped.challenged(&far, 0.95, None).is_none());
+        unstamped.challenger.as_mut().unwrap().at.at -= Duration::from_secs(3);
+        assert!(unstamped.challenged(&nearby, 0.97, None).is_none());
     }
 
     #[test]
@@ -1641,6 +1694,55 @@ mod tests {
             .region
             .unwrap()
             .contains(&Vector3::new(-5.8, 0.0, 0.0)));
+        // A weak re-anchoring fix that follows the track corroborates it: the track stays as sure
+        // as its surer fix, so answers less confident than that cannot move it.
+        let mut sure = Track::after(Some(&first), &fix(0.3), Followup::default()).unwrap();
+        sure.confidence = 0.995;
+        let corroborated = Track::after(
+            Some(&sure),
+            &proto::LocalizeResponse {
+                confidence: 0.85,
+                inliers: 16,
+                ..answer(0.32, proto::Mode::Tracking)
+            },
+            Followup {
+                track_gap: Some((0.015, 0.8)),
+                ..Followup::default()
+            },
+        )
+        .unwrap();
+        assert!(corroborated.established);
+        assert_eq!(corroborated.confidence, 0.995);
+        let mut carried = Track::after(
+            Some(&corroborated),
+            &proto::LocalizeResponse {
+                confidence: 0.85,
+                ..answer(0.35, proto::Mode::Tracking)
+            },
+            Followup {
+                odometry: true,
+                ..Followup::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(carried.confidence, 0.995, "odometry keeps it");
+        assert!(carried.challenged(&far(1.3), 0.93, None).is_none());
+        assert!(carried.challenged(&far(1.32), 0.93, None).is_none());
+        // ... while a fix that does not follow the motion is no corroboration.
+        let slid = Track::after(
+            Some(&sure),
+            &proto::LocalizeResponse {
+                confidence: 0.85,
+                inliers: 16,
+                ..answer(0.32, proto::Mode::Tracking)
+            },
+            Followup {
+                track_gap: Some((0.3, 0.8)),
+                ..Followup::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(slid.confidence, 0.85);
         // A track not established yet (one weak fix) is replaced by one more confident answer
         // elsewhere, as a first fix: unconfirmed, not answered until it is established in turn.
         let mut weak = Track::after(

@@ -271,7 +271,10 @@ def check_stamp(stamp_s: Any, where: str = "") -> float | None:
         return None
     if isinstance(stamp_s, (bool, np.bool_)) or not isinstance(stamp_s, (int, float, np.integer, np.floating)):
         raise ValueError(f"{where}stamp_s must be seconds as a number, got {stamp_s!r}")
-    s = float(stamp_s)
+    try:
+        s = float(stamp_s)
+    except OverflowError:
+        s = math.inf
     if not math.isfinite(s) or s < 0:
         raise ValueError(f"{where}stamp_s must be a finite number of seconds >= 0, got {stamp_s!r}")
     if s >= MAX_STAMP_S:
