@@ -973,15 +973,14 @@ fn typed_api_against_a_real_server() {
     // relocalize reaches the server: the stream without it tracks the standing camera, the one with
     // it on its last two frames answers those globally, as unary calls.
     let reloc = &r["relocalize"];
-    let modes = |k: &str| -> Vec<String> {
-        reloc[k]
-            .as_array()
+    let modes_of = |v: &serde_json::Value, k: &str| -> Vec<String> {
+        v[k].as_array()
             .unwrap()
             .iter()
             .map(|a| a["mode"].as_str().unwrap().to_string())
             .collect()
     };
-    let (without, with) = (modes("without"), modes("with"));
+    let (without, with) = (modes_of(reloc, "without"), modes_of(reloc, "with"));
     eprintln!("relocalize: without {without:?}, with {with:?}");
     assert_eq!(
         without[3], "TRACKING",
@@ -989,16 +988,8 @@ fn typed_api_against_a_real_server() {
     );
     assert_eq!(with, ["GLOBAL"; 4], "{reloc}");
     let stamps = &r["stamps"];
-    let modes = |k: &str| -> Vec<String> {
-        stamps[k]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|a| a["mode"].as_str().unwrap().to_string())
-            .collect()
-    };
-    assert_eq!(modes("close")[2..], ["TRACKING"; 2], "{stamps}");
-    assert_eq!(modes("apart"), ["GLOBAL"; 4], "{stamps}");
+    assert_eq!(modes_of(stamps, "close")[2..], ["TRACKING"; 2], "{stamps}");
+    assert_eq!(modes_of(stamps, "apart"), ["GLOBAL"; 4], "{stamps}");
     let ids: Vec<&str> = reloc["with"]
         .as_array()
         .unwrap()

@@ -1698,19 +1698,22 @@ mod tests {
         // as its surer fix, so answers less confident than that cannot move it.
         let mut sure = Track::after(Some(&first), &fix(0.3), Followup::default()).unwrap();
         sure.confidence = 0.995;
-        let corroborated = Track::after(
-            Some(&sure),
-            &proto::LocalizeResponse {
-                confidence: 0.85,
-                inliers: 16,
-                ..answer(0.32, proto::Mode::Tracking)
-            },
-            Followup {
-                track_gap: Some((0.015, 0.8)),
-                ..Followup::default()
-            },
-        )
-        .unwrap();
+        let weak_fix = |gap_m: f64| {
+            Track::after(
+                Some(&sure),
+                &proto::LocalizeResponse {
+                    confidence: 0.85,
+                    inliers: 16,
+                    ..answer(0.32, proto::Mode::Tracking)
+                },
+                Followup {
+                    track_gap: Some((gap_m, 0.8)),
+                    ..Followup::default()
+                },
+            )
+            .unwrap()
+        };
+        let corroborated = weak_fix(0.015);
         assert!(corroborated.established);
         assert_eq!(corroborated.confidence, 0.995);
         let mut carried = Track::after(
@@ -1729,19 +1732,7 @@ mod tests {
         assert!(carried.challenged(&far(1.3), 0.93, None).is_none());
         assert!(carried.challenged(&far(1.32), 0.93, None).is_none());
         // ... while a fix that does not follow the motion is no corroboration.
-        let slid = Track::after(
-            Some(&sure),
-            &proto::LocalizeResponse {
-                confidence: 0.85,
-                inliers: 16,
-                ..answer(0.32, proto::Mode::Tracking)
-            },
-            Followup {
-                track_gap: Some((0.3, 0.8)),
-                ..Followup::default()
-            },
-        )
-        .unwrap();
+        let slid = weak_fix(0.3);
         assert_eq!(slid.confidence, 0.85);
         // A track not established yet (one weak fix) is replaced by one more confident answer
         // elsewhere, as a first fix: unconfirmed, not answered until it is established in turn.
