@@ -691,6 +691,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         "frames": out.len(),
         "frames_unreadable": unreadable,
         "stamp_jumps": jumps,
+        "stamps_sent": !args.no_stamps,
         "localized_share": localized as f64 / frames,
         "tracking_share": tracked as f64 / frames,
         "ate_rmse_m": errors.ate_rmse_m,

@@ -242,6 +242,7 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     // answers are not bit-identical to the TUM replay's; tracking precision is measured in
     // BENCHMARKS.md, not asserted on one short drive).
     assert!(r["localized_share"].as_f64().unwrap() >= 0.5, "{r}");
+    assert_eq!(r["stamps_sent"], true, "{r}");
     assert!(r["frames_with_ground_truth"].as_u64().unwrap() >= 10, "{r}");
     assert!(r["ate_rmse_m"].as_f64().unwrap() < 1.0, "{r}");
     // A topic the bag lacks is named beside the topics it has.
@@ -297,6 +298,7 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
         "{}",
         String::from_utf8_lossy(&taken.stderr)
     );
+    assert_eq!(read_json(&x_json)["stamps_sent"], false);
 
     // A full disk under `--record` and `--record-bag`: one error line each, naming the file and
     // the cause, not a warning per message; the replay's report still written; nothing half

@@ -482,17 +482,6 @@ impl Track {
                         <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
             }),
         };
-        // The confidence a challenger must beat. A map fix that follows an established track
-        // corroborates it: the track then rests on both, as sure as the surer of them (a weak
-        // re-anchoring fix once left a track anchored at 0.995 at 0.85, and two look-alike
-        // answers at 0.93 moved it 1 m off for 2 s; BENCHMARKS.md, "Capture stamps"). Odometry
-        // keeps the track's.
-        let kept = previous.filter(|p| same_map && p.established);
-        let confidence = match kept {
-            Some(p) if f.odometry => p.confidence,
-            Some(p) if recent && agrees && follows => p.confidence.max(r.confidence),
-            _ => r.confidence,
-        };
         Some(Self {
             map_id: r.map_id.clone(),
             frame: f.frame,
@@ -530,7 +519,7 @@ impl Track {
             map_tried_at: previous
                 .filter(|_| f.odometry && same_map)
                 .and_then(|p| p.map_tried_at),
-            confidence,
+            confidence: r.confidence,
             challenger: previous
                 .filter(|_| same_map)
                 .and_then(|p| p.challenger)
@@ -1694,46 +1683,6 @@ mod tests {
             .region
             .unwrap()
             .contains(&Vector3::new(-5.8, 0.0, 0.0)));
-        // A weak re-anchoring fix that follows the track corroborates it: the track stays as sure
-        // as its surer fix, so answers less confident than that cannot move it.
-        let mut sure = Track::after(Some(&first), &fix(0.3), Followup::default()).unwrap();
-        sure.confidence = 0.995;
-        let weak_fix = |gap_m: f64| {
-            Track::after(
-                Some(&sure),
-                &proto::LocalizeResponse {
-                    confidence: 0.85,
-                    inliers: 16,
-                    ..answer(0.32, proto::Mode::Tracking)
-                },
-                Followup {
-                    track_gap: Some((gap_m, 0.8)),
-                    ..Followup::default()
-                },
-            )
-            .unwrap()
-        };
-        let corroborated = weak_fix(0.015);
-        assert!(corroborated.established);
-        assert_eq!(corroborated.confidence, 0.995);
-        let mut carried = Track::after(
-            Some(&corroborated),
-            &proto::LocalizeResponse {
-                confidence: 0.85,
-                ..answer(0.35, proto::Mode::Tracking)
-            },
-            Followup {
-                odometry: true,
-                ..Followup::default()
-            },
-        )
-        .unwrap();
-        assert_eq!(carried.confidence, 0.995, "odometry keeps it");
-        assert!(carried.challenged(&far(1.3), 0.93, None).is_none());
-        assert!(carried.challenged(&far(1.32), 0.93, None).is_none());
-        // ... while a fix that does not follow the motion is no corroboration.
-        let slid = weak_fix(0.3);
-        assert_eq!(slid.confidence, 0.85);
         // A track not established yet (one weak fix) is replaced by one more confident answer
         // elsewhere, as a first fix: unconfirmed, not answered until it is established in turn.
         let mut weak = Track::after(
