@@ -468,20 +468,6 @@ impl Track {
                         .is_none()
             });
         let recent = same_map && previous.is_some_and(|p| now.since(&p.at) <= RECONFIRM_AFTER_S);
-        // Whether a map fix follows the camera's motion from the track: the frame's own odometry
-        // pose from the track lies within a few centimetres of it (issue 49: a look-alike's weak
-        // fixes lay 0.3 m apart, near enough for the tracking region, not for the motion).
-        let follows = match f.track_gap {
-            Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
-            // The keyframe gave the frame no pose: the fix must lie where the camera can have
-            // moved since the track's last pose, at a robot's pace.
-            None => previous.is_some_and(|p| {
-                let dt = now.since(&p.at);
-                (position_m - p.position_m).norm() <= ESTABLISH_GAP_M + ESTABLISH_SPEED_MPS * dt
-                    && p.rotation.angle_to(&rotation).to_degrees()
-                        <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
-            }),
-        };
         Some(Self {
             map_id: r.map_id.clone(),
             frame: f.frame,
@@ -508,6 +494,18 @@ impl Track {
             established: if f.odometry {
                 previous.is_some_and(|p| p.established)
             } else {
+                let follows = match f.track_gap {
+                    Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
+                    // The keyframe gave the frame no pose: the fix must lie where the camera can
+                    // have moved since the track's last pose, at a robot's pace.
+                    None => previous.is_some_and(|p| {
+                        let dt = now.since(&p.at);
+                        (position_m - p.position_m).norm()
+                            <= ESTABLISH_GAP_M + ESTABLISH_SPEED_MPS * dt
+                            && p.rotation.angle_to(&rotation).to_degrees()
+                                <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
+                    }),
+                };
                 r.inliers >= STRONG_FIX_INLIERS
                     || (recent && agrees && follows && previous.is_some_and(|p| p.confirmed))
             },
