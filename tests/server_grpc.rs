@@ -1342,6 +1342,17 @@ fn priors_fall_back_and_streams_track() {
             .unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument);
         assert!(e.message().contains("milliseconds"), "{}", e.message());
+        // The error ends the stream and names the frame it refused: the third here.
+        let e = stream_answers(&mut c3, stamped(&[100.0, 100.1, 1.767e12, 100.3]))
+            .await
+            .unwrap_err();
+        assert!(
+            e.message()
+                .starts_with("frame 3 of this stream (the first is 1")
+                && e.message().contains("milliseconds"),
+            "{}",
+            e.message()
+        );
         let (code, msg) = code_of(&mut c3, stamped(&[1.767e18]).remove(0)).await;
         assert_eq!(code, Code::InvalidArgument);
         assert!(msg.contains("nanoseconds"), "{msg}");

@@ -42,7 +42,7 @@ use crate::map::Map;
 use crate::odometry::{self, Keyframe};
 use crate::preset::{Preset, Solver};
 use crate::prior::{LocalizeOptions, Mode, PoseIndex, Region};
-use crate::refine::{fine_depth, polish_views, refine_dense, View};
+use crate::refine::{fine_depth, polish_track, polish_views, refine_dense, Prior, View};
 use crate::shortlist::{automatic_depth, Shortlist, Shortlisted, FINAL_KEYPOINTS};
 
 /// Nearest and farthest a map fix may lie from a tracked pose and still be fused with it, metres.
@@ -60,6 +60,13 @@ pub const POLISH_NEIGHBOURS_SEARCHED: usize = 12;
 /// Share of the query's valid thumbnail samples a neighbouring map view must agree with to join the
 /// polish.
 pub const POLISH_MIN_SHARED: f64 = 0.3;
+/// The same share for the map views a tracked pose is polished against ([`Pipeline::polish_tracked`]).
+/// Lower: the track's covariance holds what a small shared part leaves free, and where odometry
+/// carries the camera beyond the map's matched views, the views still see 5-20% of the frame
+/// (real Kinect frames of a kitchen, measured with the polished pose chained on: 0.3 kept 0.77 of
+/// a stream within (5 cm, 5 deg), 0.1 kept 0.94, 0.05 kept 0.996; BENCHMARKS.md, "Tracks held to
+/// the map's depth").
+pub const TRACK_POLISH_MIN_SHARED: f64 = 0.05;
 
 /// How far, metres, a map fix may lie from the tracked pose of the same frame and still be fused
 /// with it ([`odometry::fuse`]): three times the track's RMS position error (the square root of
@@ -413,6 +420,8 @@ struct Refusal {
 /// The query as the tracking paths see it: features, back-projected keypoints (OpenCV query frame)
 /// and the thumbnail (made only for streams).
 struct Frame<'a> {
+    /// The query at the map's pixel scale.
+    query: &'a Query,
     features: &'a Features,
     points: &'a [Option<Vector3<f64>>],
     thumb: Option<&'a Thumb>,
@@ -722,6 +731,7 @@ impl Pipeline {
         let thumb = (opts.keyframe.is_some() || opts.want_keyframe)
             .then(|| Thumb::new(&q.rgb, &q.depth, &q.intrinsics));
         let frame = Frame {
+            query: q,
             features: &fq,
             points: &q_pts,
             thumb: thumb.as_ref(),
@@ -899,6 +909,7 @@ impl Pipeline {
                 lost: true,
             }));
         }
+        let covariance = hop.covariance.map(|c| odometry::with_drift(&c, hop.path_m));
         let keyframe = opts.want_keyframe.then(|| {
             odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
         });
@@ -909,6 +920,18 @@ impl Pipeline {
             .coverage()
             .explained(thumb, &convert_axes(&pose, self.axes, CameraAxes::OpenCv));
         let outside = explained.filter(|&share| share < MIN_EXPLAINED);
+        // Odometry drifts where the map's images were never matched from, though their depth
+        // still sees part of the frame's surfaces: the answer is held to them
+        // ([`Self::polish_tracked`]). The chain goes on from odometry's own pose, so that a polish
+        // cannot add its error to the frames after it.
+        let tp = Instant::now();
+        let pose = match (covariance, key.image, outside) {
+            (Some(cov), Some(image), None) => self
+                .polish_tracked(frame.query, thumb, &hop.world_from_query, &cov, image)
+                .map_or(pose, |p| convert_axes(&p, CameraAxes::OpenCv, self.axes)),
+            _ => pose,
+        };
+        times.verification += tp.elapsed().as_secs_f64();
         times.total = t0.elapsed().as_secs_f64();
         Ok(Ok(Localization {
             status: if outside.is_some() {
@@ -928,9 +951,7 @@ impl Pipeline {
             estimate: Some(pose),
             confidence: key.confidence,
             evidence: Some(hop.evidence),
-            covariance: hop
-                .covariance
-                .map(|c| Box::new(odometry::with_drift(&c, hop.path_m))),
+            covariance: covariance.map(Box::new),
             verified: Vec::new(),
             inliers: hop.inliers,
             correspondences: hop.pairs,
@@ -1525,55 +1546,123 @@ impl Pipeline {
     }
 
     /// Map views near a verified pose (`db_from_query`, against map image `image`, OpenCV axes)
-    /// that see what the query sees: of the [`POLISH_NEIGHBOURS_SEARCHED`] map images of its scene
-    /// nearest to it within [`POLISH_RADIUS_M`] that have a finer depth, those whose thumbnail depth
-    /// agrees with at least [`POLISH_MIN_SHARED`] of the query's valid samples under the pose, the
-    /// most agreeing first, [`POLISH_VIEWS`] - 1 at most, each with its camera from `image`'s.
+    /// that see what the query sees ([`Self::agreeing_views`], `image` left out), the most agreeing
+    /// first, [`POLISH_VIEWS`] - 1 at most, each with its camera from `image`'s.
     fn polish_neighbours<'a>(
         &'a self,
         image: usize,
         db_from_query: &Isometry3<f64>,
         thumb: &Thumb,
     ) -> Vec<View<'a>> {
-        let world_from = |j: usize| {
-            convert_axes(
-                &self.map.images[j].world_from_camera,
-                self.axes,
-                CameraAxes::OpenCv,
-            )
-        };
-        let world_from_db = world_from(image);
+        let world_from_db = self.world_from_image(image);
         let world_from_query = world_from_db * db_from_query;
+        let scene = self.map.images[image].scene;
+        self.agreeing_views(
+            &world_from_query,
+            thumb,
+            scene,
+            Some(image),
+            POLISH_MIN_SHARED,
+        )
+        .into_iter()
+        .take(POLISH_VIEWS - 1)
+        .map(|j| View {
+            thumb: self.map.images[j]
+                .fine
+                .as_ref()
+                .expect("views with a finer depth"),
+            from_ref: self.world_from_image(j).inverse() * world_from_db,
+        })
+        .collect()
+    }
+
+    /// `world_from_camera` of map image `j`, OpenCV camera axes.
+    fn world_from_image(&self, j: usize) -> Isometry3<f64> {
+        convert_axes(
+            &self.map.images[j].world_from_camera,
+            self.axes,
+            CameraAxes::OpenCv,
+        )
+    }
+
+    /// Map images that see what a query camera at `world_from_query` (OpenCV axes) sees: of the
+    /// [`POLISH_NEIGHBOURS_SEARCHED`] map images of `scene` nearest to it within
+    /// [`POLISH_RADIUS_M`] that have a finer depth ([`crate::map::MapImage::fine`]; `except` left
+    /// out), those whose thumbnail depth agrees with at least `min_shared` of the query's
+    /// valid samples `thumb` under the pose, the most agreeing first: [`POLISH_MIN_SHARED`] for a
+    /// verified map answer's neighbours, [`TRACK_POLISH_MIN_SHARED`] for a tracked pose's views.
+    fn agreeing_views(
+        &self,
+        world_from_query: &Isometry3<f64>,
+        thumb: &Thumb,
+        scene: u32,
+        except: Option<usize>,
+        min_shared: f64,
+    ) -> Vec<usize> {
         let Ok(region) = Region::new(world_from_query.translation.vector, POLISH_RADIUS_M) else {
             return Vec::new();
         };
-        let scene = self.map.images[image].scene;
-        let mut found: Vec<(usize, View<'a>)> = self
+        let mut found: Vec<(usize, usize)> = self
             .images_within(&region)
             .into_iter()
-            .filter(|&j| j != image && self.map.images[j].scene == scene)
-            .filter_map(|j| Some((j, self.map.images[j].fine.as_ref()?)))
+            .filter(|&j| Some(j) != except && self.map.images[j].scene == scene)
+            .filter(|&j| self.map.images[j].fine.is_some())
             .take(POLISH_NEIGHBOURS_SEARCHED)
-            .filter_map(|(j, fine)| {
-                let from_ref = world_from(j).inverse() * world_from_db;
+            .filter_map(|j| {
                 let counts = dense_check(
                     thumb,
                     &self.map.images[j].thumb,
-                    &(from_ref * db_from_query),
+                    &(self.world_from_image(j).inverse() * world_from_query),
                 );
-                (counts.valid > 0 && counts.agree as f64 >= POLISH_MIN_SHARED * counts.valid as f64)
-                    .then_some((
-                        counts.agree,
-                        View {
-                            thumb: fine,
-                            from_ref,
-                        },
-                    ))
+                (counts.valid > 0 && counts.agree as f64 >= min_shared * counts.valid as f64)
+                    .then_some((counts.agree, j))
             })
             .collect();
         found.sort_by_key(|f| std::cmp::Reverse(f.0));
-        found.truncate(POLISH_VIEWS - 1);
-        found.into_iter().map(|(_, v)| v).collect()
+        found.into_iter().map(|(_, j)| j).collect()
+    }
+
+    /// A tracked pose (`world_from_query`, OpenCV axes, with its covariance: map frame, ROS order)
+    /// polished against the map views that see what the frame sees ([`Self::agreeing_views`] of the
+    /// scene of the map fix the track started from, [`POLISH_VIEWS`] at most, the most agreeing the
+    /// reference), with the pose's covariance as the prior ([`polish_track`]). `None` where the map
+    /// keeps no finer depth (maps of cameras below 256 px of focal length: rendered HPointLoc maps
+    /// among them), no view agrees, or the polish is refused.
+    fn polish_tracked(
+        &self,
+        q: &Query,
+        thumb: &Thumb,
+        world_from_query: &Isometry3<f64>,
+        covariance: &[f64; 36],
+        image: usize,
+    ) -> Option<Isometry3<f64>> {
+        self.map.images[image].fine.as_ref()?;
+        let scene = self.map.images[image].scene;
+        let ids = self.agreeing_views(
+            world_from_query,
+            thumb,
+            scene,
+            None,
+            TRACK_POLISH_MIN_SHARED,
+        );
+
+        let (&reference, _) = ids.split_first()?;
+        let world_from_ref = self.world_from_image(reference);
+        let views: Vec<View<'_>> = ids
+            .iter()
+            .take(POLISH_VIEWS)
+            .map(|&j| View {
+                thumb: self.map.images[j]
+                    .fine
+                    .as_ref()
+                    .expect("views with a finer depth"),
+                from_ref: self.world_from_image(j).inverse() * world_from_ref,
+            })
+            .collect();
+        let query = fine_depth(&q.rgb, &q.depth, &q.intrinsics)?;
+        let prior = Prior::from_world(covariance, &world_from_ref)?;
+        let ref_from_query = world_from_ref.inverse() * world_from_query;
+        polish_track(&query, &views, &ref_from_query, &prior).map(|p| world_from_ref * p)
     }
 
     /// The candidates with a registration, most inliers first, those with at least the preset's
@@ -1613,9 +1702,7 @@ impl Pipeline {
 
     /// `world_from_query` of a registered candidate, OpenCV camera axes.
     fn world_from_query(&self, c: &Candidate) -> Option<Isometry3<f64>> {
-        let db = &self.map.images[c.image];
-        let world_from_db = convert_axes(&db.world_from_camera, self.axes, CameraAxes::OpenCv);
-        Some(world_from_db * c.db_from_query?)
+        Some(self.world_from_image(c.image) * c.db_from_query?)
     }
 
     /// What the dense checks, the inliers and the other candidates say about candidate `c`.
@@ -1704,7 +1791,7 @@ impl Pipeline {
     /// axis grows by (shift / 2)², so the copy found lies at two standard deviations.
     fn covariance(&self, c: &Candidate, thumb: &Thumb) -> Option<[f64; 36]> {
         let db = &self.map.images[c.image];
-        let world_from_db = convert_axes(&db.world_from_camera, self.axes, CameraAxes::OpenCv);
+        let world_from_db = self.world_from_image(c.image);
         let db_from_query = c.db_from_query?;
         let mut local = point_to_point_covariance(
             &c.inlier_src,

@@ -1071,7 +1071,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         Ok(m) => m,
                         Err(e) => {
                             count("ERROR", e.code(), "");
-                            let _ = tx.send(Err(e)).await;
+                            let _ = tx.send(Err(in_stream(e, n, &msg.request_id))).await;
                             break;
                         }
                     };
@@ -1091,7 +1091,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         Ok(s) => s,
                         Err(e) => {
                             count("ERROR", e.code(), &map.id);
-                            let _ = tx.send(Err(e)).await;
+                            let _ = tx.send(Err(in_stream(e, n, &msg.request_id))).await;
                             break;
                         }
                     };
@@ -1122,6 +1122,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         },
                     };
                     let map_first = tracking.map_first;
+                    let sent_id = msg.request_id.clone();
                     let result =
                         match id {
                             Ok(id) => this.one(msg, Some(map), id.clone(), deadline, tracking).await.map(
@@ -1182,6 +1183,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         wire::answer_in(&mut r, convention, frames);
                         r
                     });
+                    let result = result.map_err(|e| in_stream(e, n, &sent_id));
                     let failed = result.is_err();
                     if tx.send(result).await.is_err() || failed {
                         break; // the client went away, or an error ends the stream
@@ -1256,6 +1258,29 @@ fn calibration_info(lm: &LoadedMap) -> proto::CalibrationInfo {
     info
 }
 
+/// A stream's error `e` naming the frame it answers: its place in the stream (the first is 1) and
+/// the `request_id` the client gave it, when it gave a valid one ([`request_id`]: one refused for
+/// its length or characters is not echoed), so a robot's log shows which frame was refused (the
+/// error ends the stream). The code and metadata stay `e`'s.
+fn in_stream(e: Status, n: u64, request_id: &str) -> Status {
+    let valid = !request_id.is_empty()
+        && request_id.len() <= 128
+        && request_id.bytes().all(|b| b.is_ascii_graphic());
+    let id = if valid {
+        format!(", request_id {request_id:?}")
+    } else {
+        String::new()
+    };
+    Status::with_metadata(
+        e.code(),
+        format!(
+            "frame {n} of this stream (the first is 1{id}): {}",
+            e.message()
+        ),
+        e.metadata().clone(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1295,6 +1320,26 @@ mod tests {
             .insert("authorization", "Bearer abc".parse().unwrap());
         assert!(g.call(r).is_ok());
         assert!(Gate::new(None).call(Request::new(())).is_ok());
+    }
+
+    #[test]
+    fn stream_errors_name_their_frame() {
+        let e = in_stream(Status::invalid_argument("bad stamp"), 3, "t-42");
+        assert_eq!(e.code(), Code::InvalidArgument);
+        assert_eq!(
+            e.message(),
+            "frame 3 of this stream (the first is 1, request_id \"t-42\"): bad stamp"
+        );
+        // No id, or one refused for its length: not echoed.
+        let plain = "frame 7 of this stream (the first is 1): bad stamp";
+        let e = in_stream(Status::invalid_argument("bad stamp"), 7, "");
+        assert_eq!(e.message(), plain);
+        let e = in_stream(
+            Status::invalid_argument("bad stamp"),
+            7,
+            &"x".repeat(100_000),
+        );
+        assert_eq!(e.message(), plain);
     }
 
     #[test]

@@ -66,7 +66,9 @@ class LocalizerServicer:
     def LocalizeStream(self, request_iterator, context):
         """Localize a stream of frames (a robot sending continuously). Frames are processed one at a time in
         the order sent and answered in that order, one response per request (match them by request_id).
-        An error (any code listed above) ends the stream with that status.
+        An error (any code listed above) ends the stream with that status; its message begins by naming
+        the frame refused: "frame N of this stream (the first is 1): ", with ", request_id \"...\"" after
+        the 1 when the frame carried a valid request_id.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
