@@ -109,6 +109,32 @@ fn a_kinect_layout_with_unregistered_depth_builds_the_map_registered_depth_gives
         warnings.contains("--depth-to-colour"),
         "no warning about the missing offset: {warnings}"
     );
+    // Registered depth, by numpy or by pntr, meets the colour edges: no word about its outlines.
+    for r in [&reference, &got] {
+        let w = r["warnings"].to_string();
+        assert!(
+            !w.contains("outlines"),
+            "registered depth taken for unregistered: {w}"
+        );
+    }
+    // The depth camera's images taken for registered depth (its intrinsics file left out): the
+    // likely mistake is named, with the flags that fix it.
+    let intrinsics = kinect.join("camera-intrinsics.txt");
+    let aside = dir.path().join("camera-intrinsics.txt");
+    std::fs::rename(&intrinsics, &aside).unwrap();
+    let raw = build(
+        &kinect,
+        &dir.path().join("raw.pntrmap"),
+        &["--intrinsics", &colour, "--no-check"],
+    );
+    let w = raw["warnings"].to_string();
+    assert!(
+        w.contains("not registered to the colour image")
+            && w.contains("--depth-intrinsics")
+            && w.contains("stretched"),
+        "unregistered depth not named: {w}"
+    );
+    std::fs::rename(&aside, &intrinsics).unwrap();
 
     // A stream of the same layout through a real server, depth registered by replay.
     let rt = runtime();

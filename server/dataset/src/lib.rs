@@ -28,6 +28,7 @@
 
 pub mod bag;
 pub mod bag_writer;
+pub mod depth_alignment;
 pub mod depth_camera;
 mod error;
 mod last_words;

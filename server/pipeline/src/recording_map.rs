@@ -28,6 +28,10 @@ use crate::prior::LocalizeOptions;
 use crate::verify::Thumb;
 use crate::PipelineError;
 
+/// Frames of each recording whose depth outlines are checked against their colour edges
+/// ([`pntr_dataset::depth_alignment`]; about 40 ms each at 640x480), evenly spread.
+pub const ALIGNMENT_FRAMES: usize = 8;
+
 /// One recording to build from, with the camera its frames are read with.
 pub struct Session<'a> {
     /// The recording.
@@ -439,6 +443,10 @@ fn collect(
         }
         let name = rec.name();
         let mut unit_checked = false;
+        // Depth outlines against colour edges on a few frames spread over the recording
+        // ([`pntr_dataset::depth_alignment`]): unregistered depth is named, not only mapped badly.
+        let align_every = (rec.len() / ALIGNMENT_FRAMES).max(1);
+        let mut alignments = Vec::new();
         let mut session_posed = 0usize;
         for i in 0..rec.len() {
             report.frames += 1;
@@ -489,6 +497,9 @@ fn collect(
                     )));
                 }
                 unit_checked = true;
+            }
+            if i % align_every == 0 && alignments.len() < ALIGNMENT_FRAMES {
+                alignments.push(pntr_dataset::depth_alignment::measure(&rgb, &depth));
             }
             down_sum += pose.rotation * Vector3::y();
             posed += 1;
@@ -565,6 +576,16 @@ fn collect(
             report
                 .warnings
                 .push(format!("{}: {said}; they are left out", rec.path.display()));
+        }
+        tracing::debug!(
+            "{}: depth outlines against colour edges: {alignments:?}",
+            rec.path.display()
+        );
+        if let Some(hint) = pntr_dataset::depth_alignment::misregistration_hint(&alignments) {
+            tracing::warn!("{}: {hint}", rec.path.display());
+            report
+                .warnings
+                .push(format!("{}: {hint}", rec.path.display()));
         }
         if session_posed == 0 {
             let why = rec
