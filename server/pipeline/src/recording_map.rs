@@ -29,7 +29,7 @@ use crate::verify::Thumb;
 use crate::PipelineError;
 
 /// Frames of each recording whose depth outlines are checked against their colour edges
-/// ([`pntr_dataset::depth_alignment`]; about 40 ms each at 640x480), evenly spread.
+/// ([`pntr_dataset::depth_alignment`]; at most about 12 ms each at 640x480), evenly spread.
 pub const ALIGNMENT_FRAMES: usize = 8;
 
 /// One recording to build from, with the camera its frames are read with.
