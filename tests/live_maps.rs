@@ -288,15 +288,22 @@ fn maps_change_under_load_and_streams() {
 
         // A replacement may bring another preset: its models are loaded beside the served ones.
         let c = replace_all(&mnn_path).await;
-        assert_eq!(c.map.as_ref().unwrap().preset, "xfeat-mnn");
+        assert_eq!(
+            c.map.as_ref().unwrap().preset,
+            pntr_tests::served_xfeat_mnn()
+        );
         let info = client
             .get_map_info(authed(proto::GetMapInfoRequest::default(), CLIENT))
             .await
             .unwrap()
             .into_inner();
         assert_eq!(
-            (info.preset.as_str(), info.matcher.as_str()),
-            ("xfeat-mnn", "mnn")
+            (
+                info.preset.as_str(),
+                info.built_preset.as_str(),
+                info.matcher.as_str()
+            ),
+            (pntr_tests::served_xfeat_mnn(), "xfeat-mnn", "mnn")
         );
         let v_mnn = c.map.unwrap().version;
         let r = frame(&still.world_from_camera).await;

@@ -67,6 +67,17 @@ pub fn run_python(script: &str, args: &[&std::ffi::OsStr]) -> String {
     String::from_utf8(out.stdout).expect("utf-8 output")
 }
 
+/// The preset a server answers with for a map built with `xfeat-mnn` when nothing overrides it
+/// (`--backbone-precision auto`): its bf16 twin where the CPU has bfloat16 instructions and
+/// OpenVINO loads, the map's own elsewhere.
+pub fn served_xfeat_mnn() -> &'static str {
+    if pntr_features::openvino::cpu_has_bf16() && pntr_features::openvino::init().is_ok() {
+        "xfeat-mnn-bf16"
+    } else {
+        "xfeat-mnn"
+    }
+}
+
 /// The committed ONNX models.
 pub fn models() -> PathBuf {
     workspace_root().join("models")

@@ -44,6 +44,22 @@ impl Precision {
     }
 }
 
+/// Whether this CPU has bfloat16 dot-product instructions (AVX-512 BF16: AMD Zen 4 and later,
+/// Intel Cooper Lake, Sapphire Rapids and later), with which OpenVINO's CPU plugin runs a
+/// [`Precision::Bf16`] model faster than f32 (BENCHMARKS.md, "bf16 XFeat on OpenVINO"). Without
+/// them the plugin runs f32, no faster than ONNX Runtime and not to its bit, so a server serves
+/// the float backbone there. Always `false` off x86-64.
+pub fn cpu_has_bf16() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512bf16")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 static INIT: OnceLock<Result<PathBuf, String>> = OnceLock::new();
 
 /// Load the OpenVINO C library once per process; returns its path. Later calls return the first

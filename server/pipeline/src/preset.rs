@@ -218,6 +218,25 @@ impl Preset {
         })
     }
 
+    /// The same pipeline with XFeat's backbone run in bfloat16 on OpenVINO: `xfeat-mnn` ->
+    /// `xfeat-mnn-bf16`, `xfeat-mnn-qvga` -> `xfeat-mnn-bf16-qvga`, every other field (a map's
+    /// own global model among them) kept. `None` for every other preset (already bf16, int8, or
+    /// not XFeat). The twin serves the map ([`Preset::serves`]: the same descriptors) and is scored
+    /// by the same calibration ([`Preset::calibration_preset`]); its answers were measured to
+    /// match the float model's within noise (BENCHMARKS.md, "bf16 XFeat on OpenVINO").
+    pub fn bf16_twin(&self) -> Option<Preset> {
+        let name = match (self.name.as_str(), self.extractor.as_str()) {
+            ("xfeat-mnn", "xfeat") => "xfeat-mnn-bf16",
+            ("xfeat-mnn-qvga", "xfeat") => "xfeat-mnn-bf16-qvga",
+            _ => return None,
+        };
+        Some(Preset {
+            name: name.into(),
+            extractor: "xfeat-bf16".into(),
+            ..self.clone()
+        })
+    }
+
     /// The preset whose confidence calibration scores this one's answers: its own name, except
     /// `xfeat-mnn-int8` and `xfeat-mnn-bf16`, which run `xfeat-mnn`'s pipeline with the int8 or the
     /// bf16 backbone and are scored by `xfeat-mnn`'s calibration (measured to hold: BENCHMARKS.md,
@@ -393,6 +412,21 @@ mod tests {
         assert_eq!(int8.feature_config(PathBuf::new()).extractor, "xfeat-int8");
         assert_eq!(int8.map_feature_config(PathBuf::new()).extractor, "xfeat");
         assert_eq!(int8.calibration_preset(), "xfeat-mnn");
+        for (float, twin) in [
+            ("xfeat-mnn", "xfeat-mnn-bf16"),
+            ("xfeat-mnn-qvga", "xfeat-mnn-bf16-qvga"),
+        ] {
+            let t = Preset::named(float).unwrap().bf16_twin().unwrap();
+            assert_eq!(t, Preset::named(twin).unwrap(), "{float}'s twin is {twin}");
+            t.serves(&Preset::named(float).unwrap()).unwrap();
+            assert_eq!(t.calibration_preset(), "xfeat-mnn");
+        }
+        for other in ["xfeat-mnn-bf16", "xfeat-mnn-int8", "fast", "classical"] {
+            assert!(
+                Preset::named(other).unwrap().bf16_twin().is_none(),
+                "{other}"
+            );
+        }
         let bf16 = Preset::named("xfeat-mnn-bf16").unwrap();
         assert_eq!(bf16.feature_config(PathBuf::new()).extractor, "xfeat-bf16");
         assert_eq!(bf16.map_feature_config(PathBuf::new()).extractor, "xfeat");

@@ -148,6 +148,13 @@ pub struct Args {
     /// fitted for another preset [default: each map's own].
     #[arg(long, env = "PNTR_PRESET")]
     pub preset: Option<String>,
+    /// Arithmetic of the XFeat backbone for maps served with their own preset: `auto` runs it in
+    /// bfloat16 on OpenVINO (the map's preset's `-bf16` twin: `xfeat-mnn` -> `xfeat-mnn-bf16`)
+    /// where the CPU has AVX-512 BF16 and the models run on the CPU, and in f32 elsewhere (also
+    /// when OpenVINO cannot be loaded, with a warning); `f32` always runs the float backbone on
+    /// ONNX Runtime. --preset overrides it [default: auto].
+    #[arg(long, env = "PNTR_BACKBONE_PRECISION")]
+    pub backbone_precision: Option<String>,
     /// Frame convention of answers whose request leaves `frame_convention` unset: `map` (the map's
     /// own world frame and camera axes) or `ros` (REP 103 z-up world, optical camera frame x right,
     /// y down, z forward) [default: map].
@@ -167,6 +174,27 @@ pub fn parse_frame_convention(s: &str) -> Result<crate::proto::FrameConvention, 
         "ros" => Ok(crate::proto::FrameConvention::Ros),
         _ => bad(format!(
             "frame convention `{s}`: use map (the map's own axes) or ros (z-up, optical camera)"
+        )),
+    }
+}
+
+/// Arithmetic of the XFeat backbone for maps served with their own preset (`--backbone-precision`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BackbonePrecision {
+    /// bfloat16 on OpenVINO where the CPU has the instructions
+    /// ([`pntr_features::openvino::cpu_has_bf16`]) and the models run on the CPU; f32 otherwise.
+    Auto,
+    /// Always the float backbone (ONNX Runtime): the reference the calibration was fitted with.
+    F32,
+}
+
+/// `auto` or `f32` (case-insensitive).
+pub fn parse_backbone_precision(s: &str) -> Result<BackbonePrecision, ConfigError> {
+    match s.to_ascii_lowercase().as_str() {
+        "auto" => Ok(BackbonePrecision::Auto),
+        "f32" | "float" => Ok(BackbonePrecision::F32),
+        _ => bad(format!(
+            "backbone precision `{s}`: use auto (bfloat16 where the CPU has AVX-512 BF16, else f32) or f32 (always the float backbone)"
         )),
     }
 }
@@ -212,6 +240,7 @@ struct FileSettings {
     calibration: Option<PathBuf>,
     min_confidence: Option<f64>,
     preset: Option<String>,
+    backbone_precision: Option<String>,
     frame_convention: Option<String>,
     foxglove: Option<String>,
 }
@@ -296,6 +325,8 @@ pub struct Settings {
     pub min_confidence: Option<f64>,
     /// Preset every map is served with (`None`: each map's own, from its header).
     pub preset: Option<String>,
+    /// Arithmetic of the backbone for maps served with their own preset.
+    pub backbone_precision: BackbonePrecision,
     /// Convention of answers whose request does not choose one (never UNSPECIFIED).
     pub frame_convention: crate::proto::FrameConvention,
     /// Address of the live Foxglove WebSocket view (`None`: off).
@@ -332,6 +363,7 @@ impl std::fmt::Debug for Settings {
             .field("calibration", &self.calibration)
             .field("min_confidence", &self.min_confidence)
             .field("preset", &self.preset)
+            .field("backbone_precision", &self.backbone_precision)
             .field("frame_convention", &self.frame_convention)
             .field("foxglove", &self.foxglove)
             .finish()
@@ -408,6 +440,7 @@ impl Settings {
             calibration: None,
             min_confidence: None,
             preset: None,
+            backbone_precision: BackbonePrecision::Auto,
             frame_convention: crate::proto::FrameConvention::Map,
             foxglove: None,
         }
@@ -517,6 +550,10 @@ impl Settings {
             calibration: args.calibration.or(file.calibration),
             min_confidence: args.min_confidence.or(file.min_confidence),
             preset: args.preset.or(file.preset),
+            backbone_precision: match args.backbone_precision.or(file.backbone_precision) {
+                None => BackbonePrecision::Auto,
+                Some(name) => parse_backbone_precision(&name)?,
+            },
             frame_convention: match args.frame_convention.or(file.frame_convention) {
                 None => crate::proto::FrameConvention::Map,
                 Some(name) => parse_frame_convention(&name)?,

@@ -34,7 +34,7 @@ use pntr_retrieval::onnx_global::OnnxGlobal;
 use tokio::sync::oneshot;
 use tracing::Span;
 
-use crate::config::Settings;
+use crate::config::{BackbonePrecision, Settings};
 use crate::telemetry;
 
 /// One loaded map, with what each worker needs to localize in it. Held by `Arc`: the engine's list
@@ -278,6 +278,8 @@ pub struct Engine {
     runtime: RuntimeOptions,
     models: PathBuf,
     preset_override: Option<String>,
+    /// `--backbone-precision`: whether a map served with its own preset runs its bf16 twin.
+    backbone_precision: BackbonePrecision,
     /// `--calibration`: one calibration for every map instead of each map's own (or the shipped one).
     calibration: Option<Arc<pntr_pipeline::calibration::Calibration>>,
     /// Each worker's feature stage per preset key, built once and shared by the maps that use it.
@@ -361,6 +363,7 @@ impl Engine {
             runtime,
             models: s.models.clone(),
             preset_override: s.preset.clone(),
+            backbone_precision: s.backbone_precision,
             calibration,
             stages: Mutex::new(HashMap::new()),
             serial: AtomicU64::new(1),
@@ -431,7 +434,7 @@ impl Engine {
             tracing::info!(map_id = %id, built_with = %built.name,
                 served_with = %preset.name, "map served with another preset of the same descriptors");
         }
-        let stages = self.stages_for(&preset).map_err(PrepareError::Serve)?;
+        let (preset, stages) = self.fastest_stages(preset, &id)?;
         let map = Arc::new(map);
         let mut pipelines = Vec::with_capacity(stages.len());
         for stage in stages {
@@ -510,6 +513,44 @@ impl Engine {
     }
 
     /// Every worker's feature stage for `preset`, built (and warmed up) on first use.
+    /// The feature stages `preset` runs with, or those of its bf16 twin ([`Preset::bf16_twin`])
+    /// where `--backbone-precision auto` (the default) finds it faster here: no `--preset` given,
+    /// the models on the CPU, a CPU with bfloat16 instructions
+    /// ([`pntr_features::openvino::cpu_has_bf16`]), and OpenVINO loaded and inferring in bf16.
+    /// When the twin cannot be built the float backbone serves, with a warning naming why.
+    fn fastest_stages(
+        &self,
+        preset: Preset,
+        id: &str,
+    ) -> Result<(Preset, Vec<FeatureStage>), PrepareError> {
+        let twin = preset.bf16_twin().filter(|_| {
+            self.preset_override.is_none()
+                && self.backbone_precision == BackbonePrecision::Auto
+                && self.runtime.device == pntr_features::runtime::Device::Cpu
+                && pntr_features::openvino::cpu_has_bf16()
+        });
+        if let Some(twin) = twin {
+            match self.stages_for(&twin) {
+                Ok(stages)
+                    if stages
+                        .iter()
+                        .all(|s| s.extractor.engine() == "openvino-bf16") =>
+                {
+                    tracing::info!(map_id = %id, built_with = %preset.name, served_with = %twin.name,
+                        "the CPU has bfloat16 instructions: queries run the backbone in bf16 (--backbone-precision f32 keeps float)");
+                    return Ok((twin, stages));
+                }
+                Ok(stages) => tracing::warn!(map_id = %id,
+                    engine = stages.first().map_or("", |s| s.extractor.engine()),
+                    "OpenVINO does not infer in bf16 on this CPU: queries run the float backbone"),
+                Err(e) => tracing::warn!(map_id = %id, error = %e,
+                    "the bf16 backbone cannot be loaded: queries run the float backbone"),
+            }
+        }
+        let stages = self.stages_for(&preset).map_err(PrepareError::Serve)?;
+        Ok((preset, stages))
+    }
+
     fn stages_for(&self, preset: &Preset) -> Result<Vec<FeatureStage>, String> {
         let key = (
             preset.extractor.clone(),

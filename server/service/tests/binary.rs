@@ -167,27 +167,7 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
             );
             // Every query of the scene: the answers given are right, and most queries get one (this
             // tiny two-Point map leaves one of its three queries without enough MNN matches).
-            let index = pntr_dataset::DatasetIndex::open(dir.path()).unwrap();
-            let (mut sent, mut right) = (0, 0);
-            for point in &index.scenes[0].points {
-                let p = point.open().unwrap();
-                for i in 0..p.count(pntr_dataset::Role::Query) {
-                    let v = p.view(pntr_dataset::Role::Query, i).unwrap();
-                    let r = c
-                        .localize(wire::raw_request(&v.rgb, &v.depth, None))
-                        .await
-                        .unwrap()
-                        .into_inner();
-                    sent += 1;
-                    if r.status == pntr_service::proto::Status::Localized as i32 {
-                        let pose = wire::pose(r.pose.as_ref()).unwrap();
-                        let e = (pose.translation.vector - v.world_from_camera.translation.vector)
-                            .norm();
-                        assert!(e < 0.25, "{e} m off: {r:?}");
-                        right += 1;
-                    }
-                }
-            }
+            let (sent, right) = right_answers(&mut c, dir.path()).await;
             assert!(
                 sent >= 3 && right * 3 >= sent * 2,
                 "{preset}: {right} of {sent} localized"
@@ -215,6 +195,95 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("--preset"));
+}
+
+/// The answers of a served map over its scene's queries: (sent, LOCALIZED within 0.25 m).
+async fn right_answers(
+    c: &mut LocalizerClient<pntr_service::tonic::transport::Channel>,
+    dataset: &std::path::Path,
+) -> (usize, usize) {
+    let index = pntr_dataset::DatasetIndex::open(dataset).unwrap();
+    let (mut sent, mut right) = (0, 0);
+    for point in &index.scenes[0].points {
+        let p = point.open().unwrap();
+        for i in 0..p.count(pntr_dataset::Role::Query) {
+            let v = p.view(pntr_dataset::Role::Query, i).unwrap();
+            let r = c
+                .localize(wire::raw_request(&v.rgb, &v.depth, None))
+                .await
+                .unwrap()
+                .into_inner();
+            sent += 1;
+            if r.status == pntr_service::proto::Status::Localized as i32 {
+                let pose = wire::pose(r.pose.as_ref()).unwrap();
+                let e = (pose.translation.vector - v.world_from_camera.translation.vector).norm();
+                assert!(e < 0.25, "{e} m off: {r:?}");
+                right += 1;
+            }
+        }
+    }
+    (sent, right)
+}
+
+#[cfg(unix)]
+#[test]
+fn an_xfeat_mnn_map_runs_the_bf16_backbone_where_the_cpu_has_bf16_instructions() {
+    let dir = tempfile::tempdir().unwrap();
+    let (m, _) = common::synthetic_map_with(dir.path(), 3, 2, 9, "mnn", "xfeat-mnn");
+    let db = dir.path().join("mnn.pntrmap");
+    pntr_pipeline::mapfile::save(&m, &db).unwrap();
+    // By default (`--backbone-precision auto`) a CPU with AVX-512 BF16 runs the map's bf16 twin on
+    // OpenVINO, any other the float backbone on ONNX Runtime; `f32` keeps the float one anywhere.
+    let bf16 = pntr_features::openvino::cpu_has_bf16();
+    for (flags, expected) in [
+        (
+            &[][..],
+            if bf16 {
+                ("xfeat-mnn-bf16", "openvino-bf16")
+            } else {
+                ("xfeat-mnn", "cpu")
+            },
+        ),
+        (&["--backbone-precision", "f32"][..], ("xfeat-mnn", "cpu")),
+    ] {
+        let mut args = vec!["--workers", "1"];
+        args.extend_from_slice(flags);
+        let (_server, addr, _) = spawn(&db, &args);
+        runtime().block_on(async {
+            let url = format!("http://{addr}");
+            wait_serving(&url).await;
+            let mut c = LocalizerClient::connect(url).await.unwrap();
+            let info = c
+                .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
+                .await
+                .unwrap()
+                .into_inner();
+            assert_eq!(
+                (
+                    info.preset.as_str(),
+                    info.extractor_engine.as_str(),
+                    info.built_preset.as_str()
+                ),
+                (expected.0, expected.1, "xfeat-mnn"),
+                "{flags:?} (CPU with bf16: {bf16})"
+            );
+            let (sent, right) = right_answers(&mut c, dir.path()).await;
+            assert!(
+                sent >= 6 && right * 3 >= sent * 2,
+                "{flags:?}: {right} of {sent} localized"
+            );
+        });
+    }
+    // Another value is a setting error (exit 2) naming the two there are.
+    let out = common::server_command(&db, &models(), &["--backbone-precision", "half"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("`half`") && err.contains("auto") && err.contains("f32"),
+        "{err}"
+    );
 }
 
 #[test]

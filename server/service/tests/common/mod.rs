@@ -33,6 +33,18 @@ pub fn synthetic_map(
     seed: u64,
     map_id: &str,
 ) -> (map::Map, DatasetIndex) {
+    synthetic_map_with(dir, points, queries, seed, map_id, "fast")
+}
+
+/// [`synthetic_map`] built with `preset`.
+pub fn synthetic_map_with(
+    dir: &Path,
+    points: usize,
+    queries: usize,
+    seed: u64,
+    map_id: &str,
+    preset: &str,
+) -> (map::Map, DatasetIndex) {
     let cfg = pntr_synth::SynthConfig {
         points_per_scene: points,
         queries_per_point: queries,
@@ -41,7 +53,7 @@ pub fn synthetic_map(
     };
     pntr_synth::synthesize(&cfg, dir, pntr_synth::plan_all(&cfg), &|| {}).unwrap();
     let index = DatasetIndex::open(dir).unwrap();
-    let preset = Preset::named("fast").unwrap();
+    let preset = Preset::named(preset).unwrap();
     let stage = preset.map_feature_config(models()).build().unwrap();
     let scenes: Vec<_> = index.scenes.iter().collect();
     let m = map::build(map_id, &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
