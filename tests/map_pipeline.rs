@@ -91,6 +91,15 @@ fn map_round_trip_pipeline_and_refused_files() {
     assert_eq!(back.header, map.header);
     assert_eq!(back.images, map.images);
     assert_eq!(mapfile::read_header(&path).unwrap(), map.header);
+    // The image ids alone, without decoding the records (the finer depth's record among them).
+    let ids: Vec<String> = map.images.iter().map(|im| im.id.clone()).collect();
+    assert_eq!(mapfile::read_image_ids(&path).unwrap(), ids);
+    let cut = dir.path().join("cut.pntrmap");
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 4]).unwrap();
+    let e = mapfile::read_image_ids(&cut).unwrap_err().to_string();
+    assert!(e.contains("cut.pntrmap") && e.contains("truncated"), "{e}");
+    std::fs::remove_file(&cut).unwrap();
     // No temporary file is left behind.
     let leftovers: Vec<_> = std::fs::read_dir(dir.path())
         .unwrap()
@@ -551,6 +560,9 @@ fn a_map_fits_its_own_calibration_from_held_out_regions() {
     assert_eq!(p.calibration().1, CalibrationSource::File);
     assert_eq!(p.min_confidence(), base.threshold);
 
+    // The ids a header-only reader gets say it is current.
+    let ids = mapfile::read_image_ids(&path).unwrap();
+    assert!(!fitted.is_stale_for(ids.iter().map(String::as_str)));
     // A map whose images changed since keeps it, stale.
     let ids: Vec<&str> = map.images[1..].iter().map(|im| im.id.as_str()).collect();
     assert!(fitted.is_stale_for(ids));

@@ -1012,9 +1012,10 @@ fn image_list(path: &Path) -> Result<(Vec<serde_json::Value>, String)> {
     Ok((list, version))
 }
 
-/// `pntr info --db FILE [--images]`: what a map file says about itself, from its header alone (fast
-/// on maps of any size), and with `images` every image's id, place, stamp and pose. Errors name the
-/// file and what is wrong with it.
+/// `pntr info --db FILE [--images]`: what a map file says about itself, from its header and its
+/// images' ids (fast on maps of any size; the ids say whether the map's own calibration is stale),
+/// and with `images` every image's id, place, stamp and pose. Errors name the file and what is
+/// wrong with it.
 pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
     let header = mapfile::read_header(path)?;
     let list = if images {
@@ -1022,8 +1023,29 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
     } else {
         None
     };
+    // Whether the map changed since its own calibration was fitted shows in its image ids (read
+    // from the records' starts: fast on maps of any size).
+    let stale = match &header.calibration {
+        Some(c) => c.is_stale_for(mapfile::read_image_ids(path)?.iter().map(String::as_str)),
+        None => false,
+    };
     if as_json {
         let mut v = serde_json::to_value(&header)?;
+        // `calibration.source`, `.stale` and `.threshold`, as `pntr info --addr --json` says them.
+        let (calibration, source, threshold) = match &header.calibration {
+            Some(own) => (v["calibration"].clone(), "map", own.calibration.threshold),
+            None => (
+                crate::selfcal_cmd::summary(None, false),
+                "shipped",
+                Calibration::embedded().threshold,
+            ),
+        };
+        if let (Some(o), serde_json::Value::Object(mut c)) = (v.as_object_mut(), calibration) {
+            c.insert("source".into(), source.into());
+            c.insert("stale".into(), stale.into());
+            c.insert("threshold".into(), threshold.into());
+            o.insert("calibration".into(), c.into());
+        }
         if let (Some(o), Some((list, version))) = (v.as_object_mut(), list) {
             o.insert("image_list".into(), list.into());
             o.insert("version".into(), version.into());
@@ -1095,14 +1117,6 @@ pub fn info(path: &Path, as_json: bool, images: bool) -> Result<()> {
             r.name, r.frames, r.first_stamp, r.last_stamp
         );
     }
-    // Whether the map changed since its calibration was fitted shows in the image ids (read with
-    // --images only; GetMapInfo and the server's log say it always).
-    let stale = list.as_ref().is_some_and(|(l, _)| {
-        header
-            .calibration
-            .as_ref()
-            .is_some_and(|c| c.is_stale_for(l.iter().filter_map(|im| im["id"].as_str())))
-    });
     println!(
         "{}",
         crate::selfcal_cmd::line(header.calibration.as_ref(), stale)

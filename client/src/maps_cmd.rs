@@ -262,6 +262,7 @@ fn entry_json(m: &proto::LoadedMap) -> serde_json::Value {
         "preset": m.preset,
         "built_at": m.built_at,
         "heap_bytes": m.heap_bytes,
+        "calibration": m.calibration.as_ref().map(remote::calibration_json),
     })
 }
 
@@ -331,8 +332,12 @@ pub fn run(cmd: &MapsCommand) -> Result<()> {
                     println!("no maps loaded");
                 } else {
                     for m in &maps {
+                        let calibration = m.calibration.as_ref().map_or(String::new(), |c| {
+                            let stale = if c.stale { ", STALE" } else { "" };
+                            format!("  calibration {} {:.3}{stale}", c.source, c.threshold)
+                        });
                         println!(
-                            "{}  version {}  {} images  preset {}  {}",
+                            "{}  version {}  {} images  preset {}  {}{calibration}",
                             m.map_id, m.version, m.images, m.preset, m.file
                         );
                     }

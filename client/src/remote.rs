@@ -295,16 +295,7 @@ pub fn print_map_info(c: &ConnectArgs, json: bool) -> Result<()> {
                 "image_height": m.image_height,
                 "build_seconds": m.build_seconds,
                 "loaded_map_ids": m.loaded_map_ids,
-                "calibration": m.calibration.as_ref().map(|c| serde_json::json!({
-                    "source": c.source,
-                    "threshold": c.threshold,
-                    "fitted_on": c.fitted_on,
-                    "expected_precision": c.expected_precision,
-                    "negatives": c.negatives,
-                    "false_positives": c.false_positives,
-                    "regions": c.regions,
-                    "stale": c.stale,
-                })),
+                "calibration": m.calibration.as_ref().map(calibration_json),
             }))?
         );
         return Ok(());
@@ -401,4 +392,19 @@ pub fn answer_of(r: &LocalizeResponse) -> Answer {
             _ => None,
         },
     }
+}
+
+/// A served map's calibration (`GetMapInfo.calibration`, `ListMaps`' `LoadedMap.calibration`) in
+/// the JSON of `pntr info --addr --json` and `pntr maps list --json`.
+pub(crate) fn calibration_json(c: &proto::CalibrationInfo) -> serde_json::Value {
+    serde_json::json!({
+        "source": c.source,
+        "threshold": c.threshold,
+        "fitted_on": c.fitted_on,
+        "expected_precision": c.expected_precision,
+        "negatives": c.negatives,
+        "false_positives": c.false_positives,
+        "regions": c.regions,
+        "stale": c.stale,
+    })
 }

@@ -141,6 +141,13 @@ fn build_db_then_eval_write_the_documented_json_keys() {
     assert_eq!(h["preset"]["name"], "xfeat-mnn");
     assert_eq!(h["models"][0]["role"], "extractor");
     assert_eq!(h["models"][0]["file"], "xfeat_backbone.onnx");
+    // Its calibration says where it comes from, as build-db said, and that it is current.
+    assert_eq!(
+        h["calibration"]["source"], v["calibration"]["source"],
+        "{h}"
+    );
+    assert_eq!(h["calibration"]["stale"], false, "{h}");
+    assert!(h["calibration"]["threshold"].as_f64().is_some(), "{h}");
     let out = pntr(&["info", "--db", map_s]);
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(

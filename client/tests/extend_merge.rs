@@ -299,8 +299,18 @@ fn sessions_extend_and_merge_maps() {
     own_when_places(&e);
     let merged_s = merged.to_str().unwrap();
     let info = |m: &str| support::ok(&pntr(&["info", "--db", m, "--images"]));
+    let info_json = |m: &str| ok_json(&pntr(&["info", "--db", m, "--json"]));
     if s["calibration"]["source"] == "map" {
+        // Said without --images too (the image ids are read either way), in the JSON as well.
         assert!(info(merged_s).contains("STALE"), "{}", info(merged_s));
+        let text = support::ok(&pntr(&["info", "--db", merged_s]));
+        assert!(text.contains("STALE"), "{text}");
+        let j = info_json(merged_s);
+        assert_eq!(
+            (&j["calibration"]["source"], &j["calibration"]["stale"]),
+            (&"map".into(), &true.into()),
+            "{j}"
+        );
     }
     let refit = ok_json(&pntr(&[
         "calibrate",
@@ -315,6 +325,7 @@ fn sessions_extend_and_merge_maps() {
     ]));
     assert_eq!(refit["source"], "map", "{refit}");
     assert!(refit["held_out_frames"].as_u64().unwrap() > 0, "{refit}");
+    assert_eq!(info_json(merged_s)["calibration"]["stale"], false);
     let text = info(merged_s);
     assert!(
         !text.contains("STALE") && text.contains("calibration: the map's own"),
@@ -389,6 +400,18 @@ fn sessions_extend_and_merge_maps() {
     assert_eq!(info["version"], after["maps"][0]["version"], "{info}");
     assert_eq!(info["camera_axes"], "opencv", "{info}");
     assert_eq!(info["loaded_map_ids"], serde_json::json!(["lab"]), "{info}");
+    // The admin's list and GetMapInfo say the same of the calibration: a map's own one is stale
+    // after an extension on the server (it was current before).
+    assert_eq!(
+        after["maps"][0]["calibration"], info["calibration"],
+        "{after}"
+    );
+    assert_eq!(before["maps"][0]["calibration"]["stale"], false, "{before}");
+    assert_eq!(
+        after["maps"][0]["calibration"]["stale"],
+        after["maps"][0]["calibration"]["source"] == "map",
+        "{after}"
+    );
     assert_eq!(
         after["maps"][0]["images"].as_u64().unwrap() as usize,
         a_images.len() + added

@@ -298,5 +298,18 @@ fn a_map_carries_its_own_calibration() {
     ))
     .unwrap();
     assert_eq!(s["calibration"]["source"], "shipped");
-    assert!(support::map_info(&plain, &[]).get("calibration").is_none());
+    // The file stores none; `pntr info` says the shipped one answers, as GetMapInfo would.
+    let info = support::map_info(&plain, &[]);
+    assert_eq!(
+        (
+            &info["calibration"]["source"],
+            &info["calibration"]["stale"]
+        ),
+        (&"shipped".into(), &false.into()),
+        "{info}"
+    );
+    assert!(
+        info["calibration"]["threshold"].as_f64().is_some(),
+        "{info}"
+    );
 }

@@ -440,6 +440,54 @@ pub fn read_header(path: &Path) -> Result<MapHeader, PipelineError> {
     parse_header(&payload, path)
 }
 
+/// The ids of a map file's images, in order, read from the start of each image record and seeking
+/// past the rest: milliseconds on a map of any size, where [`load`] reads and decodes every record.
+/// For what a header alone cannot say (whether the map's own calibration was fitted for these
+/// images: [`crate::calibration::MapCalibration::is_stale_for`]). The section's checksum is not
+/// verified (the records are skipped, not read); [`load`] verifies it. Errors: as [`read_header`],
+/// and a section or record that runs past the file.
+pub fn read_image_ids(path: &Path) -> Result<Vec<String>, PipelineError> {
+    let mut r = BufReader::new(open_map(path)?);
+    check_magic(&mut r, path)?;
+    let (tag, _) = small_section(&mut r, path)?;
+    expect(&tag, b"HEAD", path)?;
+    let (tag, len) = section_head(&mut r, path)?;
+    expect(&tag, b"IMGS", path)?;
+    let cut = || bad(path, "section IMGS: truncated (file cut short?)".into());
+    let mut word = [0u8; 8];
+    r.read_exact(&mut word).map_err(|_| cut())?;
+    let count = u64::from_le_bytes(word);
+    if count > len / 8 {
+        return Err(bad(
+            path,
+            format!("section IMGS: {count} images cannot fit in {len} bytes"),
+        ));
+    }
+    let mut ids = Vec::with_capacity(count as usize);
+    let mut head = Vec::new();
+    for i in 0..count as usize {
+        r.read_exact(&mut word).map_err(|_| cut())?;
+        let n = u64::from_le_bytes(word);
+        if n > len {
+            return Err(bad(
+                path,
+                format!("section IMGS: record {i} claims {n} bytes"),
+            ));
+        }
+        // An id is a length-prefixed string at the record's start; ids are short.
+        let take = n.min(64 * 1024);
+        head.resize(take as usize, 0);
+        r.read_exact(&mut head).map_err(|_| cut())?;
+        let what = format!("image record {i}");
+        let id = Reader::new(&head, &what)
+            .str()
+            .map_err(|e| bad(path, format!("section IMGS: {e}")))?;
+        ids.push(id);
+        r.seek_relative((n - take) as i64).map_err(io(path))?;
+    }
+    Ok(ids)
+}
+
 /// Check the magic and return the format version.
 fn check_magic(r: &mut impl Read, path: &Path) -> Result<u32, PipelineError> {
     let mut m = [0u8; 12];

@@ -128,6 +128,7 @@ pub fn entry(m: &LoadedMap) -> proto::LoadedMap {
         preset: m.preset.name.clone(),
         built_at: m.version.built_at.clone(),
         heap_bytes: m.map.heap_bytes() as u64,
+        calibration: Some(crate::service::calibration_info(m)),
     }
 }
 

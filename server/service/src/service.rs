@@ -1233,7 +1233,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
 }
 
 /// What GetMapInfo says about the calibration a loaded map's answers use.
-fn calibration_info(lm: &LoadedMap) -> proto::CalibrationInfo {
+pub(crate) fn calibration_info(lm: &LoadedMap) -> proto::CalibrationInfo {
     use pntr_pipeline::calibration::{Calibration, CalibrationSource};
     let own = lm.map.header.calibration.as_ref();
     let mut info = proto::CalibrationInfo {

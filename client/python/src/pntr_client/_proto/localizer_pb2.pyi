@@ -322,7 +322,7 @@ class ListMapsRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class LoadedMap(_message.Message):
-    __slots__ = ("map_id", "version", "images", "file", "preset", "built_at", "heap_bytes")
+    __slots__ = ("map_id", "version", "images", "file", "preset", "built_at", "heap_bytes", "calibration")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
     IMAGES_FIELD_NUMBER: _ClassVar[int]
@@ -330,6 +330,7 @@ class LoadedMap(_message.Message):
     PRESET_FIELD_NUMBER: _ClassVar[int]
     BUILT_AT_FIELD_NUMBER: _ClassVar[int]
     HEAP_BYTES_FIELD_NUMBER: _ClassVar[int]
+    CALIBRATION_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     version: str
     images: int
@@ -337,7 +338,8 @@ class LoadedMap(_message.Message):
     preset: str
     built_at: str
     heap_bytes: int
-    def __init__(self, map_id: _Optional[str] = ..., version: _Optional[str] = ..., images: _Optional[int] = ..., file: _Optional[str] = ..., preset: _Optional[str] = ..., built_at: _Optional[str] = ..., heap_bytes: _Optional[int] = ...) -> None: ...
+    calibration: CalibrationInfo
+    def __init__(self, map_id: _Optional[str] = ..., version: _Optional[str] = ..., images: _Optional[int] = ..., file: _Optional[str] = ..., preset: _Optional[str] = ..., built_at: _Optional[str] = ..., heap_bytes: _Optional[int] = ..., calibration: _Optional[_Union[CalibrationInfo, _Mapping]] = ...) -> None: ...
 
 class ListMapsResponse(_message.Message):
     __slots__ = ("maps",)
