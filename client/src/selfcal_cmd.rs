@@ -9,12 +9,13 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use pntr_core::{convert_axes, CameraAxes};
 use pntr_dataset::SceneEntry;
+use pntr_pipeline::calibration::today;
 use pntr_pipeline::calibration::{Calibration, MapCalibration};
 use pntr_pipeline::eval::{query_list, QueryViews};
 use pntr_pipeline::map::Map;
 use pntr_pipeline::pipeline::{Pipeline, Query};
 use pntr_pipeline::preset::Preset;
-use pntr_pipeline::recording_map::Session;
+use pntr_pipeline::recording_map::{self, Session};
 use pntr_pipeline::selfcal::{self, Answered, PosedFrame, Regions};
 use pntr_pipeline::PipelineError;
 use pntr_synth::effects::RobotEffects;
@@ -22,7 +23,7 @@ use pntr_synth::effects::RobotEffects;
 use crate::map_cmd::{bar, feature_stage};
 
 /// Frames used by default (evenly spaced over what there is); each is localized twice.
-pub const DEFAULT_FRAMES: usize = 300;
+pub const DEFAULT_FRAMES: usize = recording_map::SELF_CALIBRATION_FRAMES;
 
 /// What the self-calibration is given besides the map.
 pub struct Options<'a> {
@@ -112,31 +113,21 @@ fn passes(
     p: &Pipeline,
     regions: &Regions,
     n: usize,
-    in_map: Option<Vec<Answered>>,
     frame: &mut dyn FnMut(usize) -> Result<Option<PosedFrame>, PipelineError>,
 ) -> Result<Vec<Answered>> {
-    let mut answers = match in_map {
-        Some(a) => a,
-        None => {
-            let pb = bar(n, "self-calibration: frames against the whole map");
-            let a = selfcal::pass(p, regions, n, false, frame, &mut |d, _| {
-                pb.set_position(d as u64)
-            })?;
-            pb.finish_and_clear();
-            a
-        }
-    };
-    let pb = bar(
-        n,
-        &format!(
-            "self-calibration: frames against the map without their region ({} regions)",
-            regions.count()
-        ),
-    );
-    answers.extend(selfcal::pass(p, regions, n, true, frame, &mut |d, _| {
-        pb.set_position(d as u64)
-    })?);
-    pb.finish_and_clear();
+    let mut answers = Vec::with_capacity(2 * n);
+    for held_out in [false, true] {
+        let pb = bar(n, &pass_label(held_out, regions));
+        answers.extend(selfcal::pass(
+            p,
+            regions,
+            n,
+            held_out,
+            frame,
+            &mut |d, _| pb.set_position(d as u64),
+        )?);
+        pb.finish_and_clear();
+    }
     Ok(answers)
 }
 
@@ -179,13 +170,13 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
             scene: scene as u32,
         }))
     };
-    let answers = passes(&p, &regions, list.len(), None, &mut frame)?;
+    let answers = passes(&p, &regions, list.len(), &mut frame)?;
     fitted(p, opts, &base, &regions, &answers)
 }
 
 /// Fit the own calibration of a map built from recordings on `frames` ((session, frame) of
 /// `sessions`, poses in the map's frame), reusing `in_map`, the check's answers of the same frames
-/// when it ran. Returns the map with it.
+/// when it ran ([`recording_map::fit_own_calibration`], with progress bars). Returns the map with it.
 pub fn with_recordings(
     p: Pipeline,
     opts: &Options<'_>,
@@ -195,27 +186,42 @@ pub fn with_recordings(
     frames: &[(usize, usize)],
     in_map: Option<Vec<Answered>>,
 ) -> Result<Map> {
-    let mut frame = |i: usize| -> Result<Option<PosedFrame>, PipelineError> {
-        let (si, fi) = frames[i];
-        let s = &sessions[si];
-        let Some(truth) = s.recording.world_from_camera(fi) else {
-            return Ok(None);
-        };
-        let Ok((rgb, depth)) = s.recording.load(fi) else {
-            return Ok(None);
-        };
-        Ok(Some(PosedFrame {
-            query: Query {
-                rgb,
-                depth,
-                intrinsics: s.camera,
-            },
-            world_from_camera: truth,
-            scene: 0,
-        }))
-    };
-    let answers = passes(&p, regions, frames.len(), in_map, &mut frame)?;
-    fitted(p, opts, base, regions, &answers)
+    let mut shown: Option<(bool, indicatif::ProgressBar)> = None;
+    let fitted = recording_map::fit_own_calibration(
+        &p,
+        base,
+        regions,
+        sessions,
+        frames,
+        in_map,
+        &mut |held_out, done, n| {
+            if shown.as_ref().is_none_or(|(h, _)| *h != held_out) {
+                if let Some((_, pb)) = shown.take() {
+                    pb.finish_and_clear();
+                }
+                shown = Some((held_out, bar(n, &pass_label(held_out, regions))));
+            }
+            if let Some((_, pb)) = &shown {
+                pb.set_position(done as u64);
+            }
+        },
+    )?;
+    if let Some((_, pb)) = shown {
+        pb.finish_and_clear();
+    }
+    kept(p, opts, fitted.fit, &fitted.answers)
+}
+
+/// What a self-calibration pass's progress bar says.
+fn pass_label(held_out: bool, regions: &Regions) -> String {
+    if held_out {
+        format!(
+            "self-calibration: frames against the map without their region ({} regions)",
+            regions.count()
+        )
+    } else {
+        "self-calibration: frames against the whole map".into()
+    }
 }
 
 /// The samples written when asked, the calibration fitted on `answers` ([`selfcal::fit`]) and the
@@ -227,16 +233,22 @@ fn fitted(
     regions: &Regions,
     answers: &[Answered],
 ) -> Result<Map> {
+    let fit = selfcal::fit(base, &p.map, regions, answers, &today());
+    kept(p, opts, fit, answers)
+}
+
+/// The map back with `fit` (the samples written first when asked); a refusal keeps the map as it
+/// is with a warning when `opts` says so.
+fn kept(
+    p: Pipeline,
+    opts: &Options<'_>,
+    fit: Result<MapCalibration, PipelineError>,
+    answers: &[Answered],
+) -> Result<Map> {
     if let Some(path) = opts.samples {
         write_samples(path, answers)?;
     }
-    match selfcal::fit(
-        base,
-        &p.map,
-        regions,
-        answers,
-        &crate::calibrate_cmd::today(),
-    ) {
+    match fit {
         Ok(f) => Ok(calibrated(p, f)),
         Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
             eprintln!("warning: the map keeps the shipped calibration: {why}");

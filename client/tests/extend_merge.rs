@@ -400,17 +400,23 @@ fn sessions_extend_and_merge_maps() {
     assert_eq!(info["version"], after["maps"][0]["version"], "{info}");
     assert_eq!(info["camera_axes"], "opencv", "{info}");
     assert_eq!(info["loaded_map_ids"], serde_json::json!(["lab"]), "{info}");
-    // The admin's list and GetMapInfo say the same of the calibration: a map's own one is stale
-    // after an extension on the server (it was current before).
+    // The admin's list and GetMapInfo say the same of the calibration. The server refitted the
+    // map's own calibration on the frames it was given (as build-db --extend does): never stale.
     assert_eq!(
         after["maps"][0]["calibration"], info["calibration"],
         "{after}"
     );
     assert_eq!(before["maps"][0]["calibration"]["stale"], false, "{before}");
+    assert_eq!(after["maps"][0]["calibration"]["stale"], false, "{after}");
+    if before["maps"][0]["calibration"]["source"] == "map" {
+        assert_eq!(after["maps"][0]["calibration"]["source"], "map", "{after}");
+    }
+    // The file on disk carries it too.
+    let on_disk = ok_json(&pntr(&["info", "--db", served.to_str().unwrap(), "--json"]));
+    assert_eq!(on_disk["calibration"]["stale"], false, "{on_disk}");
     assert_eq!(
-        after["maps"][0]["calibration"]["stale"],
-        after["maps"][0]["calibration"]["source"] == "map",
-        "{after}"
+        on_disk["calibration"]["threshold"], info["calibration"]["threshold"],
+        "{on_disk}"
     );
     assert_eq!(
         after["maps"][0]["images"].as_u64().unwrap() as usize,

@@ -722,6 +722,85 @@ pub fn check(
     Ok(out)
 }
 
+/// Frames of a recording map's own calibration by default: evenly spaced over what there is, each
+/// localized twice (against the whole map, and with its region held out).
+pub const SELF_CALIBRATION_FRAMES: usize = 300;
+
+/// Frame `i` of `frames` ((session, frame) of `sessions`) as a posed query for the map's own
+/// calibration: its images and camera, and its recorded `world_from_camera` (the map's frame).
+/// `None` for a frame without a pose or whose images cannot be read.
+pub fn posed_frame(
+    sessions: &[Session<'_>],
+    frames: &[(usize, usize)],
+    i: usize,
+) -> Option<crate::selfcal::PosedFrame> {
+    let (si, fi) = frames[i];
+    let s = &sessions[si];
+    let truth = s.recording.world_from_camera(fi)?;
+    let (rgb, depth) = s.recording.load(fi).ok()?;
+    Some(crate::selfcal::PosedFrame {
+        query: Query {
+            rgb,
+            depth,
+            intrinsics: s.camera,
+        },
+        world_from_camera: truth,
+        scene: 0,
+    })
+}
+
+/// The own calibration of the map `pipeline` serves (with `base`'s weights), fitted on `frames` of
+/// `sessions` (recordings whose poses are in the map's frame): every frame localized against the
+/// whole map (or `in_map`, those answers when [`check`] already made them) and again with its
+/// region of `regions` held out ([`crate::selfcal::pass`]), then [`crate::selfcal::fit`] from
+/// `base`, dated today. What `pntr build-db` and `pntr calibrate --sequence` run, and a server's
+/// `ExtendMap` on the frames it was given. Returns the fit (`Err(PipelineError::Refused)` when
+/// these frames cannot calibrate the map, saying why) and every frame's answers. `progress(held_out,
+/// done, total)` after each frame. Errors: a frame the pipeline fails on.
+pub fn fit_own_calibration(
+    pipeline: &Pipeline,
+    base: &crate::calibration::Calibration,
+    regions: &crate::selfcal::Regions,
+    sessions: &[Session<'_>],
+    frames: &[(usize, usize)],
+    in_map: Option<Vec<crate::selfcal::Answered>>,
+    progress: &mut dyn FnMut(bool, usize, usize),
+) -> Result<FittedCalibration, PipelineError> {
+    let mut frame = |i: usize| Ok(posed_frame(sessions, frames, i));
+    let n = frames.len();
+    let mut answers = match in_map {
+        Some(a) => a,
+        None => crate::selfcal::pass(pipeline, regions, n, false, &mut frame, &mut |d, n| {
+            progress(false, d, n)
+        })?,
+    };
+    answers.extend(crate::selfcal::pass(
+        pipeline,
+        regions,
+        n,
+        true,
+        &mut frame,
+        &mut |d, n| progress(true, d, n),
+    )?);
+    let fit = crate::selfcal::fit(
+        base,
+        &pipeline.map,
+        regions,
+        &answers,
+        &crate::calibration::today(),
+    );
+    Ok(FittedCalibration { fit, answers })
+}
+
+/// What [`fit_own_calibration`] made.
+pub struct FittedCalibration {
+    /// The map's own calibration, or why these frames could not make one
+    /// (`PipelineError::Refused`).
+    pub fit: Result<crate::calibration::MapCalibration, PipelineError>,
+    /// Every frame's answers (against the whole map, then held out).
+    pub answers: Vec<crate::selfcal::Answered>,
+}
+
 /// At most `max` of `frames`, evenly spaced (all when `max` is 0 or there are fewer).
 pub fn evenly(frames: &[(usize, usize)], max: usize) -> Vec<(usize, usize)> {
     if max == 0 || frames.len() <= max {

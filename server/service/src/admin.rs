@@ -17,6 +17,8 @@ use std::time::Instant;
 use tonic::service::Interceptor;
 use tonic::{Request, Response, Status};
 
+use pntr_pipeline::recording_map;
+
 use crate::engine::{shares_frame, InstallError, LoadedMap, PrepareError};
 use crate::proto;
 use crate::service::State;
@@ -336,6 +338,9 @@ pub async fn extend(
             tracing::warn!(map_id = %map.header.map_id, warning = %w, "extending the map");
         }
         let added = map.images.len() - before;
+        // The map's own calibration refitted on the frames given, as `build-db --extend` does, so
+        // the map is never served with one fitted before it grew.
+        let map = refit_calibration(&engine, map, &sessions, &report.left_out).map_err(&failed)?;
         pntr_pipeline::mapfile::save(&map, &file)
             .map_err(|e| failed(format!("writing {}: {e}", file.display())))?;
         tracing::info!(map_id = %map.header.map_id, added, file = %file.display(), "map extended and written");
@@ -346,6 +351,62 @@ pub async fn extend(
     change.images_added = added as u32;
     change.load_seconds = t.elapsed().as_secs_f64();
     Ok(change)
+}
+
+/// `map` with its own calibration refitted on `frames` of `sessions` (the extension's frames
+/// between its keyframes, at most [`recording_map::SELF_CALIBRATION_FRAMES`], poses in the map's
+/// frame) from the shipped base ([`recording_map::fit_own_calibration`]): what `pntr build-db
+/// --extend` does. A map of a single place, or frames that cannot calibrate it, keep the
+/// calibration they had (logged; GetMapInfo then says it is stale when it was the map's own).
+/// Errors: the query models cannot be loaded, or a frame fails in the pipeline.
+fn refit_calibration(
+    engine: &crate::engine::Engine,
+    map: pntr_pipeline::map::Map,
+    sessions: &[recording_map::Session<'_>],
+    left_out: &[(usize, usize)],
+) -> Result<pntr_pipeline::map::Map, String> {
+    use pntr_pipeline::calibration::Calibration;
+    let preset = map.header.preset.clone();
+    let id = map.header.map_id.clone();
+    let stage = engine.query_stage(&preset)?;
+    let base = Calibration::embedded();
+    let pipeline = pntr_pipeline::pipeline::Pipeline::new(Arc::new(map), stage, preset)
+        .map_err(|e| e.to_string())?
+        .with_calibration(Arc::new(base.clone()), None);
+    let regions = pntr_pipeline::selfcal::Regions::of_map(&pipeline.map);
+    let fitted = match &regions {
+        Ok(regions) => {
+            let frames = recording_map::evenly(left_out, recording_map::SELF_CALIBRATION_FRAMES);
+            let t = Instant::now();
+            let f = recording_map::fit_own_calibration(
+                &pipeline,
+                &base,
+                regions,
+                sessions,
+                &frames,
+                None,
+                &mut |_, _, _| {},
+            )
+            .map_err(|e| format!("refitting the map's own calibration: {e}"))?;
+            tracing::info!(map_id = %id, frames = frames.len(), seconds = t.elapsed().as_secs_f64(),
+                "the map's own calibration refitted on the extension's frames");
+            Some(f.fit)
+        }
+        Err(e) => {
+            tracing::warn!(map_id = %id, why = %e, "the map's own calibration is not refitted");
+            None
+        }
+    };
+    let mut map = Arc::try_unwrap(pipeline.map)
+        .map_err(|_| "the refit's pipeline is the extended map's only holder".to_string())?;
+    match fitted {
+        Some(Ok(c)) => map.header.calibration = Some(c),
+        Some(Err(e)) => {
+            tracing::warn!(map_id = %id, why = %e, "the map keeps the calibration it had")
+        }
+        None => {}
+    }
+    Ok(map)
 }
 
 /// Stop serving `map_id`.

@@ -498,9 +498,24 @@ impl Engine {
     /// A feature stage that describes map images for `preset` (its float backbone, as `pntr
     /// build-db` does), for extending a map. Built anew: model loading takes a second or two.
     pub fn map_stage(&self, preset: &Preset) -> Result<FeatureStage, String> {
+        self.stage_of(preset, preset.map_feature_config(self.models.clone()))
+    }
+
+    /// A feature stage that describes queries for `preset` (its own backbone, as `pntr build-db`'s
+    /// self-calibration does), for fitting a map's own calibration. Built anew, as
+    /// [`Engine::map_stage`].
+    pub fn query_stage(&self, preset: &Preset) -> Result<FeatureStage, String> {
+        self.stage_of(preset, preset.feature_config(self.models.clone()))
+    }
+
+    fn stage_of(
+        &self,
+        preset: &Preset,
+        config: pntr_features::config::FeatureConfig,
+    ) -> Result<FeatureStage, String> {
         pntr_features::config::FeatureConfig {
             runtime: self.runtime.clone(),
-            ..preset.map_feature_config(self.models.clone())
+            ..config
         }
         .build()
         .map_err(|e| {
@@ -512,7 +527,6 @@ impl Engine {
         })
     }
 
-    /// Every worker's feature stage for `preset`, built (and warmed up) on first use.
     /// The feature stages `preset` runs with, or those of its bf16 twin ([`Preset::bf16_twin`])
     /// where `--backbone-precision auto` (the default) finds it faster here: no `--preset` given,
     /// the models on the CPU, a CPU with bfloat16 instructions
@@ -551,6 +565,7 @@ impl Engine {
         Ok((preset, stages))
     }
 
+    /// Every worker's feature stage for `preset`, built (and warmed up) on first use.
     fn stages_for(&self, preset: &Preset) -> Result<Vec<FeatureStage>, String> {
         let key = (
             preset.extractor.clone(),
