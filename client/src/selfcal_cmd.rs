@@ -7,18 +7,14 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use pntr_core::{convert_axes, CameraAxes};
 use pntr_dataset::SceneEntry;
-use pntr_pipeline::calibration::today;
 use pntr_pipeline::calibration::{Calibration, MapCalibration};
-use pntr_pipeline::eval::{query_list, QueryViews};
 use pntr_pipeline::map::Map;
-use pntr_pipeline::pipeline::{Pipeline, Query};
+use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::Preset;
 use pntr_pipeline::recording_map::{self, Session};
-use pntr_pipeline::selfcal::{self, Answered, PosedFrame, Regions};
+use pntr_pipeline::selfcal::{Answered, Regions};
 use pntr_pipeline::PipelineError;
-use pntr_synth::effects::RobotEffects;
 
 use crate::map_cmd::{bar, feature_stage};
 
@@ -108,34 +104,10 @@ fn calibrated(p: Pipeline, calibration: MapCalibration) -> Map {
     map
 }
 
-/// Both passes over `n` frames, with progress bars.
-fn passes(
-    p: &Pipeline,
-    regions: &Regions,
-    n: usize,
-    frame: &mut dyn FnMut(usize) -> Result<Option<PosedFrame>, PipelineError>,
-) -> Result<Vec<Answered>> {
-    let mut answers = Vec::with_capacity(2 * n);
-    for held_out in [false, true] {
-        let pb = bar(n, &pass_label(held_out, regions));
-        answers.extend(selfcal::pass(
-            p,
-            regions,
-            n,
-            held_out,
-            frame,
-            &mut |d, _| pb.set_position(d as u64),
-        )?);
-        pb.finish_and_clear();
-    }
-    Ok(answers)
-}
-
 /// Fit `map`'s own calibration on the queries of `scenes` (the dataset it was built from; every
 /// second frame with a robot camera's effects, so the fit sees the captures robots bring) and
 /// return the map with it. `scenes` must be the map's scenes, in its order.
 pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Result<Map> {
-    let names = map.header.scenes.clone();
     let (p, base) = pipeline(map, opts)?;
     let regions = match Regions::of_map(&p.map) {
         Ok(r) => r,
@@ -145,33 +117,15 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
         }
         Err(e) => return Err(e.into()),
     };
-    let list = query_list(scenes.iter().copied(), opts.max_frames)?;
-    let fx = RobotEffects::default();
-    let axes = p.map.header.axes();
-    let mut views = QueryViews::default();
-    let mut frame = |i: usize| -> Result<Option<PosedFrame>, PipelineError> {
-        let (entry, qi) = &list[i];
-        let Some(scene) = names.iter().position(|s| *s == entry.scene) else {
-            return Ok(None);
-        };
-        let v = views.view(entry, *qi)?;
-        let mut query = Query {
-            rgb: v.rgb,
-            depth: v.depth,
-            intrinsics: v.intrinsics,
-        };
-        if i % 2 == 1 {
-            fx.apply(&mut query.rgb, &mut query.depth, i as u64 + 1);
-        }
-        Ok(Some(PosedFrame {
-            query,
-            // Habitat camera axes in the dataset, the map's in the answers.
-            world_from_camera: convert_axes(&v.world_from_camera, CameraAxes::Habitat, axes),
-            scene: scene as u32,
-        }))
-    };
-    let answers = passes(&p, &regions, list.len(), &mut frame)?;
-    fitted(p, opts, &base, &regions, &answers)
+    let fitted = pntr_service::own_calibration::fit_on_dataset(
+        &p,
+        &base,
+        &regions,
+        scenes,
+        opts.max_frames,
+        &mut shown_progress(&regions),
+    )?;
+    kept(p, opts, fitted.fit, &fitted.answers)
 }
 
 /// Fit the own calibration of a map built from recordings on `frames` ((session, frame) of
@@ -186,7 +140,6 @@ pub fn with_recordings(
     frames: &[(usize, usize)],
     in_map: Option<Vec<Answered>>,
 ) -> Result<Map> {
-    let mut shown: Option<(bool, indicatif::ProgressBar)> = None;
     let fitted = recording_map::fit_own_calibration(
         &p,
         base,
@@ -194,21 +147,8 @@ pub fn with_recordings(
         sessions,
         frames,
         in_map,
-        &mut |held_out, done, n| {
-            if shown.as_ref().is_none_or(|(h, _)| *h != held_out) {
-                if let Some((_, pb)) = shown.take() {
-                    pb.finish_and_clear();
-                }
-                shown = Some((held_out, bar(n, &pass_label(held_out, regions))));
-            }
-            if let Some((_, pb)) = &shown {
-                pb.set_position(done as u64);
-            }
-        },
+        &mut shown_progress(regions),
     )?;
-    if let Some((_, pb)) = shown {
-        pb.finish_and_clear();
-    }
     kept(p, opts, fitted.fit, &fitted.answers)
 }
 
@@ -224,17 +164,27 @@ fn pass_label(held_out: bool, regions: &Regions) -> String {
     }
 }
 
-/// The samples written when asked, the calibration fitted on `answers` ([`selfcal::fit`]) and the
-/// map back with it; a refusal keeps the map as it is with a warning when `opts` says so.
-fn fitted(
-    p: Pipeline,
-    opts: &Options<'_>,
-    base: &Calibration,
-    regions: &Regions,
-    answers: &[Answered],
-) -> Result<Map> {
-    let fit = selfcal::fit(base, &p.map, regions, answers, &today());
-    kept(p, opts, fit, answers)
+/// A progress callback `(held_out, done, total)` shown as one bar per pass, each cleared when the
+/// next starts or the callback is dropped.
+fn shown_progress(regions: &Regions) -> impl FnMut(bool, usize, usize) + '_ {
+    let mut shown: Option<(bool, Bar)> = None;
+    move |held_out, done, n| {
+        if shown.as_ref().is_none_or(|(h, _)| *h != held_out) {
+            shown = Some((held_out, Bar(bar(n, &pass_label(held_out, regions)))));
+        }
+        if let Some((_, pb)) = &shown {
+            pb.0.set_position(done as u64);
+        }
+    }
+}
+
+/// A progress bar cleared when dropped.
+struct Bar(indicatif::ProgressBar);
+
+impl Drop for Bar {
+    fn drop(&mut self) {
+        self.0.finish_and_clear();
+    }
 }
 
 /// The map back with `fit` (the samples written first when asked); a refusal keeps the map as it

@@ -59,4 +59,35 @@ fn demo_serves_the_demo_map_and_prints_a_recall_table_with_real_localization() {
     let again = demo(dir.path(), "2");
     assert!(again.contains("2 queries"), "{again}");
     assert_eq!(std::fs::metadata(&map).unwrap().modified().unwrap(), before);
+    // The demo map carries its own calibration, fitted on the scene's queries.
+    let own = support::map_info(&map, &[]);
+    assert_eq!(
+        (&own["calibration"]["source"], &own["calibration"]["stale"]),
+        (&"map".into(), &false.into()),
+        "{own}"
+    );
+    // A cached map without one (an older pntr's) is rebuilt with it.
+    let root = dir.path().to_str().unwrap();
+    support::build_db(
+        &map,
+        &[
+            "--dataset",
+            root,
+            "--scene",
+            "synth000",
+            "--no-self-calibration",
+        ],
+    );
+    assert_eq!(
+        support::map_info(&map, &[])["calibration"]["source"],
+        "shipped"
+    );
+    let rebuilt = demo(dir.path(), "2");
+    assert!(rebuilt.contains("2 queries"), "{rebuilt}");
+    let own_again = support::map_info(&map, &[]);
+    assert_eq!(own_again["calibration"]["source"], "map", "{own_again}");
+    assert_eq!(
+        own_again["calibration"]["threshold"], own["calibration"]["threshold"],
+        "the same scene fits the same calibration"
+    );
 }

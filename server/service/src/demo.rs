@@ -2,9 +2,11 @@
 //!
 //! `pntr-server` with no `--db` and `pntr demo` both call [`ensure_demo_map`], so a fresh machine
 //! serves something real with no data at hand: a Val-sized procedural apartment in the HPointLoc layout
-//! (`pntr synth` defaults) and a map of it built with the default preset. Both steps are skipped when
-//! their output is already there (the scene folder appears only once complete; the map (`<cache>/<scene>-<preset>.pntrmap`) is written
-//! atomically and must carry the expected preset, else it is rebuilt).
+//! (`pntr synth` defaults) and a map of it built with the default preset, carrying its own confidence
+//! calibration fitted on the scene's queries as `pntr build-db --dataset` fits it
+//! ([`crate::own_calibration`]). Both steps are skipped when their output is already there (the scene
+//! folder appears only once complete; the map (`<cache>/<scene>-<preset>.pntrmap`) is written
+//! atomically and must carry the expected preset and its own calibration, else it is rebuilt).
 
 use std::path::{Path, PathBuf};
 
@@ -25,7 +27,7 @@ pub fn ensure_demo_map(
     let scene = pntr_synth::scene_name(0);
     let path = cache_path(cache, &scene, DEFAULT_PRESET);
     let fresh = mapfile::read_header(&path)
-        .map(|h| h.preset.name == DEFAULT_PRESET && h.map_id == scene)
+        .map(|h| h.preset.name == DEFAULT_PRESET && h.map_id == scene && h.calibration.is_some())
         .unwrap_or(false);
     if fresh {
         return Ok(path);
@@ -53,6 +55,40 @@ pub fn ensure_demo_map(
     let entry = index.scene(&scene).map_err(|e| e.to_string())?;
     let m = map::build(&scene, &[entry], &preset, &stage, models, &mut |_, _| {})
         .map_err(|e| e.to_string())?;
+    log("fitting the demo map's own calibration on its scene's queries");
+    let m = with_own_calibration(m, entry, stage, preset)?;
     mapfile::save(&m, &path).map_err(|e| e.to_string())?;
     Ok(path)
+}
+
+/// `map` with its own calibration fitted on [`pntr_pipeline::recording_map::SELF_CALIBRATION_FRAMES`]
+/// queries of `scene` (the dataset it was built from), as `pntr build-db --dataset` does.
+fn with_own_calibration(
+    map: map::Map,
+    scene: &pntr_dataset::SceneEntry,
+    stage: pntr_features::config::FeatureStage,
+    preset: Preset,
+) -> Result<map::Map, String> {
+    use pntr_pipeline::calibration::Calibration;
+    let base = Calibration::embedded();
+    let p = pntr_pipeline::pipeline::Pipeline::new(std::sync::Arc::new(map), stage, preset)
+        .map_err(|e| e.to_string())?
+        .with_calibration(std::sync::Arc::new(base.clone()), None);
+    let regions = pntr_pipeline::selfcal::Regions::of_map(&p.map).map_err(|e| e.to_string())?;
+    let fitted = crate::own_calibration::fit_on_dataset(
+        &p,
+        &base,
+        &regions,
+        &[scene],
+        pntr_pipeline::recording_map::SELF_CALIBRATION_FRAMES,
+        &mut |_, _, _| {},
+    )
+    .map_err(|e| format!("fitting the demo map's own calibration: {e}"))?;
+    let calibration = fitted
+        .fit
+        .map_err(|e| format!("fitting the demo map's own calibration: {e}"))?;
+    let mut map = std::sync::Arc::try_unwrap(p.map)
+        .map_err(|_| "the calibration's pipeline is the demo map's only holder".to_string())?;
+    map.header.calibration = Some(calibration);
+    Ok(map)
 }
