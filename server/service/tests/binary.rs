@@ -138,41 +138,30 @@ fn a_map_is_served_with_another_preset_of_the_same_descriptors() {
         ("xfeat-mnn-int8", "xfeat-int8"),
         ("xfeat-mnn-bf16", "xfeat-bf16"),
     ] {
-        let (_server, addr, _) = spawn(&db, &["--workers", "1", "--preset", preset]);
-        runtime().block_on(async {
-            let url = format!("http://{addr}");
-            wait_serving(&url).await;
-            let mut c = LocalizerClient::connect(url).await.unwrap();
-            let info = c
-                .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
-                .await
-                .unwrap()
-                .into_inner();
-            assert_eq!(
-                (info.preset.as_str(), info.built_preset.as_str()),
-                (preset, "fast")
-            );
-            assert_eq!(
-                (info.extractor.as_str(), info.matcher.as_str()),
-                (extractor, "mnn")
-            );
-            // int8 on ONNX Runtime's CPU provider; bf16 on OpenVINO (f32 where the CPU lacks bf16).
-            let engines: &[&str] = match preset {
-                "xfeat-mnn-int8" => &["cpu"],
-                _ => &["openvino-bf16", "openvino-f32"],
-            };
-            assert!(
-                engines.contains(&info.extractor_engine.as_str()),
-                "{info:?}"
-            );
-            // Every query of the scene: the answers given are right, and most queries get one (this
-            // tiny two-Point map leaves one of its three queries without enough MNN matches).
-            let (sent, right) = right_answers(&mut c, dir.path()).await;
-            assert!(
-                sent >= 3 && right * 3 >= sent * 2,
-                "{preset}: {right} of {sent} localized"
-            );
-        });
+        let (info, sent, right) = served(&db, &["--workers", "1", "--preset", preset], dir.path());
+        assert_eq!(
+            (info.preset.as_str(), info.built_preset.as_str()),
+            (preset, "fast")
+        );
+        assert_eq!(
+            (info.extractor.as_str(), info.matcher.as_str()),
+            (extractor, "mnn")
+        );
+        // int8 on ONNX Runtime's CPU provider; bf16 on OpenVINO (f32 where the CPU lacks bf16).
+        let engines: &[&str] = match preset {
+            "xfeat-mnn-int8" => &["cpu"],
+            _ => &["openvino-bf16", "openvino-f32"],
+        };
+        assert!(
+            engines.contains(&info.extractor_engine.as_str()),
+            "{info:?}"
+        );
+        // Every query of the scene: the answers given are right, and most queries get one (this
+        // tiny two-Point map leaves one of its three queries without enough MNN matches).
+        assert!(
+            sent >= 3 && right * 3 >= sent * 2,
+            "{preset}: {right} of {sent} localized"
+        );
     }
     // A preset of other descriptors (ORB, bag of words) cannot use this map: a setting error (exit
     // 2) before anything is bound, naming both presets and the ones that can.
@@ -225,6 +214,28 @@ async fn right_answers(
     (sent, right)
 }
 
+/// `pntr-server` started on `db` with `args`: its GetMapInfo, and its answers to the queries of the
+/// scene in `dataset` ([`right_answers`]: sent, LOCALIZED within 0.25 m). The server stops after.
+fn served(
+    db: &std::path::Path,
+    args: &[&str],
+    dataset: &std::path::Path,
+) -> (pntr_service::proto::MapInfo, usize, usize) {
+    let (_server, addr, _) = spawn(db, args);
+    runtime().block_on(async {
+        let url = format!("http://{addr}");
+        wait_serving(&url).await;
+        let mut c = LocalizerClient::connect(url).await.unwrap();
+        let info = c
+            .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
+            .await
+            .unwrap()
+            .into_inner();
+        let (sent, right) = right_answers(&mut c, dataset).await;
+        (info, sent, right)
+    })
+}
+
 #[cfg(unix)]
 #[test]
 fn an_xfeat_mnn_map_runs_the_bf16_backbone_where_the_cpu_has_bf16_instructions() {
@@ -248,31 +259,20 @@ fn an_xfeat_mnn_map_runs_the_bf16_backbone_where_the_cpu_has_bf16_instructions()
     ] {
         let mut args = vec!["--workers", "1"];
         args.extend_from_slice(flags);
-        let (_server, addr, _) = spawn(&db, &args);
-        runtime().block_on(async {
-            let url = format!("http://{addr}");
-            wait_serving(&url).await;
-            let mut c = LocalizerClient::connect(url).await.unwrap();
-            let info = c
-                .get_map_info(pntr_service::proto::GetMapInfoRequest::default())
-                .await
-                .unwrap()
-                .into_inner();
-            assert_eq!(
-                (
-                    info.preset.as_str(),
-                    info.extractor_engine.as_str(),
-                    info.built_preset.as_str()
-                ),
-                (expected.0, expected.1, "xfeat-mnn"),
-                "{flags:?} (CPU with bf16: {bf16})"
-            );
-            let (sent, right) = right_answers(&mut c, dir.path()).await;
-            assert!(
-                sent >= 6 && right * 3 >= sent * 2,
-                "{flags:?}: {right} of {sent} localized"
-            );
-        });
+        let (info, sent, right) = served(&db, &args, dir.path());
+        assert_eq!(
+            (
+                info.preset.as_str(),
+                info.extractor_engine.as_str(),
+                info.built_preset.as_str()
+            ),
+            (expected.0, expected.1, "xfeat-mnn"),
+            "{flags:?} (CPU with bf16: {bf16})"
+        );
+        assert!(
+            sent >= 6 && right * 3 >= sent * 2,
+            "{flags:?}: {right} of {sent} localized"
+        );
     }
     // Another value is a setting error (exit 2) naming the two there are.
     let out = common::server_command(&db, &models(), &["--backbone-precision", "half"])
