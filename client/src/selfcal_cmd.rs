@@ -4,7 +4,6 @@
 //! fitted calibration put into the map's header.
 
 use std::path::Path;
-use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use pntr_dataset::SceneEntry;
@@ -13,7 +12,7 @@ use pntr_pipeline::map::Map;
 use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::Preset;
 use pntr_pipeline::recording_map::{self, Session};
-use pntr_pipeline::selfcal::{Answered, Regions};
+use pntr_pipeline::selfcal::{self, Answered, Regions};
 use pntr_pipeline::PipelineError;
 
 use crate::map_cmd::{bar, feature_stage};
@@ -82,26 +81,13 @@ fn pipeline(map: Map, opts: &Options<'_>) -> Result<(Pipeline, Calibration)> {
     let base = base_of(opts.base)?;
     let preset: Preset = map.header.preset.clone();
     let stage = feature_stage(&preset, opts.models, opts.threads)?;
-    let p =
-        Pipeline::new(Arc::new(map), stage, preset)?.with_calibration(Arc::new(base.clone()), None);
+    let p = selfcal::fitting_pipeline(map, stage, preset, &base)?;
     Ok((p, base))
 }
 
-/// The map back from a pipeline that was its only holder.
+/// The map back from a pipeline that was its only holder ([`selfcal::fitted_map`]).
 pub fn into_map(p: Pipeline) -> Map {
-    Arc::try_unwrap(p.map).unwrap_or_else(|shared| {
-        panic!(
-            "the self-calibration's pipeline is the map's only holder ({} holders)",
-            Arc::strong_count(&shared)
-        )
-    })
-}
-
-/// [`into_map`] with `calibration` in the map's header.
-fn calibrated(p: Pipeline, calibration: MapCalibration) -> Map {
-    let mut map = into_map(p);
-    map.header.calibration = Some(calibration);
-    map
+    selfcal::fitted_map(p, None)
 }
 
 /// Fit `map`'s own calibration on the queries of `scenes` (the dataset it was built from; every
@@ -199,7 +185,7 @@ fn kept(
         write_samples(path, answers)?;
     }
     match fit {
-        Ok(f) => Ok(calibrated(p, f)),
+        Ok(f) => Ok(selfcal::fitted_map(p, Some(f))),
         Err(PipelineError::Refused(why)) if opts.keep_on_refusal => {
             eprintln!("warning: the map keeps the shipped calibration: {why}");
             Ok(into_map(p))

@@ -563,6 +563,36 @@ fn next_up(x: f64) -> f64 {
     f64::from_bits(x.to_bits() + 1)
 }
 
+/// A pipeline over `map` scored with `base`'s weights, for fitting the map's own calibration (the
+/// threshold does not matter here: every frame's candidates are kept and scored again when
+/// fitting). `stage` describes queries for `preset`. Errors: as [`Pipeline::new`].
+pub fn fitting_pipeline(
+    map: Map,
+    stage: pntr_features::config::FeatureStage,
+    preset: crate::preset::Preset,
+    base: &Calibration,
+) -> Result<Pipeline, PipelineError> {
+    Ok(Pipeline::new(Arc::new(map), stage, preset)?.with_calibration(Arc::new(base.clone()), None))
+}
+
+/// The map back from a [`fitting_pipeline`] that was its only holder, with `calibration` in its
+/// header when given (otherwise the header keeps what it had).
+///
+/// # Panics
+/// When something else still holds the map (a caller's bug: the fitting pipeline is never shared).
+pub fn fitted_map(p: Pipeline, calibration: Option<MapCalibration>) -> Map {
+    let mut map = Arc::try_unwrap(p.map).unwrap_or_else(|shared| {
+        panic!(
+            "the self-calibration's pipeline is the map's only holder ({} holders)",
+            Arc::strong_count(&shared)
+        )
+    });
+    if let Some(c) = calibration {
+        map.header.calibration = Some(c);
+    }
+    map
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

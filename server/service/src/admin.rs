@@ -340,7 +340,15 @@ pub async fn extend(
         let added = map.images.len() - before;
         // The map's own calibration refitted on the frames given, as `build-db --extend` does, so
         // the map is never served with one fitted before it grew.
-        let map = refit_calibration(&engine, map, &sessions, &report.left_out).map_err(&failed)?;
+        // Queries are described by the map's own network unless the preset runs another backbone
+        // (int8, bf16): then that one is loaded.
+        let query_stage = if preset.extractor == preset.map_extractor() {
+            stage
+        } else {
+            engine.query_stage(&preset).map_err(&failed)?
+        };
+        let map =
+            refit_calibration(query_stage, map, &sessions, &report.left_out).map_err(&failed)?;
         pntr_pipeline::mapfile::save(&map, &file)
             .map_err(|e| failed(format!("writing {}: {e}", file.display())))?;
         tracing::info!(map_id = %map.header.map_id, added, file = %file.display(), "map extended and written");
@@ -358,22 +366,20 @@ pub async fn extend(
 /// frame) from the shipped base ([`recording_map::fit_own_calibration`]): what `pntr build-db
 /// --extend` does. A map of a single place, or frames that cannot calibrate it, keep the
 /// calibration they had (logged; GetMapInfo then says it is stale when it was the map's own).
-/// Errors: the query models cannot be loaded, or a frame fails in the pipeline.
+/// `stage` describes queries for the map's preset. Errors: a frame fails in the pipeline.
 fn refit_calibration(
-    engine: &crate::engine::Engine,
+    stage: pntr_features::config::FeatureStage,
     map: pntr_pipeline::map::Map,
     sessions: &[recording_map::Session<'_>],
     left_out: &[(usize, usize)],
 ) -> Result<pntr_pipeline::map::Map, String> {
-    use pntr_pipeline::calibration::Calibration;
+    use pntr_pipeline::selfcal;
     let preset = map.header.preset.clone();
     let id = map.header.map_id.clone();
-    let stage = engine.query_stage(&preset)?;
-    let base = Calibration::embedded();
-    let pipeline = pntr_pipeline::pipeline::Pipeline::new(Arc::new(map), stage, preset)
-        .map_err(|e| e.to_string())?
-        .with_calibration(Arc::new(base.clone()), None);
-    let regions = pntr_pipeline::selfcal::Regions::of_map(&pipeline.map);
+    let base = pntr_pipeline::calibration::Calibration::embedded();
+    let pipeline =
+        selfcal::fitting_pipeline(map, stage, preset, &base).map_err(|e| e.to_string())?;
+    let regions = selfcal::Regions::of_map(&pipeline.map);
     let fitted = match &regions {
         Ok(regions) => {
             let frames = recording_map::evenly(left_out, recording_map::SELF_CALIBRATION_FRAMES);
@@ -397,16 +403,15 @@ fn refit_calibration(
             None
         }
     };
-    let mut map = Arc::try_unwrap(pipeline.map)
-        .map_err(|_| "the refit's pipeline is the extended map's only holder".to_string())?;
-    match fitted {
-        Some(Ok(c)) => map.header.calibration = Some(c),
+    let calibration = match fitted {
+        Some(Ok(c)) => Some(c),
         Some(Err(e)) => {
-            tracing::warn!(map_id = %id, why = %e, "the map keeps the calibration it had")
+            tracing::warn!(map_id = %id, why = %e, "the map keeps the calibration it had");
+            None
         }
-        None => {}
-    }
-    Ok(map)
+        None => None,
+    };
+    Ok(selfcal::fitted_map(pipeline, calibration))
 }
 
 /// Stop serving `map_id`.

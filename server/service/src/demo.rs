@@ -69,12 +69,10 @@ fn with_own_calibration(
     stage: pntr_features::config::FeatureStage,
     preset: Preset,
 ) -> Result<map::Map, String> {
-    use pntr_pipeline::calibration::Calibration;
-    let base = Calibration::embedded();
-    let p = pntr_pipeline::pipeline::Pipeline::new(std::sync::Arc::new(map), stage, preset)
-        .map_err(|e| e.to_string())?
-        .with_calibration(std::sync::Arc::new(base.clone()), None);
-    let regions = pntr_pipeline::selfcal::Regions::of_map(&p.map).map_err(|e| e.to_string())?;
+    use pntr_pipeline::selfcal;
+    let base = pntr_pipeline::calibration::Calibration::embedded();
+    let p = selfcal::fitting_pipeline(map, stage, preset, &base).map_err(|e| e.to_string())?;
+    let regions = selfcal::Regions::of_map(&p.map).map_err(|e| e.to_string())?;
     let fitted = crate::own_calibration::fit_on_dataset(
         &p,
         &base,
@@ -87,8 +85,5 @@ fn with_own_calibration(
     let calibration = fitted
         .fit
         .map_err(|e| format!("fitting the demo map's own calibration: {e}"))?;
-    let mut map = std::sync::Arc::try_unwrap(p.map)
-        .map_err(|_| "the calibration's pipeline is the demo map's only holder".to_string())?;
-    map.header.calibration = Some(calibration);
-    Ok(map)
+    Ok(selfcal::fitted_map(p, Some(calibration)))
 }
