@@ -8,8 +8,8 @@ use std::sync::Arc;
 
 use pntr_core::Intrinsics;
 use pntr_dataset::{DatasetIndex, Role};
-use pntr_pipeline::eval::{self, Answer, EvalOptions};
-use pntr_pipeline::map::{self, Map};
+use pntr_eval::{self as eval, Answer, EvalOptions};
+use pntr_pipeline::map::Map;
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::{Pipeline, Query, Status};
 use pntr_pipeline::preset::Preset;
@@ -23,7 +23,7 @@ fn build(index: &DatasetIndex, preset: &Preset) -> (Map, pntr_features::config::
     let stage = preset.map_feature_config(models.clone()).build().unwrap();
     let scenes: Vec<_> = index.scenes.iter().collect();
     let mut calls = 0;
-    let map = map::build("all", &scenes, preset, &stage, &models, &mut |_, _| {
+    let map = pntr_mapping::build::build("all", &scenes, preset, &stage, &models, &mut |_, _| {
         calls += 1
     })
     .unwrap();
@@ -470,8 +470,8 @@ fn a_noisy_depth_sensor_is_measured_and_its_far_matches_kept() {
 /// map file, is used by the pipeline, and a damaged one is refused when the map is read.
 #[test]
 fn a_map_fits_its_own_calibration_from_held_out_regions() {
+    use pntr_mapping::selfcal::{self, PosedFrame, Regions};
     use pntr_pipeline::calibration::{Calibration, CalibrationSource};
-    use pntr_pipeline::selfcal::{self, PosedFrame, Regions};
     let dir = tempfile::tempdir().unwrap();
     let index = pntr_tests::synthetic_dataset(dir.path(), 8, 4, 41);
     let preset = Preset::named("xfeat-mnn").unwrap();
@@ -500,8 +500,8 @@ fn a_map_fits_its_own_calibration_from_held_out_regions() {
     let pipeline = Pipeline::new(Arc::new(map), stage.clone(), preset.clone()).unwrap();
     assert_eq!(pipeline.calibration().1, CalibrationSource::Shipped);
     let scenes: Vec<_> = index.scenes.iter().collect();
-    let list = eval::query_list(scenes.iter().copied(), 0).unwrap();
-    let mut views = eval::QueryViews::default();
+    let list = pntr_dataset::queries::query_list(scenes.iter().copied(), 0).unwrap();
+    let mut views = pntr_dataset::queries::QueryViews::default();
     let mut frame = |i: usize| {
         let (p, qi) = &list[i];
         let v = views.view(p, *qi)?;
@@ -596,7 +596,7 @@ fn symmetric_room() -> Vec<(
     nalgebra::Isometry3<f64>,
 )> {
     use nalgebra::{Isometry3, Translation3, Vector3};
-    use pntr_pipeline::map::{MapBuilder, NewImage};
+    use pntr_mapping::build::{MapBuilder, NewImage};
     use pntr_synth::protocol::camera_rotation;
     use pntr_synth::scene::{Scene, SceneBox};
     use pntr_synth::texture::{Material, Pattern};

@@ -5,9 +5,9 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use pntr_core::Intrinsics;
 use pntr_dataset::recording::{Recording, RecordingOptions};
-use pntr_pipeline::keyframes::KeyframeParams;
+use pntr_mapping::keyframes::KeyframeParams;
+use pntr_mapping::recording_map::{self, Session};
 use pntr_pipeline::mapfile;
-use pntr_pipeline::recording_map::{self, Session};
 use serde_json::json;
 
 use crate::map_cmd::{bar, map_feature_stage, models_dir, BuildArgs};

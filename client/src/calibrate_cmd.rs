@@ -3,7 +3,7 @@
 //! Every in-map query of `--dataset` is localised twice, as rendered and with robot camera effects,
 //! and every out-of-map query of `--negatives` once; each candidate pose that verification scores
 //! becomes one labelled sample (right = within (1 m, 10 deg) of the ground truth; anything from the
-//! negatives is wrong). A logistic model is fitted on them ([`pntr_pipeline::calibration::fit`]) and
+//! negatives is wrong). A logistic model is fitted on them ([`pntr_mapping::fit::fit`]) and
 //! written atomically with its checksum; the threshold is the lowest that keeps the fitting set's
 //! precision at `--target-precision`.
 
@@ -12,9 +12,11 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use pntr_core::{convert_axes, CameraAxes};
+use pntr_dataset::queries::{query_list, QueryViews};
 use pntr_dataset::{DatasetIndex, SceneEntry};
-use pntr_pipeline::calibration::{self, Calibration, QuerySamples};
-use pntr_pipeline::eval::{pose_error, query_list, QueryViews};
+use pntr_eval::pose_error;
+use pntr_mapping::fit::{self, QuerySamples};
+use pntr_pipeline::calibration::Calibration;
 use pntr_pipeline::pipeline::{Pipeline, Query};
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
 use pntr_pipeline::verify::EVIDENCE_NAMES;
@@ -155,7 +157,7 @@ fn collect(
             pipeline.map.header.axes(),
         );
         // Labels as the map's own calibration gives them (right within 1 m, 10 deg).
-        let group = pntr_pipeline::selfcal::samples_of(&l, (!negative).then_some(&truth));
+        let group = pntr_mapping::selfcal::samples_of(&l, (!negative).then_some(&truth));
         for c in &l.verified {
             let (dt, dr) = pose_error(&c.pose, &truth, false);
             notes.push(serde_json::json!({
@@ -179,7 +181,7 @@ fn collect(
     Ok(())
 }
 
-pub use pntr_pipeline::calibration::today;
+pub use pntr_mapping::fit::today;
 
 /// `pntr calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
@@ -337,7 +339,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         }
         map_cmd::write_text(path, &text)?;
     }
-    let mut c = calibration::fit(&samples, args.l2, args.target_precision, &preset.name)?;
+    let mut c = fit::fit(&samples, args.l2, args.target_precision, &preset.name)?;
     c.fitted_on.datasets = vec![format!(
         "in-map {} ({} queries)",
         dataset.display(),
@@ -461,7 +463,7 @@ fn with_sequences(
             "the --sequence recordings have no posed frame that is not already a map image"
         );
     }
-    let frames = pntr_pipeline::recording_map::evenly(&frames, args.self_calibration_frames);
+    let frames = pntr_mapping::recording_map::evenly(&frames, args.self_calibration_frames);
     let (pipeline, base, regions, why) = crate::selfcal_cmd::for_recordings(map, opts)?;
     let Some(regions) = regions else {
         anyhow::bail!(

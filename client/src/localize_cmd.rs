@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use pntr_dataset::{DatasetIndex, Role};
-use pntr_pipeline::eval::pose_error;
+use pntr_eval::pose_error;
 use pntr_service::decode::{decode_jpeg, decode_png16, decode_png_rgb, upright_size, Limits};
 use pntr_service::proto::{self, LocalizeResponse};
 use pntr_service::wire;
@@ -290,7 +290,7 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
     println!("ms: {}", t.join(", "));
     let matching = r.timings.iter().find(|t| t.stage == "matching");
     if matching.is_some_and(|t| t.seconds * 1e3 < 0.05) {
-        println!("{}", pntr_pipeline::eval::MATCHING_NOTE);
+        println!("{}", pntr_eval::MATCHING_NOTE);
     }
     Ok(())
 }

@@ -6,10 +6,10 @@ use std::sync::Arc;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use pntr_dataset::{DatasetIndex, SceneEntry};
+use pntr_eval::{self as eval, Answer, EvalOptions, EvalReport};
 use pntr_features::runtime::RuntimeOptions;
 use pntr_pipeline::calibration::Calibration;
-use pntr_pipeline::eval::{self, Answer, EvalOptions, EvalReport};
-use pntr_pipeline::map::{self, Map};
+use pntr_pipeline::map::Map;
 use pntr_pipeline::mapfile;
 use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
@@ -382,7 +382,7 @@ pub fn build_map(
     let stage = map_feature_stage(preset, models, threads)?;
     let total: usize = scenes.iter().map(|s| s.points.len()).sum();
     let pb = bar(total * 6, "extracting database features");
-    let map = map::build(
+    let map = pntr_mapping::build::build(
         map_id,
         scenes,
         preset,

@@ -152,16 +152,16 @@ pub struct MergeArgs {
 
 /// `pntr maps merge`.
 fn merge(args: &MergeArgs) -> Result<()> {
-    use pntr_pipeline::merge::{merge, MergeParams};
+    use pntr_mapping::merge::{merge, MergeParams};
     let a = crate::map_cmd::load_map(&args.a, args.threads)
         .with_context(|| format!("reading map A {}", args.a.display()))?;
     let b = crate::map_cmd::load_map(&args.b, args.threads)
         .with_context(|| format!("reading map B {}", args.b.display()))?;
-    if args.min_support < pntr_pipeline::merge::MIN_SUPPORT_FLOOR {
+    if args.min_support < pntr_mapping::merge::MIN_SUPPORT_FLOOR {
         anyhow::bail!(
             "--min-support {}: at least {} agreeing keyframes are needed (fewer agree by chance between different buildings)",
             args.min_support,
-            pntr_pipeline::merge::MIN_SUPPORT_FLOOR
+            pntr_mapping::merge::MIN_SUPPORT_FLOOR
         );
     }
     let params = MergeParams {

@@ -31,7 +31,7 @@ use plotters::coord::types::RangedCoordf64;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
-use pntr_pipeline::eval::{CurvePoint, EvalReport, QueryOutcome};
+use pntr_eval::{CurvePoint, EvalReport, QueryOutcome};
 
 /// Size of every picture, pixels.
 const SIZE: (u32, u32) = (1200, 560);

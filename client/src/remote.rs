@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use pntr_pipeline::eval::Answer;
+use pntr_eval::Answer;
 use pntr_pipeline::pipeline::{Query, StageTimes, Status};
 use pntr_pipeline::prior::{Mode, Region};
 use pntr_service::proto::localizer_client::LocalizerClient;

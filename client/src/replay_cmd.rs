@@ -17,7 +17,7 @@ use nalgebra::Isometry3;
 use pntr_dataset::bag::Topics;
 use pntr_dataset::recording::{Recording, RecordingOptions};
 use pntr_dataset::tum::ground_truth_line;
-use pntr_pipeline::eval::trajectory_errors;
+use pntr_eval::trajectory_errors;
 use pntr_pipeline::prior::Region;
 use pntr_service::proto;
 use pntr_service::tokio;

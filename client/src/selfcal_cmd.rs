@@ -1,18 +1,18 @@
 //! A map's own calibration from the command line (`build-db`, `calibrate --db`): frames with poses
 //! from a dataset (its queries) or from recordings (frames the map was not built from), localized
-//! against the whole map and with their own region held out ([`pntr_pipeline::selfcal`]), and the
+//! against the whole map and with their own region held out ([`pntr_mapping::selfcal`]), and the
 //! fitted calibration put into the map's header.
 
 use std::path::Path;
 
 use anyhow::{Context, Result};
 use pntr_dataset::SceneEntry;
+use pntr_mapping::recording_map::{self, Session};
+use pntr_mapping::selfcal::{self, Answered, Regions};
 use pntr_pipeline::calibration::{Calibration, MapCalibration};
 use pntr_pipeline::map::Map;
 use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::Preset;
-use pntr_pipeline::recording_map::{self, Session};
-use pntr_pipeline::selfcal::{self, Answered, Regions};
 use pntr_pipeline::PipelineError;
 
 use crate::map_cmd::{bar, feature_stage};
@@ -103,7 +103,7 @@ pub fn with_dataset(map: Map, scenes: &[&SceneEntry], opts: &Options<'_>) -> Res
         }
         Err(e) => return Err(e.into()),
     };
-    let fitted = pntr_service::own_calibration::fit_on_dataset(
+    let fitted = pntr_mapping::own_calibration::fit_on_dataset(
         &p,
         &base,
         &regions,

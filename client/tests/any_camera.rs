@@ -19,7 +19,7 @@ mod support;
 
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 use pntr_dataset::{DatasetIndex, Role, View};
-use pntr_pipeline::eval::pose_error;
+use pntr_eval::pose_error;
 use pntr_service::config::Settings;
 use pntr_service::proto::localizer_client::LocalizerClient;
 use pntr_service::proto::{self, DepthEncoding};

@@ -118,7 +118,7 @@ pub fn build_map_with(
         .build()
         .expect("models load");
     let scenes: Vec<_> = index.scenes.iter().collect();
-    pntr_pipeline::map::build(map_id, &scenes, preset, &stage, &models(), &mut |_, _| {})
+    pntr_mapping::build::build(map_id, &scenes, preset, &stage, &models(), &mut |_, _| {})
         .expect("map builds")
 }
 

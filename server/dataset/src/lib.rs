@@ -33,6 +33,7 @@ pub mod depth_camera;
 mod error;
 mod last_words;
 pub mod layout;
+pub mod queries;
 mod reader;
 pub mod recording;
 pub mod sevenscenes;

@@ -1,15 +1,14 @@
-//! The heart of pntr: the map database and the PNTR pipeline, with honest evaluation.
+//! The heart of pntr: the map database and the PNTR localization pipeline.
 //!
 //! Why one crate for these: the map is exactly what the pipeline needs at query time (keypoints,
-//! descriptors and their 3D points per database image, and the retrieval stage), and the file format,
-//! the pipeline and the metrics change together. The service and the CLI are thin layers over it.
+//! descriptors and their 3D points per database image, and the retrieval stage), and the file format
+//! and the pipeline change together. Making and changing maps (building, keyframes, extension,
+//! merging, a map's own calibration) lives above it in `pntr-mapping`, evaluation in `pntr-eval`; this
+//! crate knows nothing of either.
 //!
 //! - [`preset`]: named combinations of stages (`fast`, `accurate`, `classical`, ICP variants).
-//! - [`map`]: building a map from HPointLoc-layout data; [`mapfile`]: the versioned, checksummed,
-//!   atomically written file.
-//! - [`recording_map`]: a map from a robot's recordings (keyframes chosen by [`keyframes`]: new
-//!   views only, blurred, badly exposed and depthless frames left out, grouped into places), and the
-//!   check of the frames left out against it.
+//! - [`map`]: the map in memory (its images, header and retrieval stage); [`mapfile`]: the
+//!   versioned, checksummed, atomically written file.
 //! - [`camera`]: any query camera brought to the map's pixel scale (resampling, undistortion), with
 //!   keypoints traced back to the query's own depth.
 //! - [`depth_noise`]: how noisy a frame's depth is (`k` of `sigma = k z^2`), measured on the frame,
@@ -27,8 +26,6 @@
 //!   spatial index over the map's camera positions that serves it.
 //! - [`odometry`]: a stream's next frame registered against its keyframe (the last verified frame),
 //!   anchored to a map fix, so a driving robot stays localized between views the map covers.
-//! - [`eval`]: the HPointLoc recall table with the geodesic angle (and the published folded metric as a
-//!   separate, labelled mode).
 
 pub mod agreement;
 pub mod alias;
@@ -36,19 +33,14 @@ pub mod calibration;
 pub mod camera;
 pub mod coverage;
 pub mod depth_noise;
-pub mod eval;
-pub mod keyframes;
 pub mod map;
 pub mod mapfile;
-pub mod merge;
 pub mod odometry;
 pub mod pipeline;
 pub mod pose_check;
 pub mod preset;
 pub mod prior;
-pub mod recording_map;
 pub mod refine;
-pub mod selfcal;
 pub mod shortlist;
 pub mod verify;
 

@@ -219,7 +219,7 @@ pub fn shape_only(e: &Evidence) -> bool {
 
 /// The probability the pipeline gives a verified candidate with evidence `e`: `calibration`'s, at
 /// most [`SHAPE_ONLY_MAX_PROBABILITY`] for a pose supported by shape alone. Thresholds are fitted
-/// on the calibration's own probabilities ([`crate::calibration::fit`], [`crate::selfcal::fit`]):
+/// on the calibration's own probabilities (`pntr_mapping::fit::fit`, `pntr_mapping::selfcal::fit`):
 /// a map's own negatives that the cap removes still say how alike its places are, and a threshold
 /// chosen after the cap fell to the base one and let 4 of 200 out-of-map queries through where it
 /// had let 1 (seed 91's map; BENCHMARKS.md, "Shape alone and more turned views").

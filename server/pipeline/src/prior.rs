@@ -252,7 +252,7 @@ pub struct LocalizeOptions {
     /// ([`crate::pipeline::Localization::keyframe`]).
     pub want_keyframe: bool,
     /// Only these map images (indices, ascending) may be retrieved, in the region and globally: the
-    /// rest of the map is held out ([`crate::selfcal`] localizes a region's frames against the
+    /// rest of the map is held out (`pntr_mapping::selfcal` localizes a region's frames against the
     /// others). Verification's nearby views come from the matched image's place and the retrieved
     /// images, so holding out whole places keeps it out of verification too. `None`: every image.
     pub among: Option<Arc<[usize]>>,

@@ -17,7 +17,7 @@ use std::time::Instant;
 use tonic::service::Interceptor;
 use tonic::{Request, Response, Status};
 
-use pntr_pipeline::recording_map;
+use pntr_mapping::recording_map;
 
 use crate::engine::{shares_frame, InstallError, LoadedMap, PrepareError};
 use crate::proto;
@@ -316,17 +316,17 @@ pub async fn extend(
         }
         let sessions: Vec<_> = recordings
             .iter()
-            .map(|(recording, camera)| pntr_pipeline::recording_map::Session {
+            .map(|(recording, camera)| pntr_mapping::recording_map::Session {
                 recording,
                 camera: *camera,
             })
             .collect();
         let preset = base.header.preset.clone();
         let stage = engine.map_stage(&preset).map_err(&failed)?;
-        let (map, report) = pntr_pipeline::recording_map::extend(
+        let (map, report) = pntr_mapping::recording_map::extend(
             base,
             &sessions,
-            pntr_pipeline::keyframes::KeyframeParams::default(),
+            pntr_mapping::keyframes::KeyframeParams::default(),
             &preset,
             &stage,
             &mut |_, _| {},
@@ -373,7 +373,7 @@ fn refit_calibration(
     sessions: &[recording_map::Session<'_>],
     left_out: &[(usize, usize)],
 ) -> Result<pntr_pipeline::map::Map, String> {
-    use pntr_pipeline::selfcal;
+    use pntr_mapping::selfcal;
     let preset = map.header.preset.clone();
     let id = map.header.map_id.clone();
     let base = pntr_pipeline::calibration::Calibration::embedded();

@@ -4,7 +4,7 @@
 //! serves something real with no data at hand: a Val-sized procedural apartment in the HPointLoc layout
 //! (`pntr synth` defaults) and a map of it built with the default preset, carrying its own confidence
 //! calibration fitted on the scene's queries as `pntr build-db --dataset` fits it
-//! ([`crate::own_calibration`]). Both steps are skipped when their output is already there (the scene
+//! ([`pntr_mapping::own_calibration`]). Both steps are skipped when their output is already there (the scene
 //! folder appears only once complete; the map (`<cache>/<scene>-<preset>.pntrmap`) is written
 //! atomically and must carry the expected preset and its own calibration, else it is rebuilt).
 
@@ -53,7 +53,7 @@ pub fn ensure_demo_map(
     log(&format!("building the demo map {}", path.display()));
     let index = DatasetIndex::open(cache).map_err(|e| e.to_string())?;
     let entry = index.scene(&scene).map_err(|e| e.to_string())?;
-    let m = map::build(&scene, &[entry], &preset, &stage, models, &mut |_, _| {})
+    let m = pntr_mapping::build::build(&scene, &[entry], &preset, &stage, models, &mut |_, _| {})
         .map_err(|e| e.to_string())?;
     log("fitting the demo map's own calibration on its scene's queries");
     let m = with_own_calibration(m, entry, stage, preset)?;
@@ -61,7 +61,7 @@ pub fn ensure_demo_map(
     Ok(path)
 }
 
-/// `map` with its own calibration fitted on [`pntr_pipeline::recording_map::SELF_CALIBRATION_FRAMES`]
+/// `map` with its own calibration fitted on [`pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES`]
 /// queries of `scene` (the dataset it was built from), as `pntr build-db --dataset` does.
 fn with_own_calibration(
     map: map::Map,
@@ -69,16 +69,16 @@ fn with_own_calibration(
     stage: pntr_features::config::FeatureStage,
     preset: Preset,
 ) -> Result<map::Map, String> {
-    use pntr_pipeline::selfcal;
+    use pntr_mapping::selfcal;
     let base = pntr_pipeline::calibration::Calibration::embedded();
     let p = selfcal::fitting_pipeline(map, stage, preset, &base).map_err(|e| e.to_string())?;
     let regions = selfcal::Regions::of_map(&p.map).map_err(|e| e.to_string())?;
-    let fitted = crate::own_calibration::fit_on_dataset(
+    let fitted = pntr_mapping::own_calibration::fit_on_dataset(
         &p,
         &base,
         &regions,
         &[scene],
-        pntr_pipeline::recording_map::SELF_CALIBRATION_FRAMES,
+        pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES,
         &mut |_, _, _| {},
     )
     .map_err(|e| format!("fitting the demo map's own calibration: {e}"))?;

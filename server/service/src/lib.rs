@@ -35,7 +35,6 @@ pub mod decode;
 pub mod demo;
 pub mod engine;
 pub mod live_proxy;
-pub mod own_calibration;
 pub mod ros_bag;
 pub mod server;
 pub mod service;

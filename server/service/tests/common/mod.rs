@@ -56,7 +56,8 @@ pub fn synthetic_map_with(
     let preset = Preset::named(preset).unwrap();
     let stage = preset.map_feature_config(models()).build().unwrap();
     let scenes: Vec<_> = index.scenes.iter().collect();
-    let m = map::build(map_id, &scenes, &preset, &stage, &models(), &mut |_, _| {}).unwrap();
+    let m = pntr_mapping::build::build(map_id, &scenes, &preset, &stage, &models(), &mut |_, _| {})
+        .unwrap();
     (m, index)
 }
 

@@ -4,7 +4,7 @@
 //! Frames are read one at a time, in time order ([`pntr_dataset::recording::Recording`]); a frame is
 //! judged by [`crate::keyframes::Selector`] and only kept frames are described (features, 3D points,
 //! thumbnail), so memory grows with the map, not with the recording. A distorted camera's frames are
-//! undistorted as they are read ([`crate::camera::to_map_scale`] at the camera's own scale), so maps
+//! undistorted as they are read ([`pntr_pipeline::camera::to_map_scale`] at the camera's own scale), so maps
 //! hold rectified images. The map keeps the recordings' conventions: optical camera axes, and the
 //! world's up axis as given or as the camera poses show it (the mean of the cameras' "down" axes).
 //!
@@ -20,13 +20,14 @@ use pntr_dataset::recording::{depth_unit_hint, Recording};
 use pntr_features::config::FeatureStage;
 use serde::Serialize;
 
+use crate::build::{MapBuilder, NewImage};
 use crate::keyframes::{KeyframeParams, Selector, Skip};
-use crate::map::{Map, MapBuilder, NewImage, SessionRecord};
-use crate::pipeline::{Pipeline, Query};
-use crate::preset::Preset;
-use crate::prior::LocalizeOptions;
-use crate::verify::Thumb;
-use crate::PipelineError;
+use pntr_pipeline::map::{Map, SessionRecord};
+use pntr_pipeline::pipeline::{Pipeline, Query};
+use pntr_pipeline::preset::Preset;
+use pntr_pipeline::prior::LocalizeOptions;
+use pntr_pipeline::verify::Thumb;
+use pntr_pipeline::PipelineError;
 
 /// Frames of each recording whose depth outlines are checked against their colour edges
 /// ([`pntr_dataset::depth_alignment`]; at most about 12 ms each at 640x480), evenly spread.
@@ -90,7 +91,7 @@ fn rectified(
         intrinsics: *camera,
     };
     let focal = (camera.fx * camera.fy).sqrt() * scale;
-    let r = crate::camera::to_map_scale(&q, focal, pixels * scale * scale)
+    let r = pntr_pipeline::camera::to_map_scale(&q, focal, pixels * scale * scale)
         .query
         .into_owned();
     (r.rgb, r.depth, r.intrinsics)
@@ -345,18 +346,18 @@ pub const MIN_BEST_AGREEMENT: f64 = 0.5;
 /// (`images[..base_len]`) contradict where they see the same places: a drive of another building
 /// whose poses happen to overlap the map's coordinates, or poses in another frame. Each new image's
 /// thumbnail is moved into the map's images near its pose and looking its way (those of
-/// [`crate::agreement::map_agreement`]); a view judges when at least a third of the image's samples
+/// [`pntr_pipeline::agreement::map_agreement`]); a view judges when at least a third of the image's samples
 /// land on its depth, and the image is contradicted when even the best of them agrees on less than
 /// [`MIN_BEST_AGREEMENT`] of those. Images the map has no view of (a new wing) are not judged; depth
 /// does not change with the lighting, so a session under other lighting agrees.
 fn refuse_contradicted(
-    images: &[crate::map::MapImage],
+    images: &[pntr_pipeline::map::MapImage],
     base_len: usize,
     axes: CameraAxes,
     sessions: &[Session<'_>],
 ) -> Result<(), PipelineError> {
     let (base, new) = images.split_at(base_len);
-    let index = crate::prior::PoseIndex::new(
+    let index = pntr_pipeline::prior::PoseIndex::new(
         base.iter()
             .map(|im| im.world_from_camera.translation.vector)
             .collect(),
@@ -365,10 +366,12 @@ fn refuse_contradicted(
     let mut contradicted = Vec::new();
     for im in new {
         let pose = pntr_core::pose::convert_axes(&im.world_from_camera, axes, CameraAxes::OpenCv);
-        let views = crate::agreement::nearby_views(base, &index, axes, &im.thumb, &pose);
+        let views = pntr_pipeline::agreement::nearby_views(base, &index, axes, &im.thumb, &pose);
         let best = views
             .iter()
-            .filter(|c| c.inside >= crate::agreement::MIN_INSIDE && c.overlap() >= 1.0 / 3.0)
+            .filter(|c| {
+                c.inside >= pntr_pipeline::agreement::MIN_INSIDE && c.overlap() >= 1.0 / 3.0
+            })
             .map(|c| c.agree_share())
             .max_by(f64::total_cmp);
         tracing::debug!(id = %im.id, ?best, "a new image against the map's views");
@@ -431,7 +434,7 @@ fn collect(
     let mut down_sum = Vector3::zeros();
     let mut posed = 0usize;
     let mut unreadable_logged = 0;
-    let mut pose_check = crate::pose_check::PoseCheck::default();
+    let mut pose_check = pntr_pipeline::pose_check::PoseCheck::default();
     for (si, s) in sessions.iter().enumerate() {
         selector.new_session();
         pose_check.new_session();
@@ -506,7 +509,7 @@ fn collect(
             let t = Instant::now();
             let (rgb, depth, camera) = rectified(rgb, depth, &s.camera, max_pixels);
             let stamp = rec.timestamp(i);
-            if let crate::pose_check::Verdict::Disagrees(why) =
+            if let pntr_pipeline::pose_check::Verdict::Disagrees(why) =
                 pose_check.judge(Thumb::new(&rgb, &depth, &camera), &pose, stamp)
             {
                 seconds[1] += t.elapsed().as_secs_f64();
@@ -614,8 +617,8 @@ pub struct CheckedFrame {
     pub position_m: [f64; 3],
     /// Position error of the answer, metres, when LOCALIZED.
     pub error_m: Option<f64>,
-    /// The map's surfaces explain less than [`crate::pipeline::MIN_EXPLAINED`] of the frame's depth
-    /// at its recorded pose ([`crate::coverage::Coverage::explained`]): a part of the drive the map
+    /// The map's surfaces explain less than [`pntr_pipeline::pipeline::MIN_EXPLAINED`] of the frame's depth
+    /// at its recorded pose ([`pntr_pipeline::coverage::Coverage::explained`]): a part of the drive the map
     /// does not cover, where a stream answers OUTSIDE_MAP.
     pub outside_map: bool,
 }
@@ -684,11 +687,11 @@ pub fn check(
             intrinsics: s.camera,
         };
         // Recordings' poses are of the optical camera, in the map's world frame.
-        let thumb = crate::verify::Thumb::new(&q.rgb, &q.depth, &q.intrinsics);
+        let thumb = pntr_pipeline::verify::Thumb::new(&q.rgb, &q.depth, &q.intrinsics);
         let outside_map = pipeline
             .coverage()
             .explained(&thumb, &truth)
-            .is_some_and(|share| share < crate::pipeline::MIN_EXPLAINED);
+            .is_some_and(|share| share < pntr_pipeline::pipeline::MIN_EXPLAINED);
         out.frames_outside_map += outside_map as usize;
         let loc = pipeline.localize_with(&q, &LocalizeOptions::default())?;
         let position = truth.translation.vector;
@@ -759,7 +762,7 @@ pub fn posed_frame(
 /// done, total)` after each frame. Errors: a frame the pipeline fails on.
 pub fn fit_own_calibration(
     pipeline: &Pipeline,
-    base: &crate::calibration::Calibration,
+    base: &pntr_pipeline::calibration::Calibration,
     regions: &crate::selfcal::Regions,
     sessions: &[Session<'_>],
     frames: &[(usize, usize)],
@@ -782,13 +785,7 @@ pub fn fit_own_calibration(
         &mut frame,
         &mut |d, n| progress(true, d, n),
     )?);
-    let fit = crate::selfcal::fit(
-        base,
-        &pipeline.map,
-        regions,
-        &answers,
-        &crate::calibration::today(),
-    );
+    let fit = crate::selfcal::fit(base, &pipeline.map, regions, &answers, &crate::fit::today());
     Ok(FittedCalibration { fit, answers })
 }
 
@@ -796,7 +793,7 @@ pub fn fit_own_calibration(
 pub struct FittedCalibration {
     /// The map's own calibration, or why these frames could not make one
     /// (`PipelineError::Refused`).
-    pub fit: Result<crate::calibration::MapCalibration, PipelineError>,
+    pub fit: Result<pntr_pipeline::calibration::MapCalibration, PipelineError>,
     /// Every frame's answers (against the whole map, then held out).
     pub answers: Vec<crate::selfcal::Answered>,
 }

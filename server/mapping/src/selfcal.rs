@@ -15,22 +15,22 @@
 //! (in-map and held out); when the map gives enough samples it also refits the weights towards the base's,
 //! cross-fitted over regions so the threshold is chosen on answers the weights did not see, and
 //! keeps whichever refuses more of the map's negatives. The result, with what it measured, is
-//! stored in the map ([`crate::calibration::MapCalibration`]).
+//! stored in the map ([`pntr_pipeline::calibration::MapCalibration`]).
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use nalgebra::{Isometry3, Vector3};
 
-use crate::calibration::{
-    choose, ece, refit_toward, Calibration, FitInfo, MapCalibration, QuerySamples, MAP_FORMAT,
-    MAP_VERSION,
+use pntr_pipeline::calibration::{
+    choose, ece, Calibration, FitInfo, MapCalibration, MAP_FORMAT, MAP_VERSION,
 };
-use crate::eval::pose_error;
-use crate::map::Map;
-use crate::pipeline::{Localization, Pipeline, Query, Status};
-use crate::prior::LocalizeOptions;
-use crate::PipelineError;
+use pntr_pipeline::map::Map;
+use pntr_pipeline::pipeline::{Localization, Pipeline, Query, Status};
+use pntr_pipeline::prior::LocalizeOptions;
+use pntr_pipeline::PipelineError;
+
+use crate::fit::{refit_toward, QuerySamples};
 
 /// Places a region holds, about (k-means over the places' positions within a scene).
 pub const PLACES_PER_REGION: usize = 4;
@@ -132,7 +132,7 @@ impl Regions {
             .enumerate()
             .filter(|(_, im)| im.scene == scene)
             .min_by(|a, b| {
-                let d = |im: &crate::map::MapImage| {
+                let d = |im: &pntr_pipeline::map::MapImage| {
                     (im.world_from_camera.translation.vector - position).norm_squared()
                 };
                 d(a.1).total_cmp(&d(b.1))
@@ -236,7 +236,8 @@ pub fn samples_of(loc: &Localization, truth: Option<&Isometry3<f64>>) -> QuerySa
                 .collect(),
         );
         let right = truth.is_some_and(|t| {
-            let (dt, dr) = pose_error(&c.pose, t, false);
+            let dt = (c.pose.translation.vector - t.translation.vector).norm();
+            let dr = pntr_core::rotation_angle_deg(&c.pose.rotation, &t.rotation);
             dt <= RIGHT_M && dr <= RIGHT_DEG
         });
         out.candidates.push((c.evidence, right));
@@ -323,7 +324,7 @@ fn scored(calibration: &Calibration, a: &Answered) -> (f64, bool) {
 /// - `threshold`: `base`'s weights, the threshold raised ([`threshold`]);
 /// - `weights+threshold`, when the map gives enough samples (at least [`MIN_REFIT_REGIONS`]
 ///   regions and [`MIN_REFIT_SAMPLES`] right and wrong candidates): the weights refitted towards
-///   `base`'s ([`crate::calibration::refit_toward`], penalty [`REFIT_L2`]), cross-fitted over two
+///   `base`'s ([`crate::fit::refit_toward`], penalty [`REFIT_L2`]), cross-fitted over two
 ///   folds of regions (even and odd), each fold's answers scored by the weights fitted on the
 ///   other, the threshold chosen on those scores; the stored weights are then fitted on all.
 ///
@@ -476,7 +477,7 @@ pub const MIN_REFIT_REGIONS: usize = 4;
 /// Fewest right and fewest wrong candidates the weights of each fold are fitted on.
 pub const MIN_REFIT_SAMPLES: usize = 100;
 /// The penalty that pulls refitted weights towards the base calibration's (standardised inputs;
-/// see [`crate::calibration::refit_toward`]). Chosen on three maps of two apartments (BENCHMARKS.md,
+/// see [`crate::fit::refit_toward`]). Chosen on three maps of two apartments (BENCHMARKS.md,
 /// "A map's own calibration"): 3 to 30 gave about the same held-out figures, 1 followed one map too
 /// closely.
 pub const REFIT_L2: f64 = 10.0;
@@ -569,7 +570,7 @@ fn next_up(x: f64) -> f64 {
 pub fn fitting_pipeline(
     map: Map,
     stage: pntr_features::config::FeatureStage,
-    preset: crate::preset::Preset,
+    preset: pntr_pipeline::preset::Preset,
     base: &Calibration,
 ) -> Result<Pipeline, PipelineError> {
     Ok(Pipeline::new(Arc::new(map), stage, preset)?.with_calibration(Arc::new(base.clone()), None))

@@ -9,12 +9,14 @@
 //! [`pntr_pipeline::recording_map::fit_own_calibration`] on their own frames.
 
 use pntr_core::{convert_axes, CameraAxes};
+use pntr_dataset::queries::{query_list, QueryViews};
 use pntr_dataset::SceneEntry;
-use pntr_pipeline::calibration::{today, Calibration};
-use pntr_pipeline::eval::{query_list, QueryViews};
+use pntr_pipeline::calibration::Calibration;
 use pntr_pipeline::pipeline::{Pipeline, Query};
-use pntr_pipeline::recording_map::FittedCalibration;
-use pntr_pipeline::selfcal::{self, PosedFrame, Regions};
+
+use crate::fit::today;
+use crate::recording_map::FittedCalibration;
+use crate::selfcal::{self, PosedFrame, Regions};
 use pntr_pipeline::PipelineError;
 use pntr_synth::effects::RobotEffects;
 

@@ -12,12 +12,13 @@ use std::time::Instant;
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use pntr_core::{convert_axes, CameraAxes, DepthMap, Intrinsics};
-use pntr_dataset::{PointEntry, Role, SceneEntry};
+use pntr_dataset::queries::{evenly_spaced, query_list, QueryViews};
+use pntr_dataset::{Role, SceneEntry};
 use serde::Serialize;
 
-use crate::pipeline::{Query, StageTimes, Status};
-use crate::prior::{Mode, Region};
-use crate::PipelineError;
+use pntr_pipeline::pipeline::{Query, StageTimes, Status};
+use pntr_pipeline::prior::{Mode, Region};
+use pntr_pipeline::PipelineError;
 
 /// (metres, degrees) thresholds of the protocol.
 pub const THRESHOLDS: [(f64, f64); 4] = [(5.0, 20.0), (1.0, 10.0), (0.5, 5.0), (0.25, 2.0)];
@@ -65,7 +66,7 @@ pub struct Answer {
 impl Answer {
     /// The answer of the in-process pipeline, with map indices turned into image ids and poses
     /// turned from the map's camera axes into the dataset's (Habitat).
-    pub fn of(l: &crate::pipeline::Localization, map: &crate::map::Map) -> Self {
+    pub fn of(l: &pntr_pipeline::pipeline::Localization, map: &pntr_pipeline::map::Map) -> Self {
         let axes = map.header.axes();
         let to_dataset = |p: Isometry3<f64>| convert_axes(&p, axes, CameraAxes::Habitat);
         Self {
@@ -344,7 +345,7 @@ pub struct CalibrationReport {
     /// Answers scored.
     pub answers: usize,
     /// The bins.
-    pub bins: Vec<crate::calibration::Bin>,
+    pub bins: Vec<pntr_pipeline::calibration::Bin>,
 }
 
 /// One point of the precision/recall curve.
@@ -704,7 +705,7 @@ pub fn run_observed(
                 .map(|s| (s.0, s.1.is_some_and(|e| e.0 <= 1.0 && e.1 <= 10.0)))
                 .chain(negatives.iter().filter(|n| n.0 > 0.0).map(|n| (n.0, false)))
                 .collect();
-            let (ece, bins) = crate::calibration::ece(&labelled, 10);
+            let (ece, bins) = pntr_pipeline::calibration::ece(&labelled, 10);
             CalibrationReport {
                 ece,
                 answers: labelled.len(),
@@ -729,55 +730,6 @@ pub fn run_observed(
             .map(|(p, scene, _)| (scene.clone(), p.translation.vector.into()))
             .collect(),
     })
-}
-
-/// At most `max` items of `all`, evenly spaced (all of them when `max` is 0 or not smaller).
-pub fn evenly_spaced<T>(all: Vec<T>, max: usize) -> Vec<T> {
-    if max == 0 || max >= all.len() {
-        return all;
-    }
-    let step = all.len() as f64 / max as f64;
-    let mut keep = (0..max).map(|i| (i as f64 * step) as usize).peekable();
-    all.into_iter()
-        .enumerate()
-        .filter_map(|(i, x)| (keep.next_if_eq(&i).is_some()).then_some(x))
-        .collect()
-}
-
-/// Every query (Point file, query index) of `scenes`, evenly thinned to `max` (0 = all).
-pub fn query_list<'a>(
-    scenes: impl IntoIterator<Item = &'a SceneEntry>,
-    max: usize,
-) -> Result<Vec<(PointEntry, usize)>, PipelineError> {
-    let mut all = Vec::new();
-    for s in scenes {
-        for p in &s.points {
-            let n = p.open()?.count(Role::Query);
-            all.extend((0..n).map(|q| (p.clone(), q)));
-        }
-    }
-    Ok(evenly_spaced(all, max))
-}
-
-/// Reads query views of a [`query_list`] in order, keeping the current Point file open.
-#[derive(Default)]
-pub struct QueryViews {
-    open: Option<(std::path::PathBuf, pntr_dataset::PointReader)>,
-}
-
-impl QueryViews {
-    /// Query `qi` of Point file `p`.
-    pub fn view(&mut self, p: &PointEntry, qi: usize) -> Result<pntr_dataset::View, PipelineError> {
-        if self.open.as_ref().is_none_or(|o| o.0 != p.path) {
-            self.open = Some((p.path.clone(), p.open()?));
-        }
-        Ok(self
-            .open
-            .as_ref()
-            .expect("opened")
-            .1
-            .view(Role::Query, qi)?)
-    }
 }
 
 /// Share of LOCALIZED answers (`Some` errors) within (1 m, 10 deg) and (5 m, 20 deg); NaN (null in

@@ -29,9 +29,9 @@ use pntr_registration::teaser::{self, TeaserParams};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::map::{unix_now_s, Map, MapImage};
-use crate::verify::dense_evidence;
-use crate::PipelineError;
+use pntr_pipeline::map::{unix_now_s, Map, MapImage};
+use pntr_pipeline::verify::dense_evidence;
+use pntr_pipeline::PipelineError;
 
 /// Settings of [`merge`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -225,7 +225,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         ));
     }
     // The same map or session given twice (`maps merge A A`) would hold every image twice.
-    let in_a: std::collections::HashMap<&str, &crate::map::MapImage> =
+    let in_a: std::collections::HashMap<&str, &pntr_pipeline::map::MapImage> =
         a.images.iter().map(|im| (im.id.as_str(), im)).collect();
     let twice = b
         .images

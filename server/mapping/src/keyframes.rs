@@ -19,7 +19,7 @@ use std::collections::VecDeque;
 use nalgebra::{Isometry3, Point3, Vector3};
 use pntr_core::{DepthMap, Intrinsics, RgbImage};
 
-use crate::verify::{dense_check_both, Thumb};
+use pntr_pipeline::verify::{dense_check_both, Thumb};
 
 /// Radius of a place, metres: kept frames whose camera is this near a place's first frame join it.
 pub const PLACE_RADIUS_M: f64 = 1.0;
@@ -79,7 +79,7 @@ pub enum Skip {
     NoPose,
     /// Its data could not be decoded.
     Unreadable,
-    /// Its recorded pose disagrees with its own images ([`crate::pose_check`]).
+    /// Its recorded pose disagrees with its own images ([`pntr_pipeline::pose_check`]).
     PoseDisagrees,
 }
 
