@@ -469,7 +469,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         if let Some(o) = &overhead {
             v["overhead"] = serde_json::to_value(o)?;
         }
-        crate::map_cmd::write_json(path, &v)?;
+        crate::output::write_json(path, &v)?;
         eprintln!("report written to {}", path.display());
     }
     Ok(())
@@ -484,8 +484,8 @@ fn compare(
     c: &LocalizerClient<Channel>,
 ) -> Result<Overhead> {
     use anyhow::Context;
-    let models = crate::map_cmd::models_dir(args.models.as_deref())?;
-    let m = crate::map_cmd::load_map(map, args.threads)?;
+    let models = crate::loading::models_dir(args.models.as_deref())?;
+    let m = crate::loading::load_map(map, args.threads)?;
     let preset = m.header.preset.clone();
     let stage = pntr_features::config::FeatureConfig {
         runtime: pntr_features::runtime::RuntimeOptions {

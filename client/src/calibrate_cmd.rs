@@ -22,7 +22,9 @@ use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
 use pntr_pipeline::verify::EVIDENCE_NAMES;
 use pntr_synth::effects::RobotEffects;
 
-use crate::map_cmd;
+use crate::loading;
+use crate::recordings::{as_sessions, open_recording};
+use pntr_mapping::own_calibration::{self, FitOptions};
 
 /// Arguments of `pntr calibrate`.
 #[derive(clap::Args, Debug)]
@@ -46,7 +48,7 @@ pub struct CalibrateArgs {
     pub depth_scale: Option<f64>,
     /// ROS 2 bag topics of a `--sequence`.
     #[command(flatten)]
-    pub topics: crate::replay_cmd::TopicArgs,
+    pub topics: crate::recordings::TopicArgs,
     /// Only this scene of --dataset.
     #[arg(long)]
     pub scene: Option<String>,
@@ -72,7 +74,7 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub db: Option<PathBuf>,
     /// Without `--negatives`: frames used, evenly spaced (0 = all); each is localized twice.
-    #[arg(long, default_value_t = crate::selfcal_cmd::DEFAULT_FRAMES, value_name = "N")]
+    #[arg(long, default_value_t = pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES, value_name = "N")]
     pub self_calibration_frames: usize,
     /// Preset: fast, fast-norerank, fast-icp, accurate, accurate-icp, classical, xfeat-mnn,
     /// xfeat-mnn-int8, xfeat-mnn-bf16, xfeat-mnn-qvga, xfeat-mnn-bf16-qvga (default: the map's own,
@@ -218,7 +220,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         }
     }
     let index = DatasetIndex::open(dataset)?;
-    let (map_id, scenes) = map_cmd::select_scenes(&index, args.scene.as_deref())?;
+    let (map_id, scenes) = loading::select_scenes(&index, args.scene.as_deref())?;
     let same = |a: &std::path::Path, b: &std::path::Path| matches!((a.canonicalize(), b.canonicalize()), (Ok(x), Ok(y)) if x == y);
     let mut neg_indexes = Vec::new();
     for (i, dir) in args.negatives.iter().enumerate() {
@@ -244,22 +246,22 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             DatasetIndex::open(dir).with_context(|| format!("--negatives {}", dir.display()))?;
         neg_indexes.push((dir, idx));
     }
-    let models = map_cmd::models_dir(args.models.as_deref())?;
+    let models = loading::models_dir(args.models.as_deref())?;
     let map = match &args.db {
-        Some(p) => map_cmd::load_map(p, args.threads)
+        Some(p) => loading::load_map(p, args.threads)
             .with_context(|| format!("loading {}", p.display()))?,
         None => {
             let preset = Preset::named(args.preset.as_deref().unwrap_or(DEFAULT_PRESET))?;
-            map_cmd::build_map(&map_id, &scenes, &preset, &models, args.threads)?
+            loading::build_map(&map_id, &scenes, &preset, &models, args.threads)?
         }
     };
     let preset = match &args.preset {
         Some(name) => Preset::named(name)?,
         None => map.header.preset.clone(),
     };
-    let stage = map_cmd::feature_stage(&preset, &models, args.threads)?;
+    let stage = loading::feature_stage(&preset, &models, args.threads)?;
     let pipeline = Pipeline::new(Arc::new(map), stage, preset.clone())?
-        .with_calibration(map_cmd::calibration(args.calibration.as_deref())?, None);
+        .with_calibration(loading::calibration(args.calibration.as_deref())?, None);
     let (mut samples, mut notes) = (Vec::new(), Vec::new());
     let inmap = query_list(scenes.iter().copied(), args.queries)?;
     collect(
@@ -287,7 +289,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     for dir in &args.camera_dataset {
         let idx = DatasetIndex::open(dir)
             .with_context(|| format!("--camera-dataset {}", dir.display()))?;
-        let (_, sc) = map_cmd::select_scenes(&idx, args.scene.as_deref())?;
+        let (_, sc) = loading::select_scenes(&idx, args.scene.as_deref())?;
         let list = query_list(sc.iter().copied(), args.queries)?;
         collect(
             &pipeline,
@@ -337,7 +339,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             line["evidence"] = serde_json::json!(e);
             text += &format!("{line}\n");
         }
-        map_cmd::write_text(path, &text)?;
+        crate::output::write_text(path, &text)?;
     }
     let mut c = fit::fit(&samples, args.l2, args.target_precision, &preset.name)?;
     c.fitted_on.datasets = vec![format!(
@@ -382,47 +384,60 @@ fn own(args: &CalibrateArgs) -> Result<()> {
         );
     }
     let out = args.out.clone().unwrap_or_else(|| db.clone());
-    let models = map_cmd::models_dir(args.models.as_deref())?;
+    let models = loading::models_dir(args.models.as_deref())?;
     let map =
-        map_cmd::load_map(db, args.threads).with_context(|| format!("loading {}", db.display()))?;
-    let opts = crate::selfcal_cmd::Options {
+        loading::load_map(db, args.threads).with_context(|| format!("loading {}", db.display()))?;
+    let opts = FitOptions {
         max_frames: args.self_calibration_frames,
-        base: args.calibration.as_deref(),
-        models: &models,
-        threads: args.threads,
-        samples: args.samples.as_deref(),
+        base: match &args.calibration {
+            Some(p) => Calibration::load(p)?,
+            None => Calibration::embedded(),
+        },
         keep_on_refusal: false,
     };
-    let Some(dataset) = &args.dataset else {
-        let map = with_sequences(map, args, &opts)?;
-        return finish_own(&map, &out);
+    let stages = crate::loading::stages(&models, args.threads);
+    let refitted = match &args.dataset {
+        None => with_sequences(map, args, &opts, &stages)?,
+        Some(dataset) => {
+            let index = DatasetIndex::open(dataset)?;
+            let scenes: Vec<&SceneEntry> = map
+                .header
+                .scenes
+                .iter()
+                .map(|name| {
+                    index.scenes.iter().find(|s| s.name == *name).with_context(|| {
+                        format!(
+                            "--dataset {} has no scene `{name}`, which map {} holds: give the dataset the map was built from",
+                            dataset.display(),
+                            db.display()
+                        )
+                    })
+                })
+                .collect::<Result<_>>()?;
+            own_calibration::on_dataset(
+                map,
+                &scenes,
+                &opts,
+                &stages,
+                None,
+                &mut crate::output::bars(),
+            )?
+        }
     };
-    let index = DatasetIndex::open(dataset)?;
-    let scenes: Vec<&SceneEntry> = map
-        .header
-        .scenes
-        .iter()
-        .map(|name| {
-            index.scenes.iter().find(|s| s.name == *name).with_context(|| {
-                format!(
-                    "--dataset {} has no scene `{name}`, which map {} holds: give the dataset the map was built from",
-                    dataset.display(),
-                    db.display()
-                )
-            })
-        })
-        .collect::<Result<_>>()?;
-    let map = crate::selfcal_cmd::with_dataset(map, &scenes, &opts)?;
-    finish_own(&map, &out)
+    if let Some(path) = &args.samples {
+        crate::own_calibration::write_samples(path, &refitted.answers)?;
+    }
+    finish_own(&refitted.map, &out)
 }
 
 /// The map's own calibration refitted on the frames of `--sequence` recordings (poses in the map's
-/// frame) that are not map images, evenly spaced.
+/// frame) that are not map images, evenly spaced ([`own_calibration::recording_frames`]).
 fn with_sequences(
     map: pntr_pipeline::map::Map,
     args: &CalibrateArgs,
-    opts: &crate::selfcal_cmd::Options<'_>,
-) -> Result<pntr_pipeline::map::Map> {
+    opts: &FitOptions,
+    stages: &pntr_mapping::stages::Stages,
+) -> Result<own_calibration::Refitted> {
     if !args.trajectory.is_empty() && args.trajectory.len() != args.sequence.len() {
         anyhow::bail!(
             "{} --trajectory for {} --sequence: give one per recording, in the same order",
@@ -435,7 +450,7 @@ fn with_sequences(
         .iter()
         .enumerate()
         .map(|(i, p)| {
-            crate::build_cmd::open_recording(
+            open_recording(
                 p,
                 args.trajectory.get(i).map(PathBuf::as_path),
                 &args.topics,
@@ -444,45 +459,29 @@ fn with_sequences(
             )
         })
         .collect::<Result<Vec<_>>>()?;
-    let sessions = crate::build_cmd::as_sessions(&recs);
-    // Frames that are map images would be answered by themselves: left out (by stamp).
-    let stamps: Vec<f64> = map.images.iter().filter_map(|im| im.stamp).collect();
-    let is_map_image = |t: f64| stamps.iter().any(|s| (s - t).abs() < 1e-6);
-    let frames: Vec<(usize, usize)> = sessions
-        .iter()
-        .enumerate()
-        .flat_map(|(si, s)| {
-            (0..s.recording.len())
-                .filter(|&i| s.recording.world_from_camera(i).is_some())
-                .filter(|&i| !is_map_image(s.recording.timestamp(i)))
-                .map(move |i| (si, i))
-        })
-        .collect();
-    if frames.is_empty() {
-        anyhow::bail!(
-            "the --sequence recordings have no posed frame that is not already a map image"
-        );
-    }
-    let frames = pntr_mapping::recording_map::evenly(&frames, args.self_calibration_frames);
-    let (pipeline, base, regions, why) = crate::selfcal_cmd::for_recordings(map, opts)?;
-    let Some(regions) = regions else {
-        anyhow::bail!(
-            "{}",
-            why.unwrap_or_else(|| "the map cannot be cut into regions".into())
-        );
-    };
-    crate::selfcal_cmd::with_recordings(pipeline, opts, &base, &regions, &sessions, &frames, None)
+    let sessions = as_sessions(&recs);
+    let frames = own_calibration::recording_frames(&map, &sessions, opts.max_frames)
+        .context("--sequence")?;
+    Ok(own_calibration::on_recordings(
+        map,
+        &sessions,
+        &frames,
+        opts,
+        stages,
+        None,
+        &mut crate::output::bars(),
+    )?)
 }
 
 /// Write the map with its refitted calibration and print what was fitted.
 fn finish_own(map: &pntr_pipeline::map::Map, out: &std::path::Path) -> Result<()> {
     pntr_pipeline::mapfile::save(map, out).with_context(|| format!("writing {}", out.display()))?;
-    let mut summary = crate::selfcal_cmd::summary(map.header.calibration.as_ref(), false);
+    let mut summary = crate::own_calibration::summary(map.header.calibration.as_ref(), false);
     summary["out"] = serde_json::json!(out);
     println!("{}", serde_json::to_string_pretty(&summary)?);
     eprintln!(
         "{}",
-        crate::selfcal_cmd::line(map.header.calibration.as_ref(), false)
+        crate::own_calibration::line(map.header.calibration.as_ref(), false)
     );
     Ok(())
 }

@@ -62,43 +62,6 @@ const LIMITS: Limits = Limits {
     max_height: 16384,
 };
 
-/// Parse `--intrinsics`: 4 numbers (fx, fy, cx, cy), 8 (with k1, k2, p1, p2) or 9 (with k3),
-/// separated by commas and/or spaces.
-pub fn parse_intrinsics(words: &[String]) -> Result<proto::Intrinsics> {
-    let mut v = Vec::new();
-    for w in words {
-        for item in w.split([',', ' ']).filter(|s| !s.is_empty()) {
-            let x: f64 = item.parse().with_context(|| {
-                format!("--intrinsics: `{item}` is not a number (expected fx,fy,cx,cy[,k1,k2,p1,p2,k3])")
-            })?;
-            if !x.is_finite() {
-                bail!("--intrinsics: `{item}` is not finite");
-            }
-            v.push(x);
-        }
-    }
-    if !matches!(v.len(), 4 | 8 | 9) {
-        bail!(
-            "--intrinsics takes fx,fy,cx,cy or fx,fy,cx,cy,k1,k2,p1,p2[,k3] (4, 8 or 9 numbers), got {}",
-            v.len()
-        );
-    }
-    if v[0] <= 0.0 || v[1] <= 0.0 {
-        bail!(
-            "--intrinsics: focal lengths fx = {} and fy = {} must be positive",
-            v[0],
-            v[1]
-        );
-    }
-    Ok(proto::Intrinsics {
-        fx: v[0],
-        fy: v[1],
-        cx: v[2],
-        cy: v[3],
-        distortion: v[4..].to_vec(),
-    })
-}
-
 fn read(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).with_context(|| format!("reading {}", path.display()))
 }
@@ -330,7 +293,7 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
         _ => bail!("give --rgb and --depth, or --dataset, --scene and --query"),
     };
     if let Some(k) = &args.intrinsics {
-        req.intrinsics = Some(parse_intrinsics(k)?);
+        req.intrinsics = Some(crate::recordings::parse_intrinsics(k)?);
     } else if args.rgb.is_some() {
         let size = (req.depth.as_ref().map(|d| (d.width, d.height))).unwrap_or_default();
         if size != (256, 256) {

@@ -4,18 +4,27 @@
 //! lives in the server crates so that the service, the CLI and the tests share one implementation.
 //! Output meant for other programs is JSON on stdout (`--json`); progress and logs go to stderr.
 
+// One module per subcommand (`*_cmd`); they import only the shared modules below them, never
+// each other.
 mod bench_cmd;
 mod build_cmd;
 mod calibrate_cmd;
+mod eval_cmd;
+mod info_cmd;
 mod localize_cmd;
-mod map_cmd;
 mod maps_cmd;
-mod plot;
 mod register_cmd;
-mod remote;
 mod replay_cmd;
-mod selfcal_cmd;
 mod synth_cmd;
+
+// Shared by the subcommands.
+mod evaluation;
+mod loading;
+mod output;
+mod own_calibration;
+mod plot;
+mod recordings;
+mod remote;
 
 use std::path::PathBuf;
 
@@ -40,9 +49,9 @@ enum Command {
     Register(register_cmd::RegisterArgs),
     /// Build a map database from a dataset (--dataset) or a robot's recordings (--sequence), or add
     /// recordings to an existing map (--extend).
-    BuildDb(map_cmd::BuildArgs),
+    BuildDb(build_cmd::BuildArgs),
     /// Evaluate the pipeline on a dataset's queries (HPointLoc recall table, JSON report).
-    Eval(map_cmd::EvalArgs),
+    Eval(eval_cmd::EvalArgs),
     /// Fit the confidence calibration on a dataset the map covers and one or more it does not.
     Calibrate(calibrate_cmd::CalibrateArgs),
     /// Localize one frame (image files, or a dataset query) through a running pntr-server.
@@ -146,11 +155,11 @@ fn main() {
     let result = match cli.command {
         Command::Synth(args) => synth_cmd::run(&args),
         Command::Register(args) => register_cmd::run(&args),
-        Command::BuildDb(args) => map_cmd::build_db(&args),
+        Command::BuildDb(args) => build_cmd::build_db(&args),
         Command::Localize(args) => localize_cmd::run(&args),
         Command::Bench(args) => bench_cmd::run(&args),
         Command::Replay(args) => replay_cmd::run(&args),
-        Command::Eval(args) => map_cmd::eval(&args),
+        Command::Eval(args) => eval_cmd::eval(&args),
         Command::Calibrate(args) => calibrate_cmd::run(&args),
         Command::Maps(cmd) => maps_cmd::run(&cmd),
         Command::Info {
@@ -174,7 +183,7 @@ fn main() {
                 },
                 json,
             ),
-            (_, Some(db), None) => map_cmd::info(&db, json, images),
+            (_, Some(db), None) => info_cmd::info(&db, json, images),
             (Some(dataset), None, None) => synth_cmd::info(&dataset, json),
             (None, None, None) => unreachable!("clap requires --dataset, --db or --addr"),
         },
@@ -183,7 +192,7 @@ fn main() {
             models,
             queries,
         } => {
-            map_cmd::models_dir(models.as_deref()).and_then(|m| synth_cmd::demo(&out, &m, queries))
+            loading::models_dir(models.as_deref()).and_then(|m| synth_cmd::demo(&out, &m, queries))
         }
     };
     if let Err(e) = result {

@@ -140,22 +140,52 @@ pub struct MergeArgs {
     /// must agree whatever this says).
     #[arg(long, default_value_t = 6)]
     pub min_support: usize,
-    /// Threads for ONNX Runtime while loading.
+    /// A recording whose poses are in A's frame (the merged map's; the one A was built from, or a
+    /// later drive localized in it): the merged map's own calibration is fitted on its frames that
+    /// are not map images, as `pntr calibrate --db OUT --sequence` would. Repeat it for several.
+    /// Without it the merged map keeps A's calibration, reported stale (it was fitted on A's
+    /// images alone).
+    #[arg(long, value_name = "DIR|FILE.mcap")]
+    pub sequence: Vec<PathBuf>,
+    /// Poses of a `--sequence` from this TUM trajectory file instead of the recording's own (one
+    /// per `--sequence`, in the same order).
+    #[arg(long, value_name = "FILE.txt")]
+    pub trajectory: Vec<PathBuf>,
+    /// The camera of the `--sequence` recordings as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]`, replacing
+    /// their own calibration.
+    #[arg(long, value_name = "FX,FY,CX,CY")]
+    pub intrinsics: Option<String>,
+    /// Depth units per metre of the `--sequence` recordings, replacing what their format says.
+    #[arg(long, value_name = "UNITS_PER_M")]
+    pub depth_scale: Option<f64>,
+    /// ROS 2 bag topics of a `--sequence`.
+    #[command(flatten)]
+    pub topics: crate::recordings::TopicArgs,
+    /// Frames of the `--sequence` recordings the calibration is fitted on, evenly spaced (0: all);
+    /// each is localized twice.
+    #[arg(long, default_value_t = pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES, value_name = "N")]
+    pub self_calibration_frames: usize,
+    /// Folder of the ONNX models (for the calibration's fit); default: found as `pntr build-db`
+    /// finds it.
+    #[arg(long)]
+    pub models: Option<PathBuf>,
+    /// Threads for ONNX Runtime.
     #[arg(long, default_value_t = 2)]
     pub threads: usize,
     /// Print JSON: transform (translation, rotation_wxyz: B's map frame into A's), covariance (36
     /// values, ROS order, A's frame), supporting_keyframes, keyframes_tried, keyframes_verified,
-    /// images, rms_m, file.
+    /// images, rms_m, seconds, file, calibration (as `pntr info --db --json` says it) and
+    /// calibration_refit (frames, seconds, kept_because; null without `--sequence`).
     #[arg(long)]
     pub json: bool,
 }
 
 /// `pntr maps merge`.
 fn merge(args: &MergeArgs) -> Result<()> {
-    use pntr_mapping::merge::{merge, MergeParams};
-    let a = crate::map_cmd::load_map(&args.a, args.threads)
+    use pntr_mapping::merge::{run, MergeParams, Refit};
+    let a = crate::loading::load_map(&args.a, args.threads)
         .with_context(|| format!("reading map A {}", args.a.display()))?;
-    let b = crate::map_cmd::load_map(&args.b, args.threads)
+    let b = crate::loading::load_map(&args.b, args.threads)
         .with_context(|| format!("reading map B {}", args.b.display()))?;
     if args.min_support < pntr_mapping::merge::MIN_SUPPORT_FLOOR {
         anyhow::bail!(
@@ -169,12 +199,55 @@ fn merge(args: &MergeArgs) -> Result<()> {
         min_support: args.min_support,
         ..MergeParams::default()
     };
+    if !args.trajectory.is_empty() && args.trajectory.len() != args.sequence.len() {
+        anyhow::bail!(
+            "--trajectory given {} times for {} --sequence: give one per sequence, in the same order",
+            args.trajectory.len(),
+            args.sequence.len()
+        );
+    }
+    let recordings = args
+        .sequence
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            crate::recordings::open_recording(
+                p,
+                args.trajectory.get(i).map(PathBuf::as_path),
+                &args.topics,
+                args.depth_scale,
+                args.intrinsics.as_deref(),
+            )
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let sessions = crate::recordings::as_sessions(&recordings);
+    let refit = (!sessions.is_empty()).then(|| Refit {
+        sessions: &sessions,
+        fit: pntr_mapping::own_calibration::FitOptions {
+            keep_on_refusal: false,
+            ..pntr_mapping::own_calibration::FitOptions::shipped(args.self_calibration_frames)
+        },
+    });
+    let models = crate::loading::models_dir(args.models.as_deref())?;
     let t = std::time::Instant::now();
-    let (merged, r) = merge(a, &b, &params)
-        .with_context(|| format!("merging {} into {}", args.b.display(), args.a.display()))?;
+    let (merged, r) = run(
+        a,
+        &b,
+        &params,
+        refit,
+        &crate::loading::stages(&models, args.threads),
+        &mut crate::output::bars(),
+    )
+    .with_context(|| format!("merging {} into {}", args.b.display(), args.a.display()))?;
     let seconds = t.elapsed().as_secs_f64();
     pntr_pipeline::mapfile::save(&merged, &args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;
+    let stale = merged.calibration_is_stale();
+    if stale {
+        eprintln!(
+            "warning: the merged map keeps A's own calibration, fitted on A's images alone (stale): give --sequence with a recording in A's frame to fit one for the merged map"
+        );
+    }
     let tr = r.a_from_b.translation.vector;
     let q = r.a_from_b.rotation;
     if args.json {
@@ -193,6 +266,8 @@ fn merge(args: &MergeArgs) -> Result<()> {
                 "rms_m": r.rms_m,
                 "seconds": seconds,
                 "file": args.out.display().to_string(),
+                "calibration": crate::own_calibration::summary(merged.header.calibration.as_ref(), stale),
+                "calibration_refit": r.calibration_refit,
             })
         );
         return Ok(());
@@ -219,6 +294,10 @@ fn merge(args: &MergeArgs) -> Result<()> {
         r.images,
         args.out.display(),
         seconds
+    );
+    println!(
+        "{}",
+        crate::own_calibration::line(merged.header.calibration.as_ref(), stale)
     );
     Ok(())
 }

@@ -380,7 +380,7 @@ fn save(dir: &Path, fig: &Figure) -> Result<Vec<PathBuf>> {
         root.present()?;
     }
     let svg = dir.join(format!("{name}.svg"));
-    crate::map_cmd::write_text(&svg, &svg_text)?;
+    crate::output::write_text(&svg, &svg_text)?;
     Ok(vec![png, svg])
 }
 

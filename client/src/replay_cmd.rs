@@ -14,7 +14,6 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use nalgebra::Isometry3;
-use pntr_dataset::bag::Topics;
 use pntr_dataset::recording::{Recording, RecordingOptions};
 use pntr_dataset::tum::ground_truth_line;
 use pntr_eval::trajectory_errors;
@@ -39,7 +38,7 @@ pub struct ReplayArgs {
     pub sequence: PathBuf,
     /// ROS 2 bag topics.
     #[command(flatten)]
-    pub topics: TopicArgs,
+    pub topics: crate::recordings::TopicArgs,
     /// Depth units per metre, replacing what the recording's format says (TUM PNGs 5000, ROS 16UC1
     /// 1000): e.g. 1000 for a folder of millimetre PNGs, 4000 for a sensor with 0.25 mm units.
     #[arg(long, value_name = "UNITS_PER_M")]
@@ -112,116 +111,6 @@ pub struct ReplayArgs {
 /// Largest gap between two frames' stamps that replay waits through, seconds (a camera runs at 1 Hz
 /// or faster; a longer gap is a clock jump).
 const MAX_FRAME_GAP_S: f64 = 2.0;
-
-/// The topics of a ROS 2 bag (`pntr replay`, `pntr build-db --sequence`).
-#[derive(clap::Args, Debug, Clone)]
-pub struct TopicArgs {
-    /// ROS 2 bag: the colour topic (sensor_msgs/Image, rgb8/bgr8/rgba8/bgra8; when absent, its
-    /// `/compressed` sibling, sensor_msgs/CompressedImage JPEG or PNG).
-    #[arg(long, default_value = "/camera/color/image_raw")]
-    pub rgb_topic: String,
-    /// ROS 2 bag: the depth topic, aligned to the colour camera (16UC1 millimetres or 32FC1 metres;
-    /// when absent, its `/compressedDepth` sibling).
-    #[arg(long, default_value = "/camera/aligned_depth_to_color/image_raw")]
-    pub depth_topic: String,
-    /// ROS 2 bag: the colour camera's sensor_msgs/CameraInfo topic.
-    #[arg(long, default_value = "/camera/color/camera_info")]
-    pub info_topic: String,
-    /// ROS 2 bag: poses from this topic instead of TF: geometry_msgs/PoseStamped (world_from_camera
-    /// of the optical frame) or nav_msgs/Odometry (of the body; the camera's offset from TF).
-    #[arg(long)]
-    pub pose_topic: Option<String>,
-    /// ROS 2 bag: the world frame of TF poses.
-    #[arg(long, default_value = "map")]
-    pub map_frame: String,
-    /// ROS 2 bag: the camera's optical frame in TF (default: the colour images' frame_id).
-    #[arg(long)]
-    pub camera_frame: Option<String>,
-    /// Depth from a separate depth camera (not registered to colour): its `fx,fy,cx,cy` (its image
-    /// size is the depth images'). pntr registers each depth image to the colour camera. A 7-Scenes
-    /// folder's camera-intrinsics.txt is taken when this is not given.
-    #[arg(long, value_name = "FX,FY,CX,CY")]
-    pub depth_intrinsics: Option<String>,
-    /// The depth camera's offset: `tx,ty,tz[,qx,qy,qz,qw]` (metres; quaternion x, y, z, w) taking a
-    /// point in the depth camera's optical frame to the colour camera's (a calibration's "depth to
-    /// colour" extrinsics; 7-Scenes' Kinect: -0.0256,0.0001,0.0020).
-    #[arg(
-        long,
-        value_name = "TX,TY,TZ[,QX,QY,QZ,QW]",
-        allow_hyphen_values = true
-    )]
-    pub depth_to_colour: Option<String>,
-}
-
-/// A separate depth camera's `fx, fy, cx, cy` and `colour_from_depth`, each when given.
-pub type DepthCameraOptions = (Option<[f64; 4]>, Option<Isometry3<f64>>);
-
-impl TopicArgs {
-    /// The reader's options for a separate depth camera: `--depth-intrinsics` and
-    /// `--depth-to-colour`, parsed.
-    pub fn depth_camera(&self) -> Result<DepthCameraOptions> {
-        let numbers = |flag: &str, s: &str| -> Result<Vec<f64>> {
-            s.split([',', ' '])
-                .filter(|w| !w.is_empty())
-                .map(|w| {
-                    w.parse::<f64>()
-                        .ok()
-                        .filter(|x| x.is_finite())
-                        .with_context(|| format!("{flag}: `{w}` is not a number"))
-                })
-                .collect()
-        };
-        let k = match self.depth_intrinsics.as_deref() {
-            None => None,
-            Some(s) => match numbers("--depth-intrinsics", s)?[..] {
-                [fx, fy, cx, cy] if fx > 0.0 && fy > 0.0 => Some([fx, fy, cx, cy]),
-                _ => bail!(
-                    "--depth-intrinsics {s}: give fx,fy,cx,cy (pixels, positive focal lengths)"
-                ),
-            },
-        };
-        let e = match self.depth_to_colour.as_deref() {
-            None => None,
-            Some(s) => {
-                let v = numbers("--depth-to-colour", s)?;
-                let t = nalgebra::Translation3::new(
-                    *v.first().unwrap_or(&0.0),
-                    *v.get(1).unwrap_or(&0.0),
-                    *v.get(2).unwrap_or(&0.0),
-                );
-                let q = match v.len() {
-                    3 => nalgebra::UnitQuaternion::identity(),
-                    7 => {
-                        let q = nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]);
-                        let n = q.norm();
-                        if (n - 1.0).abs() > 1e-3 {
-                            bail!("--depth-to-colour {s}: the quaternion's norm is {n:.4}, not 1");
-                        }
-                        nalgebra::UnitQuaternion::from_quaternion(q)
-                    }
-                    _ => bail!("--depth-to-colour {s}: give tx,ty,tz or tx,ty,tz,qx,qy,qz,qw"),
-                };
-                if t.vector.norm() > 0.5 {
-                    bail!("--depth-to-colour {s}: the cameras would be {:.2} m apart; the offset is in metres (2.56 cm is 0.0256)", t.vector.norm());
-                }
-                Some(Isometry3::from_parts(t, q))
-            }
-        };
-        Ok((k, e))
-    }
-
-    /// The reader's topics.
-    pub fn topics(&self) -> Topics {
-        Topics {
-            rgb: self.rgb_topic.clone(),
-            depth: self.depth_topic.clone(),
-            info: self.info_topic.clone(),
-            pose: self.pose_topic.clone(),
-            map_frame: self.map_frame.clone(),
-            camera_frame: self.camera_frame.clone(),
-        }
-    }
-}
 
 /// The recorded drive `--sequence` names, with the bag topics and depth unit the flags give.
 fn open_recording(args: &ReplayArgs) -> Result<Recording> {
@@ -382,11 +271,11 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             );
         }
     }
-    let effects = crate::map_cmd::effects(&args.effects)?;
+    let effects = crate::loading::effects(&args.effects)?;
     let mut seq =
         open_recording(args).with_context(|| format!("--sequence {}", args.sequence.display()))?;
     let camera = match (&args.intrinsics, seq.intrinsics()) {
-        (Some(s), _) => crate::localize_cmd::parse_intrinsics(std::slice::from_ref(s))?,
+        (Some(s), _) => crate::recordings::parse_intrinsics(std::slice::from_ref(s))?,
         (None, Some(k)) => wire::intrinsics_message(&k),
         (None, None) => bail!(
             "{}: {}; pass the camera with --intrinsics fx,fy,cx,cy[,k1,k2,p1,p2,k3]",
@@ -454,7 +343,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let to_ros = |p: &Isometry3<f64>| optical.pose_to_ros(p);
     let mut record_errors: Vec<String> = Vec::new();
     let mut recording = match &args.record {
-        Some(path) => Some(crate::map_cmd::start_recording(
+        Some(path) => Some(crate::evaluation::start_recording(
             path,
             args.db.as_deref(),
             seq.timestamp(0),
@@ -648,7 +537,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             traj.push('\n');
         }
     }
-    crate::map_cmd::write_text(&args.trajectory, &traj)?;
+    crate::output::write_text(&args.trajectory, &traj)?;
     if let Some(b) = bag {
         match b.finish() {
             Ok(path) => eprintln!("ROS 2 bag written to {}", path.display()),
@@ -662,7 +551,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         }
     }
     if let Some(path) = &args.frames_log {
-        crate::map_cmd::write_text(path, &frames_log(&out))?;
+        crate::output::write_text(path, &frames_log(&out))?;
     }
     let pairs: Vec<_> = out.iter().map(|a| (a.estimate, a.truth)).collect();
     let errors = trajectory_errors(&pairs);
@@ -712,7 +601,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         "effects": args.effects,
         "record_errors": record_errors,
     });
-    crate::map_cmd::write_json(&args.json, &report)?;
+    crate::output::write_json(&args.json, &report)?;
     println!(
         "{} frames: {:.1}% localized ({:.1}% by tracking or prior), ATE {:.3} m, RPE {:.3} m / {:.2} deg, max error {:.3} m ({} over 1 m); latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms; {:.1} frames/s",
         out.len(),

@@ -370,5 +370,5 @@ pub fn demo(out: &Path, models: &Path, queries: usize) -> Result<()> {
         map.display(),
         t0.elapsed().as_secs_f64()
     );
-    crate::map_cmd::serve_and_evaluate(&map, models, &[scene], queries)
+    crate::evaluation::serve_and_evaluate(&map, models, &[scene], queries)
 }

@@ -331,6 +331,32 @@ fn sessions_extend_and_merge_maps() {
         !text.contains("STALE") && text.contains("calibration: the map's own"),
         "{text}"
     );
+    // `maps merge --sequence` does both in one step: the same map, byte for byte (its own
+    // calibration fitted on the same frames), never stale.
+    let merged_fitted = dir.path().join("merged-fitted.pntrmap");
+    let m2 = ok_json(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "--out",
+        merged_fitted.to_str().unwrap(),
+        "--sequence",
+        seq(&first).to_str().unwrap(),
+        "--self-calibration-frames",
+        "60",
+        "--models",
+        MODELS,
+        "--json",
+    ]));
+    assert_eq!(
+        (&m2["calibration"]["source"], &m2["calibration"]["stale"]),
+        (&"map".into(), &false.into()),
+        "{m2}"
+    );
+    assert_eq!(m2["calibration_refit"]["frames"], 60, "{m2}");
+    assert_eq!(m2["calibration"]["threshold"], refit["threshold"], "{m2}");
+    support::assert_same_map(&merged, &merged_fitted);
     // A calibration fitted for the drive's map on the same apartment's dataset and another's: the
     // dataset's poses have Habitat camera axes, the map's OpenCV ones (compared as they are, every
     // in-map answer was 180 degrees off and the fit found no right answer to fit).
@@ -427,6 +453,20 @@ fn sessions_extend_and_merge_maps() {
         a_images.len() + added,
         "written to the map's file"
     );
+    // The server extends as `build-db --extend` does (one call for both): the same map, byte for
+    // byte, its own calibration refitted on the same frames.
+    let by_cli = dir.path().join("extended-by-cli.pntrmap");
+    build_db(
+        &by_cli,
+        &[
+            "--sequence",
+            second_seq.to_str().unwrap(),
+            "--extend",
+            a.to_str().unwrap(),
+            "--no-check",
+        ],
+    );
+    support::assert_same_map(&served, &by_cli);
     let msg = err(&admin(&extend, true));
     assert!(msg.contains("already in map"), "{msg}");
     // The same drive as a bag with realsense-ros 4.x's topic names (/camera/camera/...): the

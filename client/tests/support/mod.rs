@@ -320,3 +320,107 @@ pub fn assert_picture(dir: &Path, name: &str, size: (u32, u32), texts: &[&str]) 
         assert!(!n.to_string_lossy().contains(".partial"), "{n:?}");
     }
 }
+
+/// A map file section: its tag and payload.
+type Section = ([u8; 4], Vec<u8>);
+
+/// The sections of a map file (`pntr_pipeline::mapfile`'s layout: magic, version, then tag,
+/// length, payload, checksum per section), read here independently of the reader under test.
+fn map_sections(path: &Path) -> (u32, Vec<Section>) {
+    let bytes = std::fs::read(path).unwrap();
+    assert_eq!(&bytes[..8], b"PNTRMAP\0", "{}", path.display());
+    let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap());
+    let (mut at, mut out) = (12, Vec::new());
+    while at < bytes.len() {
+        let tag: [u8; 4] = bytes[at..at + 4].try_into().unwrap();
+        let n = u64::from_le_bytes(bytes[at + 4..at + 12].try_into().unwrap()) as usize;
+        out.push((tag, bytes[at + 12..at + 12 + n].to_vec()));
+        at += 12 + n + 8;
+    }
+    (version, out)
+}
+
+/// The header without what differs between two builds of the same map: when and how long it was
+/// built, and the date a calibration was fitted on (with the checksums that cover it).
+fn timeless_header(json: &[u8]) -> serde_json::Value {
+    fn drop_dates(v: &mut serde_json::Value) {
+        if let Some(o) = v.as_object_mut() {
+            o.remove("date");
+            o.remove("checksum");
+            o.values_mut().for_each(drop_dates);
+        }
+    }
+    let mut h: serde_json::Value = serde_json::from_slice(json).unwrap();
+    let o = h.as_object_mut().unwrap();
+    o.remove("build_seconds");
+    o.remove("built_at_unix_s");
+    if let Some(c) = o.get_mut("calibration") {
+        drop_dates(c);
+    }
+    h
+}
+
+/// Where two JSON values differ beyond floating-point noise (numbers within 1e-6, relative), as
+/// the path to the first difference.
+fn json_difference(a: &serde_json::Value, b: &serde_json::Value, path: &str) -> Option<String> {
+    use serde_json::Value::{Array, Number, Object};
+    match (a, b) {
+        (Number(x), Number(y)) => {
+            let (x, y) = (x.as_f64().unwrap(), y.as_f64().unwrap());
+            ((x - y).abs() > 1e-6 * x.abs().max(y.abs()).max(1e-12))
+                .then(|| format!("{path}: {x} vs {y}"))
+        }
+        (Array(x), Array(y)) if x.len() == y.len() => x
+            .iter()
+            .zip(y)
+            .enumerate()
+            .find_map(|(i, (u, v))| json_difference(u, v, &format!("{path}[{i}]"))),
+        (Object(x), Object(y)) if x.len() == y.len() => {
+            x.iter().find_map(|(k, u)| match y.get(k) {
+                Some(v) => json_difference(u, v, &format!("{path}.{k}")),
+                None => Some(format!("{path}.{k}: only in the first")),
+            })
+        }
+        _ => (a != b).then(|| format!("{path}: {a} vs {b}")),
+    }
+}
+
+/// Assert that two map files hold the same map: the same sections of the same sizes, the same
+/// header (its calibration included) apart from when it was built, and every image with the same
+/// id and pose (to 1e-6 m and 1e-6 rad), in the same order. Floating-point noise is allowed: a
+/// map's quaternions that went through a file and back differ from ones that stayed in memory in
+/// their last bit (the reader normalises them), and a calibration fitted on them may differ as
+/// little.
+pub fn assert_same_map(a: &Path, b: &Path) {
+    let ((va, sa), (vb, sb)) = (map_sections(a), map_sections(b));
+    let what = format!("{} and {}", a.display(), b.display());
+    assert_eq!(va, vb, "format versions of {what}");
+    let sizes = |s: &[Section]| {
+        s.iter()
+            .filter(|(t, _)| t != b"HEAD")
+            .map(|(t, x)| (String::from_utf8_lossy(t).to_string(), x.len()))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(sizes(&sa), sizes(&sb), "sections of {what}");
+    let head = |s: &[Section]| timeless_header(&s.iter().find(|(t, _)| t == b"HEAD").unwrap().1);
+    if let Some(d) = json_difference(&head(&sa), &head(&sb), "header") {
+        panic!("headers of {what} differ: {d}");
+    }
+    let (ia, ib) = (map_images(a), map_images(b));
+    assert_eq!(ia.len(), ib.len(), "images of {what}");
+    for (x, y) in ia.iter().zip(&ib) {
+        assert_eq!(x["id"], y["id"], "images of {what}");
+        let (px, py) = (
+            json_pose(&x["translation"], &x["rotation_wxyz"]),
+            json_pose(&y["translation"], &y["rotation_wxyz"]),
+        );
+        let d = px.inverse() * py;
+        assert!(
+            d.translation.vector.norm() < 1e-6 && d.rotation.angle() < 1e-6,
+            "image {} of {what}: poses differ by {} m, {} rad",
+            x["id"],
+            d.translation.vector.norm(),
+            d.rotation.angle()
+        );
+    }
+}

@@ -13,10 +13,14 @@
 
 pub mod build;
 pub mod fit;
+pub mod from_dataset;
+pub mod from_recordings;
 pub mod keyframes;
 pub mod merge;
 pub mod own_calibration;
+pub mod progress;
 pub mod recording_map;
 pub mod selfcal;
+pub mod stages;
 
 pub use pntr_pipeline::PipelineError;

@@ -95,6 +95,30 @@ pub struct MergeReport {
     pub images: usize,
     /// Root mean square of the refit's 3D inlier residuals, metres.
     pub rms_m: f64,
+    /// The merged map's own calibration fitted on recordings ([`run`] with [`Refit`]); `None`
+    /// when none were given (the merged map keeps A's, stale).
+    pub calibration_refit: Option<CalibrationRefit>,
+}
+
+/// How the merged map's own calibration was fitted ([`run`]).
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibrationRefit {
+    /// Frames of the recordings used (each localized twice).
+    pub frames: usize,
+    /// Seconds the fit took.
+    pub seconds: f64,
+    /// Why the merged map keeps A's calibration (stale) instead, when the frames could not make a
+    /// fit.
+    pub kept_because: Option<String>,
+}
+
+/// Recordings to fit the merged map's own calibration on, and how.
+pub struct Refit<'a> {
+    /// Recordings whose poses are in A's frame (the merged map's), such as the one A was built
+    /// from; frames that are map images are left out.
+    pub sessions: &'a [crate::recording_map::Session<'a>],
+    /// At most how many frames, from which base, and whether a refusal keeps A's calibration.
+    pub fit: crate::own_calibration::FitOptions,
 }
 
 /// One image of B verified in A: the transform it proposes and its 3D inlier pairs (B world, A
@@ -356,8 +380,46 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
         keyframes_verified: verified,
         images: merged.images.len(),
         rms_m,
+        calibration_refit: None,
     };
     Ok((merged, report))
+}
+
+/// `pntr maps merge`: [`merge`], then with `refit` the merged map's own calibration fitted on its
+/// recordings ([`crate::own_calibration::on_recordings`], the frames chosen by
+/// [`crate::own_calibration::recording_frames`]), so the merged map is not served with A's
+/// calibration, which was fitted on A's images alone. Networks from `stages`; progress through the
+/// self-calibration passes. Errors: those of [`merge`], and of the fit (recordings without a posed
+/// frame that is not a map image; a refusal unless `refit.fit.keep_on_refusal`).
+pub fn run(
+    a: Map,
+    b: &Map,
+    p: &MergeParams,
+    refit: Option<Refit<'_>>,
+    stages: &crate::stages::Stages,
+    progress: &mut crate::progress::Progress<'_>,
+) -> Result<(Map, MergeReport), PipelineError> {
+    let (merged, mut report) = merge(a, b, p)?;
+    let Some(refit) = refit else {
+        return Ok((merged, report));
+    };
+    let frames =
+        crate::own_calibration::recording_frames(&merged, refit.sessions, refit.fit.max_frames)?;
+    let done = crate::own_calibration::on_recordings(
+        merged,
+        refit.sessions,
+        &frames,
+        &refit.fit,
+        stages,
+        None,
+        progress,
+    )?;
+    report.calibration_refit = Some(CalibrationRefit {
+        frames: frames.len(),
+        seconds: done.seconds,
+        kept_because: done.kept_because,
+    });
+    Ok((done.map, report))
 }
 
 fn too_few(agreeing: usize, tried: usize, verified: usize, p: &MergeParams) -> PipelineError {

@@ -321,34 +321,43 @@ pub async fn extend(
                 camera: *camera,
             })
             .collect();
-        let preset = base.header.preset.clone();
-        let stage = engine.map_stage(&preset).map_err(&failed)?;
-        let (map, report) = pntr_mapping::recording_map::extend(
-            base,
+        let map_id = base.header.map_id.clone();
+        // The map's own calibration refitted on the frames given (at most
+        // SELF_CALIBRATION_FRAMES between the new keyframes), as `build-db --extend` does, so the
+        // map is never served with one fitted before it grew.
+        let opts = pntr_mapping::from_recordings::Options {
+            target: pntr_mapping::from_recordings::Target::Extend(base),
+            keyframes: pntr_mapping::keyframes::KeyframeParams::default(),
+            check: None,
+            self_calibrate: true,
+            self_calibration_frames: recording_map::SELF_CALIBRATION_FRAMES,
+            base_calibration: pntr_pipeline::calibration::Calibration::embedded(),
+        };
+        let mut last_stage = String::new();
+        let (map, report) = pntr_mapping::from_recordings::run(
             &sessions,
-            pntr_mapping::keyframes::KeyframeParams::default(),
-            &preset,
-            &stage,
-            &mut |_, _| {},
+            opts,
+            &engine.stages(),
+            &mut |s| {
+                if s.stage != last_stage {
+                    tracing::info!(map_id = %map_id, stage = s.stage, "extending the map");
+                    last_stage = s.stage.to_string();
+                }
+            },
         )
         .map_err(|e| failed(e.to_string()))?;
         // What build-db would print as warnings (frames left out, a pose source that disagrees
         // with the images, ...) goes to the server's log, where its operator reads.
-        for w in &report.warnings {
-            tracing::warn!(map_id = %map.header.map_id, warning = %w, "extending the map");
+        for w in &report.build.warnings {
+            tracing::warn!(map_id = %map_id, warning = %w, "extending the map");
+        }
+        match &report.calibration_note {
+            Some(why) => tracing::warn!(map_id = %map_id, why = %why,
+                "the map keeps the calibration it had (GetMapInfo says it is stale when it was the map's own)"),
+            None => tracing::info!(map_id = %map_id, seconds = report.self_calibration_seconds,
+                "the map's own calibration refitted on the extension's frames"),
         }
         let added = map.images.len() - before;
-        // The map's own calibration refitted on the frames given, as `build-db --extend` does, so
-        // the map is never served with one fitted before it grew.
-        // Queries are described by the map's own network unless the preset runs another backbone
-        // (int8, bf16): then that one is loaded.
-        let query_stage = if preset.extractor == preset.map_extractor() {
-            stage
-        } else {
-            engine.query_stage(&preset).map_err(&failed)?
-        };
-        let map =
-            refit_calibration(query_stage, map, &sessions, &report.left_out).map_err(&failed)?;
         pntr_pipeline::mapfile::save(&map, &file)
             .map_err(|e| failed(format!("writing {}: {e}", file.display())))?;
         tracing::info!(map_id = %map.header.map_id, added, file = %file.display(), "map extended and written");
@@ -359,59 +368,6 @@ pub async fn extend(
     change.images_added = added as u32;
     change.load_seconds = t.elapsed().as_secs_f64();
     Ok(change)
-}
-
-/// `map` with its own calibration refitted on `frames` of `sessions` (the extension's frames
-/// between its keyframes, at most [`recording_map::SELF_CALIBRATION_FRAMES`], poses in the map's
-/// frame) from the shipped base ([`recording_map::fit_own_calibration`]): what `pntr build-db
-/// --extend` does. A map of a single place, or frames that cannot calibrate it, keep the
-/// calibration they had (logged; GetMapInfo then says it is stale when it was the map's own).
-/// `stage` describes queries for the map's preset. Errors: a frame fails in the pipeline.
-fn refit_calibration(
-    stage: pntr_features::config::FeatureStage,
-    map: pntr_pipeline::map::Map,
-    sessions: &[recording_map::Session<'_>],
-    left_out: &[(usize, usize)],
-) -> Result<pntr_pipeline::map::Map, String> {
-    use pntr_mapping::selfcal;
-    let preset = map.header.preset.clone();
-    let id = map.header.map_id.clone();
-    let base = pntr_pipeline::calibration::Calibration::embedded();
-    let pipeline =
-        selfcal::fitting_pipeline(map, stage, preset, &base).map_err(|e| e.to_string())?;
-    let regions = selfcal::Regions::of_map(&pipeline.map);
-    let fitted = match &regions {
-        Ok(regions) => {
-            let frames = recording_map::evenly(left_out, recording_map::SELF_CALIBRATION_FRAMES);
-            let t = Instant::now();
-            let f = recording_map::fit_own_calibration(
-                &pipeline,
-                &base,
-                regions,
-                sessions,
-                &frames,
-                None,
-                &mut |_, _, _| {},
-            )
-            .map_err(|e| format!("refitting the map's own calibration: {e}"))?;
-            tracing::info!(map_id = %id, frames = frames.len(), seconds = t.elapsed().as_secs_f64(),
-                "the map's own calibration refitted on the extension's frames");
-            Some(f.fit)
-        }
-        Err(e) => {
-            tracing::warn!(map_id = %id, why = %e, "the map's own calibration is not refitted");
-            None
-        }
-    };
-    let calibration = match fitted {
-        Some(Ok(c)) => Some(c),
-        Some(Err(e)) => {
-            tracing::warn!(map_id = %id, why = %e, "the map keeps the calibration it had");
-            None
-        }
-        None => None,
-    };
-    Ok(selfcal::fitted_map(pipeline, calibration))
 }
 
 /// Stop serving `map_id`.

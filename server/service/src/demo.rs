@@ -11,9 +11,11 @@
 use std::path::{Path, PathBuf};
 
 use pntr_dataset::DatasetIndex;
+use pntr_mapping::from_dataset;
+use pntr_mapping::own_calibration::FitOptions;
 use pntr_pipeline::map::cache_path;
+use pntr_pipeline::mapfile;
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
-use pntr_pipeline::{map, mapfile};
 use pntr_synth::SynthConfig;
 
 /// Make sure the demo scene and its map exist under `cache`; return the map file. `log` receives
@@ -34,9 +36,7 @@ pub fn ensure_demo_map(
     }
     // Models first: a missing model fails in a second, not after the scene is rendered.
     let preset = Preset::named(DEFAULT_PRESET).map_err(|e| e.to_string())?;
-    let stage = preset
-        .feature_config(models.to_path_buf())
-        .build()
+    pntr_mapping::build::model_identities(&preset, models)
         .map_err(|e| format!("loading the models from {}: {e}", models.display()))?;
     if !cache.join("HPointLoc_dataset").join(&scene).is_dir() {
         log(&format!(
@@ -53,37 +53,28 @@ pub fn ensure_demo_map(
     log(&format!("building the demo map {}", path.display()));
     let index = DatasetIndex::open(cache).map_err(|e| e.to_string())?;
     let entry = index.scene(&scene).map_err(|e| e.to_string())?;
-    let m = pntr_mapping::build::build(&scene, &[entry], &preset, &stage, models, &mut |_, _| {})
-        .map_err(|e| e.to_string())?;
-    log("fitting the demo map's own calibration on its scene's queries");
-    let m = with_own_calibration(m, entry, stage, preset)?;
+    // Its own calibration fitted on SELF_CALIBRATION_FRAMES of the scene's queries, as `pntr
+    // build-db --dataset` does.
+    let opts = from_dataset::Options {
+        map_id: scene.clone(),
+        preset,
+        self_calibration: Some(FitOptions {
+            keep_on_refusal: false,
+            ..FitOptions::shipped(pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES)
+        }),
+    };
+    let stages = pntr_mapping::stages::Stages {
+        models: models.to_path_buf(),
+        runtime: Default::default(),
+    };
+    let mut stage = String::new();
+    let (m, _) = from_dataset::run(&[entry], opts, &stages, &mut |s| {
+        if s.stage != stage {
+            log(s.stage);
+            stage = s.stage.to_string();
+        }
+    })
+    .map_err(|e| format!("building the demo map: {e}"))?;
     mapfile::save(&m, &path).map_err(|e| e.to_string())?;
     Ok(path)
-}
-
-/// `map` with its own calibration fitted on [`pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES`]
-/// queries of `scene` (the dataset it was built from), as `pntr build-db --dataset` does.
-fn with_own_calibration(
-    map: map::Map,
-    scene: &pntr_dataset::SceneEntry,
-    stage: pntr_features::config::FeatureStage,
-    preset: Preset,
-) -> Result<map::Map, String> {
-    use pntr_mapping::selfcal;
-    let base = pntr_pipeline::calibration::Calibration::embedded();
-    let p = selfcal::fitting_pipeline(map, stage, preset, &base).map_err(|e| e.to_string())?;
-    let regions = selfcal::Regions::of_map(&p.map).map_err(|e| e.to_string())?;
-    let fitted = pntr_mapping::own_calibration::fit_on_dataset(
-        &p,
-        &base,
-        &regions,
-        &[scene],
-        pntr_mapping::recording_map::SELF_CALIBRATION_FRAMES,
-        &mut |_, _, _| {},
-    )
-    .map_err(|e| format!("fitting the demo map's own calibration: {e}"))?;
-    let calibration = fitted
-        .fit
-        .map_err(|e| format!("fitting the demo map's own calibration: {e}"))?;
-    Ok(selfcal::fitted_map(p, Some(calibration)))
 }

@@ -495,36 +495,13 @@ impl Engine {
         })
     }
 
-    /// A feature stage that describes map images for `preset` (its float backbone, as `pntr
-    /// build-db` does), for extending a map. Built anew: model loading takes a second or two.
-    pub fn map_stage(&self, preset: &Preset) -> Result<FeatureStage, String> {
-        self.stage_of(preset, preset.map_feature_config(self.models.clone()))
-    }
-
-    /// A feature stage that describes queries for `preset` (its own backbone, as `pntr build-db`'s
-    /// self-calibration does), for fitting a map's own calibration. Built anew, as
-    /// [`Engine::map_stage`].
-    pub fn query_stage(&self, preset: &Preset) -> Result<FeatureStage, String> {
-        self.stage_of(preset, preset.feature_config(self.models.clone()))
-    }
-
-    fn stage_of(
-        &self,
-        preset: &Preset,
-        config: pntr_features::config::FeatureConfig,
-    ) -> Result<FeatureStage, String> {
-        pntr_features::config::FeatureConfig {
+    /// The networks mapping loads for this engine's maps (extending a map, refitting its own
+    /// calibration): the engine's models folder and runtime options, each stage built anew.
+    pub fn stages(&self) -> pntr_mapping::stages::Stages {
+        pntr_mapping::stages::Stages {
+            models: self.models.clone(),
             runtime: self.runtime.clone(),
-            ..config
         }
-        .build()
-        .map_err(|e| {
-            format!(
-                "loading the models of preset {} from {}: {e}",
-                preset.name,
-                self.models.display()
-            )
-        })
     }
 
     /// The feature stages `preset` runs with, or those of its bf16 twin ([`Preset::bf16_twin`])
