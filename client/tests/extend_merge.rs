@@ -357,6 +357,22 @@ fn sessions_extend_and_merge_maps() {
     assert_eq!(m2["calibration_refit"]["frames"], 60, "{m2}");
     assert_eq!(m2["calibration"]["threshold"], refit["threshold"], "{m2}");
     support::assert_same_map(&merged, &merged_fitted);
+    // And it answers the scene's queries at least as well as A, the whole drive's map (B, the
+    // shorter session in another frame, covers less), with no wrong answer.
+    let answers = |map: &Path| {
+        let report = dir.path().join("merged-eval.json");
+        ok(&support::eval(&first, map, &["--json", report.to_str().unwrap()]));
+        let r = support::read_json(&report);
+        (
+            r["recall"]["0.25m_2deg"].as_f64().unwrap(),
+            r["localized_wrong"].as_u64().unwrap(),
+        )
+    };
+    let ((recall_a, _), (recall_merged, wrong)) = (answers(&a), answers(&merged_fitted));
+    assert!(
+        recall_merged >= recall_a - 0.02 && wrong == 0,
+        "merged map: recall {recall_merged:.3} ({wrong} wrong) against A's {recall_a:.3}"
+    );
     // A calibration fitted for the drive's map on the same apartment's dataset and another's: the
     // dataset's poses have Habitat camera axes, the map's OpenCV ones (compared as they are, every
     // in-map answer was 180 degrees off and the fit found no right answer to fit).
