@@ -361,7 +361,11 @@ fn sessions_extend_and_merge_maps() {
     // shorter session in another frame, covers less), with no wrong answer.
     let answers = |map: &Path| {
         let report = dir.path().join("merged-eval.json");
-        ok(&support::eval(&first, map, &["--json", report.to_str().unwrap()]));
+        ok(&support::eval(
+            &first,
+            map,
+            &["--json", report.to_str().unwrap()],
+        ));
         let r = support::read_json(&report);
         (
             r["recall"]["0.25m_2deg"].as_f64().unwrap(),
