@@ -11,13 +11,11 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use pntr_core::{convert_axes, CameraAxes};
-use pntr_dataset::queries::{query_list, QueryViews};
+use pntr_dataset::queries::query_list;
 use pntr_dataset::{DatasetIndex, SceneEntry};
-use pntr_eval::pose_error;
 use pntr_mapping::fit::{self, QuerySamples};
 use pntr_pipeline::calibration::Calibration;
-use pntr_pipeline::pipeline::{Pipeline, Query};
+use pntr_pipeline::pipeline::Pipeline;
 use pntr_pipeline::preset::{Preset, DEFAULT_PRESET};
 use pntr_pipeline::verify::EVIDENCE_NAMES;
 use pntr_synth::effects::RobotEffects;
@@ -116,8 +114,8 @@ pub struct CalibrateArgs {
     pub threads: usize,
 }
 
-/// Localise every query of `list` (with `effects` when given) and label every verified candidate:
-/// right when within (1 m, 10 deg) of the query's ground truth (`negative`: never).
+/// [`fit::labelled_samples`] with a progress bar saying `what`.
+#[allow(clippy::too_many_arguments)]
 fn collect(
     pipeline: &Pipeline,
     list: &[(pntr_dataset::PointEntry, usize)],
@@ -125,62 +123,24 @@ fn collect(
     negative: bool,
     what: &str,
     out: &mut Vec<QuerySamples>,
-    notes: &mut Vec<serde_json::Value>,
+    notes: &mut Vec<fit::CandidateNote>,
 ) -> Result<()> {
-    let pb = indicatif::ProgressBar::new(list.len() as u64);
-    pb.set_message(what.to_string());
-    pb.set_style(
-        indicatif::ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} (eta {eta})")
-            .expect("valid template"),
-    );
-    let mut views = QueryViews::default();
-    for (i, (p, qi)) in list.iter().enumerate() {
-        let v = views.view(p, *qi)?;
-        let mut q = Query {
-            rgb: v.rgb,
-            depth: v.depth,
-            intrinsics: v.intrinsics,
-        };
-        if let Some(fx) = effects {
-            fx.apply(&mut q.rgb, &mut q.depth, i as u64 + 1);
-        }
-        let l = match pipeline.localize(&q) {
-            Ok(l) => l,
-            Err(e) => {
-                tracing::warn!("query {}: {e}", p.query_id(*qi));
-                continue;
-            }
-        };
-        // The dataset's poses have Habitat camera axes; the candidates', the map's (a map built from
-        // a recording has OpenCV axes).
-        let truth = convert_axes(
-            &v.world_from_camera,
-            CameraAxes::Habitat,
-            pipeline.map.header.axes(),
-        );
-        // Labels as the map's own calibration gives them (right within 1 m, 10 deg).
-        let group = pntr_mapping::selfcal::samples_of(&l, (!negative).then_some(&truth));
-        for c in &l.verified {
-            let (dt, dr) = pose_error(&c.pose, &truth, false);
-            notes.push(serde_json::json!({
-                "query": p.query_id(*qi),
-                "effects": effects.is_some(),
-                "image": pipeline.map.images[c.image].id,
-                "chosen": l.image == Some(c.image),
-                "error_m": dt,
-                "error_deg": dr,
-                "confidence": c.confidence,
-                "answer_confidence": l.confidence,
-                "rivals": c.rivals.iter().map(|&r| pipeline.map.images[r].id.clone()).collect::<Vec<_>>(),
-            }));
-        }
-        if !group.candidates.is_empty() {
-            out.push(group);
-        }
-        pb.set_position(i as u64 + 1);
-    }
-    pb.finish_and_clear();
-    Ok(())
+    let mut bars = crate::output::bars();
+    Ok(fit::labelled_samples(
+        pipeline,
+        list,
+        effects,
+        negative,
+        out,
+        notes,
+        &mut |done, total| {
+            bars(pntr_mapping::progress::Step {
+                stage: what,
+                done,
+                total,
+            })
+        },
+    )?)
 }
 
 pub use pntr_mapping::fit::today;
@@ -333,7 +293,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             .enumerate()
             .flat_map(|(g, q)| q.candidates.iter().map(move |c| (g, c)));
         for (i, (g, (e, right))) in flat.enumerate() {
-            let mut line = notes[i].clone();
+            let mut line = serde_json::to_value(&notes[i])?;
             line["right"] = serde_json::json!(right);
             line["negative"] = serde_json::json!(g >= n_inmap);
             line["evidence"] = serde_json::json!(e);

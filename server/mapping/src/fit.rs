@@ -7,8 +7,11 @@
 use pntr_pipeline::calibration::{
     choose, ece, model_inputs, sigmoid, Calibration, FitInfo, FORMAT, N_FEATURES, VERSION,
 };
+use pntr_pipeline::pipeline::{Pipeline, Query};
 use pntr_pipeline::verify::{Evidence, EVIDENCE_NAMES};
 use pntr_pipeline::PipelineError;
+use pntr_synth::effects::RobotEffects;
+use serde::Serialize;
 
 /// Today's date (UTC) as YYYY-MM-DD.
 pub fn today() -> String {
@@ -212,6 +215,97 @@ pub fn threshold_for_precision(probs: &[(f64, bool)], target: f64) -> f64 {
         }
     }
     best
+}
+
+/// One verified candidate of a query [`labelled_samples`] localized: what `pntr calibrate
+/// --samples` writes, one JSON line each, to study which candidates the fit sees.
+#[derive(Debug, Clone, Serialize)]
+pub struct CandidateNote {
+    /// The query (Point file and index).
+    pub query: String,
+    /// Whether the robot camera's effects were applied to it.
+    pub effects: bool,
+    /// The candidate's map image.
+    pub image: String,
+    /// Whether it is the one the answer chose.
+    pub chosen: bool,
+    /// Its pose's position error against the query's truth, metres.
+    pub error_m: f64,
+    /// Its pose's geodesic rotation error, degrees.
+    pub error_deg: f64,
+    /// Its own probability of being right.
+    pub confidence: f64,
+    /// The answer's confidence.
+    pub answer_confidence: f64,
+    /// The map images of its rivals (candidates whose poses disagree with it).
+    pub rivals: Vec<String>,
+}
+
+/// Localize every query of `list` ((Point file, query index) of a dataset, its poses in Habitat
+/// axes) against `pipeline`'s map, with a robot camera's `effects` when given (seeded by the
+/// query's place in the list), and label each verified candidate as the map's own calibration does
+/// (right within (1 m, 10 deg) of the truth; never when `negative`: the query's place is not in
+/// the map). Each query's samples go to `out` (when it has a candidate), each candidate's note to
+/// `notes`. A query the pipeline fails on is passed over with a warning. `progress(done, total)`
+/// after each query. Errors: a query that cannot be read.
+pub fn labelled_samples(
+    pipeline: &Pipeline,
+    list: &[(pntr_dataset::PointEntry, usize)],
+    effects: Option<&RobotEffects>,
+    negative: bool,
+    out: &mut Vec<QuerySamples>,
+    notes: &mut Vec<CandidateNote>,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<(), PipelineError> {
+    let mut views = pntr_dataset::queries::QueryViews::default();
+    for (i, (p, qi)) in list.iter().enumerate() {
+        let v = views.view(p, *qi)?;
+        let mut q = Query {
+            rgb: v.rgb,
+            depth: v.depth,
+            intrinsics: v.intrinsics,
+        };
+        if let Some(fx) = effects {
+            fx.apply(&mut q.rgb, &mut q.depth, i as u64 + 1);
+        }
+        let l = match pipeline.localize(&q) {
+            Ok(l) => l,
+            Err(e) => {
+                tracing::warn!("query {}: {e}", p.query_id(*qi));
+                continue;
+            }
+        };
+        // The dataset's poses have Habitat camera axes; the candidates', the map's (a map built from
+        // a recording has OpenCV axes).
+        let truth = pntr_core::convert_axes(
+            &v.world_from_camera,
+            pntr_core::CameraAxes::Habitat,
+            pipeline.map.header.axes(),
+        );
+        let group = crate::selfcal::samples_of(&l, (!negative).then_some(&truth));
+        for c in &l.verified {
+            notes.push(CandidateNote {
+                query: p.query_id(*qi),
+                effects: effects.is_some(),
+                image: pipeline.map.images[c.image].id.clone(),
+                chosen: l.image == Some(c.image),
+                error_m: (c.pose.translation.vector - truth.translation.vector).norm(),
+                error_deg: pntr_core::rotation_angle_deg(&c.pose.rotation, &truth.rotation),
+                confidence: c.confidence,
+                answer_confidence: l.confidence,
+                rivals: c
+                    .rivals
+                    .iter()
+                    .map(|&r| pipeline.map.images[r].id.clone())
+                    .collect(),
+            });
+        }
+        if !group.candidates.is_empty() {
+            out.push(group);
+        }
+        progress(i + 1, list.len());
+    }
+    Ok(())
 }
 
 #[cfg(test)]
