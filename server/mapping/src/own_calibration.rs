@@ -167,6 +167,28 @@ pub fn refitted(
     })
 }
 
+/// A fitting pipeline over `map` ([`fitting_pipeline`]), `fit` run on it and its regions, and the
+/// map back with the result ([`refitted`]); a map without regions is refused (kept when
+/// `opts.keep_on_refusal`).
+fn refit_with(
+    map: Map,
+    opts: &FitOptions,
+    stages: &Stages,
+    map_stage: Option<pntr_features::config::FeatureStage>,
+    fit: impl FnOnce(&Pipeline, &Regions) -> Result<FittedCalibration, PipelineError>,
+) -> Result<Refitted, PipelineError> {
+    let t0 = std::time::Instant::now();
+    let (p, regions) = fitting_pipeline(map, &opts.base, stages, map_stage)?;
+    let fitted = match regions {
+        Ok(regions) => fit(&p, &regions)?,
+        Err(why) => FittedCalibration {
+            fit: Err(PipelineError::Refused(why)),
+            answers: Vec::new(),
+        },
+    };
+    refitted(p, fitted.fit, fitted.answers, opts.keep_on_refusal, t0)
+}
+
 /// `map` with its own calibration fitted on the queries of `scenes` (the dataset it was built
 /// from: its scenes; queries of other scenes are skipped), at most `opts.max_frames` of them
 /// ([`fit_on_dataset`]). Errors: `Refused` for a map of a single place or queries that cannot
@@ -180,29 +202,16 @@ pub fn on_dataset(
     map_stage: Option<pntr_features::config::FeatureStage>,
     progress: &mut Progress<'_>,
 ) -> Result<Refitted, PipelineError> {
-    let t0 = std::time::Instant::now();
-    let (p, regions) = fitting_pipeline(map, &opts.base, stages, map_stage)?;
-    let regions = match regions {
-        Ok(r) => r,
-        Err(why) => {
-            return refitted(
-                p,
-                Err(PipelineError::Refused(why)),
-                Vec::new(),
-                opts.keep_on_refusal,
-                t0,
-            )
-        }
-    };
-    let fitted = fit_on_dataset(
-        &p,
-        &opts.base,
-        &regions,
-        scenes,
-        opts.max_frames,
-        &mut crate::progress::self_calibration(regions.count(), progress),
-    )?;
-    refitted(p, fitted.fit, fitted.answers, opts.keep_on_refusal, t0)
+    refit_with(map, opts, stages, map_stage, |p, regions| {
+        fit_on_dataset(
+            p,
+            &opts.base,
+            regions,
+            scenes,
+            opts.max_frames,
+            &mut crate::progress::self_calibration(regions.count(), progress),
+        )
+    })
 }
 
 /// The posed frames of `sessions` that are not `map`'s own images (matched by stamp: they would be
@@ -245,28 +254,15 @@ pub fn on_recordings(
     map_stage: Option<pntr_features::config::FeatureStage>,
     progress: &mut Progress<'_>,
 ) -> Result<Refitted, PipelineError> {
-    let t0 = std::time::Instant::now();
-    let (p, regions) = fitting_pipeline(map, &opts.base, stages, map_stage)?;
-    let regions = match regions {
-        Ok(r) => r,
-        Err(why) => {
-            return refitted(
-                p,
-                Err(PipelineError::Refused(why)),
-                Vec::new(),
-                opts.keep_on_refusal,
-                t0,
-            )
-        }
-    };
-    let fitted = crate::recording_map::fit_own_calibration(
-        &p,
-        &opts.base,
-        &regions,
-        sessions,
-        frames,
-        None,
-        &mut crate::progress::self_calibration(regions.count(), progress),
-    )?;
-    refitted(p, fitted.fit, fitted.answers, opts.keep_on_refusal, t0)
+    refit_with(map, opts, stages, map_stage, |p, regions| {
+        crate::recording_map::fit_own_calibration(
+            p,
+            &opts.base,
+            regions,
+            sessions,
+            frames,
+            None,
+            &mut crate::progress::self_calibration(regions.count(), progress),
+        )
+    })
 }
