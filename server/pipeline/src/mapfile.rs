@@ -161,10 +161,14 @@ fn decode_image(
     if (q.norm() - 1.0).abs() > 1e-3 {
         return Err(format!("{what} ({id}): rotation is not a unit quaternion"));
     }
-    let world_from_camera = Isometry3::from_parts(
-        Translation3::new(v[0], v[1], v[2]),
-        UnitQuaternion::from_quaternion(q),
-    );
+    // A rotation unit to rounding (one carried by a transform, as a merge does) is kept as it was
+    // written, so a map read and written again is the same file; a looser one is normalised.
+    let rotation = if (q.norm() - 1.0).abs() <= 1e-12 {
+        UnitQuaternion::new_unchecked(q)
+    } else {
+        UnitQuaternion::from_quaternion(q)
+    };
+    let world_from_camera = Isometry3::from_parts(Translation3::new(v[0], v[1], v[2]), rotation);
     let image_size = (r.u32().map_err(e)?, r.u32().map_err(e)?);
     let n = r.u32().map_err(e)? as usize;
     let dim = r.u32().map_err(e)? as usize;
@@ -741,6 +745,34 @@ mod tests {
         assert_eq!(a.thumb, b.thumb);
         assert_eq!(a.fine, b.fine);
         assert_eq!(a.camera, b.camera);
+    }
+
+    #[test]
+    fn a_record_read_and_written_again_is_the_same_bytes() {
+        // A rotation composed with another (as a merge carries images into A's frame) is unit
+        // only to rounding; reading must not renormalise it, or the file changes on every pass.
+        let mut im = image(true);
+        let rotation = (1..1000)
+            .map(|i| {
+                let a = i as f64 * 0.37;
+                UnitQuaternion::from_quaternion(Quaternion::new(a.cos(), 0.3, a.sin(), -0.2))
+            })
+            .find(|r| r.quaternion().coords.norm() != 1.0)
+            .expect("a normalised quaternion whose norm rounds off 1");
+        im.world_from_camera = Isometry3::from_parts(im.world_from_camera.translation, rotation);
+        let q = im.world_from_camera.rotation.quaternion().coords;
+        assert_ne!(q.norm(), 1.0, "the case under test: unit only to rounding");
+        let k = pntr_core::Intrinsics::hpointloc();
+        let bytes = encoded(&im);
+        let back = decode_image(&bytes, 0, FORMAT_VERSION, &k).unwrap();
+        assert_eq!(encoded(&back), bytes);
+        // One that is off by more is normalised as before.
+        let mut loose = bytes.clone();
+        let at = 8 + im.id.len() + 4 + 4 + 3 * 8; // id (u64 length + bytes), scene, point, t
+        loose[at..at + 8].copy_from_slice(&(q.w * 1.0001).to_le_bytes());
+        let back = decode_image(&loose, 0, FORMAT_VERSION, &k).unwrap();
+        let n = back.world_from_camera.rotation.quaternion().coords.norm();
+        assert!((n - 1.0).abs() < 1e-12, "{n}");
     }
 
     #[test]
