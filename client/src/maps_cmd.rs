@@ -174,7 +174,7 @@ pub struct MergeArgs {
     pub threads: usize,
     /// Print JSON: transform (translation, rotation_wxyz: B's map frame into A's), covariance (36
     /// values, ROS order, A's frame), supporting_keyframes, keyframes_tried, keyframes_verified,
-    /// images, rms_m, seconds, file, calibration (as `pntr info --db --json` says it) and
+    /// images, rms_m, seconds, file, calibration (as `pntr build-db --json` gives it) and
     /// calibration_refit (frames, seconds, kept_because; null without `--sequence`).
     #[arg(long)]
     pub json: bool,
@@ -238,7 +238,14 @@ fn merge(args: &MergeArgs) -> Result<()> {
         &crate::loading::stages(&models, args.threads),
         &mut crate::output::bars(),
     )
-    .with_context(|| format!("merging {} into {}", args.b.display(), args.a.display()))?;
+    .with_context(|| {
+        format!(
+            "merging {} into {} (nothing was written to {})",
+            args.b.display(),
+            args.a.display(),
+            args.out.display()
+        )
+    })?;
     let seconds = t.elapsed().as_secs_f64();
     pntr_pipeline::mapfile::save(&merged, &args.out)
         .with_context(|| format!("writing {}", args.out.display()))?;

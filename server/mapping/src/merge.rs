@@ -403,8 +403,18 @@ pub fn run(
     let Some(refit) = refit else {
         return Ok((merged, report));
     };
+    // The transform was found; what fails from here is the recordings given for the fit.
+    let for_fit = |e: PipelineError| {
+        match e {
+        PipelineError::Refused(why) => PipelineError::Refused(format!(
+            "B's frame into A's was found, but the recordings given could not fit the merged map's own calibration (their poses must be in A's frame): {why}"
+        )),
+        e => e,
+    }
+    };
     let frames =
-        crate::own_calibration::recording_frames(&merged, refit.sessions, refit.fit.max_frames)?;
+        crate::own_calibration::recording_frames(&merged, refit.sessions, refit.fit.max_frames)
+            .map_err(for_fit)?;
     let done = crate::own_calibration::on_recordings(
         merged,
         refit.sessions,
@@ -413,7 +423,8 @@ pub fn run(
         stages,
         None,
         progress,
-    )?;
+    )
+    .map_err(for_fit)?;
     report.calibration_refit = Some(CalibrationRefit {
         frames: frames.len(),
         seconds: done.seconds,

@@ -214,23 +214,36 @@ pub fn on_dataset(
     })
 }
 
-/// The posed frames of `sessions` that are not `map`'s own images (matched by stamp: they would be
-/// answered by themselves), evenly spaced, at most `max` (0: all), as (session, frame). Errors:
-/// `Refused` when there is none.
+/// The posed frames of `sessions` that are not `map`'s own images (they would be answered by
+/// themselves), evenly spaced, at most `max` (0: all), as (session, frame). A frame is a map image
+/// when an image has its stamp and its position (within 1 mm): two sessions' clocks both start at
+/// 0 in rendered drives, so the stamp alone would leave out another session's frames that share
+/// one. Errors: `Refused` when there is none.
 pub fn recording_frames(
     map: &Map,
     sessions: &[Session<'_>],
     max: usize,
 ) -> Result<Vec<(usize, usize)>, PipelineError> {
-    let stamps: Vec<f64> = map.images.iter().filter_map(|im| im.stamp).collect();
-    let is_map_image = |t: f64| stamps.iter().any(|s| (s - t).abs() < 1e-6);
+    let stamped: Vec<(f64, nalgebra::Vector3<f64>)> = map
+        .images
+        .iter()
+        .filter_map(|im| Some((im.stamp?, im.world_from_camera.translation.vector)))
+        .collect();
+    let is_map_image = |t: f64, at: nalgebra::Vector3<f64>| {
+        stamped
+            .iter()
+            .any(|(s, p)| (s - t).abs() < 1e-6 && (p - at).norm() < 1e-3)
+    };
     let frames: Vec<(usize, usize)> = sessions
         .iter()
         .enumerate()
         .flat_map(|(si, s)| {
             (0..s.recording.len())
-                .filter(|&i| s.recording.world_from_camera(i).is_some())
-                .filter(|&i| !is_map_image(s.recording.timestamp(i)))
+                .filter(|&i| {
+                    s.recording.world_from_camera(i).is_some_and(|pose| {
+                        !is_map_image(s.recording.timestamp(i), pose.translation.vector)
+                    })
+                })
                 .map(move |i| (si, i))
         })
         .collect();
