@@ -496,11 +496,19 @@ impl Engine {
     }
 
     /// The networks mapping loads for this engine's maps (extending a map, refitting its own
-    /// calibration): the engine's models folder and runtime options, each stage built anew.
+    /// calibration): the engine's models folder and device, each stage built anew. A mapping job is
+    /// one long task, not one of many requests, so its networks get the machine's threads (up to
+    /// 4; at least a worker's), as `pntr build-db` does: an extension on two cores took 1-2 s
+    /// longer than `build-db --extend` with one thread (BENCHMARKS.md, "Merged maps and their own
+    /// calibration").
     pub fn stages(&self) -> pntr_mapping::stages::Stages {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         pntr_mapping::stages::Stages {
             models: self.models.clone(),
-            runtime: self.runtime.clone(),
+            runtime: pntr_features::runtime::RuntimeOptions {
+                threads: cores.min(4).max(self.runtime.threads),
+                ..self.runtime.clone()
+            },
         }
     }
 
