@@ -234,6 +234,32 @@ fn sessions_extend_and_merge_maps() {
             "--no-self-calibration",
         ],
     );
+    // The same drive built again (under another name, so its image ids differ) in that other
+    // frame is refused rather than merged into a map holding every view twice.
+    let copy = dir.path().join("first-copy");
+    std::os::unix::fs::symlink(seq(&first), &copy).unwrap();
+    let moved_first = dir.path().join("moved-first.txt");
+    move_trajectory(&seq(&first).join("groundtruth.txt"), &moved_first, &slam);
+    let again = dir.path().join("again.pntrmap");
+    build(
+        &copy,
+        &again,
+        &[
+            "--trajectory",
+            moved_first.to_str().unwrap(),
+            "--no-self-calibration",
+        ],
+    );
+    let msg = err(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        again.to_str().unwrap(),
+        "--out",
+        dir.path().join("twice.pntrmap").to_str().unwrap(),
+    ]));
+    assert!(msg.contains("B is the same drive as A"), "{msg}");
+    assert!(!dir.path().join("twice.pntrmap").exists());
     let merged = dir.path().join("merged.pntrmap");
     let m = ok_json(&pntr(&[
         "maps",

@@ -371,6 +371,7 @@ pub fn merge(a: Map, b: &Map, p: &MergeParams) -> Result<(Map, MergeReport), Pip
     let k = chosen.len() as f64;
     cov /= k * (k - 1.0).max(1.0);
     let report_support = chosen.len();
+    same_views(&a, b, &a_from_b)?;
     let merged = append(a, b, &a_from_b)?;
     let report = MergeReport {
         a_from_b,
@@ -404,14 +405,6 @@ pub fn run(
         return Ok((merged, report));
     };
     // The transform was found; what fails from here is the recordings given for the fit.
-    let for_fit = |e: PipelineError| {
-        match e {
-        PipelineError::Refused(why) => PipelineError::Refused(format!(
-            "B's frame into A's was found, but the recordings given could not fit the merged map's own calibration (their poses must be in A's frame): {why}"
-        )),
-        e => e,
-    }
-    };
     let frames =
         crate::own_calibration::recording_frames(&merged, refit.sessions, refit.fit.max_frames)
             .map_err(for_fit)?;
@@ -431,6 +424,57 @@ pub fn run(
         kept_because: done.kept_because,
     });
     Ok((done.map, report))
+}
+
+/// B's camera within this distance of one of A's, carried into A's frame, is the same view.
+pub const SAME_VIEW_M: f64 = 0.05;
+/// See [`SAME_VIEW_M`].
+pub const SAME_VIEW_DEG: f64 = 2.0;
+
+/// Refuse B when most of its images, carried into A's frame by `a_from_b`, stand where one of A's
+/// cameras stands, looking the same way ([`SAME_VIEW_M`], [`SAME_VIEW_DEG`]): the same drive built
+/// twice (from its TUM folder and from a bag of it, or with another trajectory's frame), which
+/// the images' ids and bytes do not show and which would leave every view in the map twice. The
+/// bounds leave room for the transform's own error (a few millimetres and tenths of a degree); two
+/// drives of the same rooms choose their keyframes where their own motion put them, and only a
+/// few of them fall that close to one another.
+fn same_views(a: &Map, b: &Map, a_from_b: &Isometry3<f64>) -> Result<(), PipelineError> {
+    let (a_axes, b_axes) = (a.header.axes(), b.header.axes());
+    let cameras: Vec<Isometry3<f64>> = a
+        .images
+        .iter()
+        .map(|im| convert_axes(&im.world_from_camera, a_axes, CameraAxes::OpenCv))
+        .collect();
+    let same = b
+        .images
+        .iter()
+        .filter(|im| {
+            let carried =
+                a_from_b * convert_axes(&im.world_from_camera, b_axes, CameraAxes::OpenCv);
+            cameras.iter().any(|c| {
+                (c.translation.vector - carried.translation.vector).norm() <= SAME_VIEW_M
+                    && c.rotation.angle_to(&carried.rotation).to_degrees() <= SAME_VIEW_DEG
+            })
+        })
+        .count();
+    if same * 2 > b.images.len() {
+        return Err(PipelineError::Refused(format!(
+            "{same} of map B's {} images, carried into A's frame, stand where one of A's cameras stands (within {:.0} cm and {SAME_VIEW_DEG} deg): B is the same drive as A (built again from another copy of the recording, or with another frame): nothing to merge",
+            b.images.len(),
+            100.0 * SAME_VIEW_M
+        )));
+    }
+    Ok(())
+}
+
+/// A refusal of the merged map's calibration fit, saying that the merge itself succeeded.
+fn for_fit(e: PipelineError) -> PipelineError {
+    match e {
+        PipelineError::Refused(why) => PipelineError::Refused(format!(
+            "B's frame into A's was found, but the recordings given could not fit the merged map's own calibration (their poses must be in A's frame): {why}"
+        )),
+        e => e,
+    }
 }
 
 fn too_few(agreeing: usize, tried: usize, verified: usize, p: &MergeParams) -> PipelineError {
