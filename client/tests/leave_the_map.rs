@@ -4,7 +4,8 @@
 //! camera's effects that leaves the mapped rooms into look-alike ones, replayed through a real
 //! `pntr-server` (in this process, 127.0.0.1, ephemeral port) five times faster than it was
 //! recorded, with the recording's capture stamps. The old rules answered this drive LOCALIZED up to
-//! 4.6 m off (the look-alike room) and, at this pace, re-acquired the mapped rooms late.
+//! 4.6 m off (the look-alike room) and, at this pace, re-acquired the mapped rooms late; its
+//! refusals out of the map said UNVERIFIED and NO_MATCH, as a camera that sees nothing would.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -85,6 +86,8 @@ fn a_drive_out_of_the_mapped_rooms_is_never_answered_far_off() {
         .collect();
     let truth = poses(&drive_seq.join("groundtruth.txt"));
     let (mut mapped, mut mapped_right, mut unmapped, mut wrong) = (0, 0, 0, Vec::new());
+    // Refused frames out of the map, those of them that say so, and mapped frames that say so.
+    let (mut unmapped_refused, mut unmapped_outside, mut mapped_outside) = (0, 0, 0);
     let text = std::fs::read_to_string(&frames).unwrap();
     for line in text.lines() {
         let a: serde_json::Value = serde_json::from_str(line).unwrap();
@@ -102,14 +105,24 @@ fn a_drive_out_of_the_mapped_rooms_is_never_answered_far_off() {
         {
             wrong.push(line.to_string());
         }
+        let outside = a["cause"] == "OUTSIDE_MAP";
+        if outside {
+            let reason = a["reason"].as_str().unwrap_or_default();
+            assert!(reason.starts_with("outside the mapped area:"), "{line}");
+        }
         if is_mapped {
             mapped += 1;
             mapped_right += (localized && error_m.is_some_and(|m| m <= 0.25)) as usize;
+            mapped_outside += outside as usize;
         } else {
             unmapped += 1;
+            unmapped_refused += (!localized) as usize;
+            unmapped_outside += outside as usize;
         }
     }
-    eprintln!("{mapped} mapped frames, {mapped_right} right; {unmapped} unmapped");
+    eprintln!(
+        "{mapped} mapped frames, {mapped_right} right, {mapped_outside} OUTSIDE_MAP; {unmapped} unmapped, {unmapped_refused} refused, {unmapped_outside} OUTSIDE_MAP"
+    );
     assert!(
         unmapped >= 150 && mapped >= 150,
         "the drive leaves the map and comes back"
@@ -118,5 +131,16 @@ fn a_drive_out_of_the_mapped_rooms_is_never_answered_far_off() {
     assert!(
         mapped_right as f64 >= 0.9 * mapped as f64,
         "{mapped_right} of {mapped} mapped frames right"
+    );
+    // A supervisor tells the unmapped wing from a camera that sees nothing: most refused frames
+    // out of the map say OUTSIDE_MAP (the first second of each stretch keeps its own cause), and
+    // the mapped rooms hardly ever do.
+    assert!(
+        unmapped_outside * 2 >= unmapped_refused,
+        "{unmapped_outside} of {unmapped_refused} refused unmapped frames say OUTSIDE_MAP"
+    );
+    assert!(
+        mapped_outside * 20 <= mapped,
+        "{mapped_outside} of {mapped} mapped frames say OUTSIDE_MAP"
     );
 }

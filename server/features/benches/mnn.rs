@@ -1,5 +1,6 @@
 //! Mutual nearest-neighbour matching of float descriptors, one core: the final matcher's size
-//! (1024 x 1024 keypoints) and the shortlist vote's (128 and 256 of the strongest).
+//! (1024 x 1024 keypoints), a 256x256 frame's (512: the shortlist's last vote, the turned views)
+//! and the shortlist vote's (128 and 256 of the strongest).
 //!
 //! Baseline in the same run: the similarity matrix product alone (the same sgemm into the same
 //! buffer), the floor of any exact MNN; the ratio of the two is the cost of finding the best row
@@ -57,7 +58,7 @@ fn bench(c: &mut Criterion) {
     g.warm_up_time(std::time::Duration::from_millis(500));
     g.measurement_time(std::time::Duration::from_secs(2));
     let params = MnnParams::default();
-    for n in [128usize, 256, 1024] {
+    for n in [128usize, 256, 512, 1024] {
         let (a, b) = pair(n);
         let mut buf = MnnBuffers::default();
         let mut out = Matches::default();

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use pntr_pipeline::odometry::Keyframe;
+use pntr_pipeline::pipeline::OUTSIDE_MAP_PREFIX;
 use pntr_pipeline::prior::{tracking_heading, tracking_region, Heading, LocalizeOptions, Region};
 use tokio::sync::oneshot;
 use tokio_stream::wrappers::ReceiverStream;
@@ -327,6 +328,131 @@ pub const ESTABLISH_GAP_DEG: f64 = 5.0;
 pub const ESTABLISH_SPEED_MPS: f64 = 0.5;
 /// ... and within [`ESTABLISH_GAP_DEG`] of its orientation plus this turn rate (degrees per second).
 pub const ESTABLISH_TURN_DEG_PER_S: f64 = 45.0;
+
+/// A stream whose frames the map has not matched ([`Verdict::Missed`]) for this long, seconds
+/// (capture stamps when the frames carry them), in at least [`OUTSIDE_MAP_FRAMES`] frames, with no
+/// LOCALIZED answer between them, is outside the mapped area: its further misses answer
+/// OUTSIDE_MAP (issue 49: a robot that starts in an unmapped wing, or whose track the map dropped
+/// there, used to answer UNVERIFIED and NO_MATCH frame after frame, which a supervisor cannot tell
+/// from a camera that sees nothing).
+pub const OUTSIDE_MAP_AFTER_S: f64 = 1.0;
+/// See [`OUTSIDE_MAP_AFTER_S`].
+pub const OUTSIDE_MAP_FRAMES: u32 = 3;
+/// A refusal by verification is a miss when its calibrated confidence (the probability that the
+/// best pose found is right) is below this: the map holds no place like the view, rather than one
+/// it is unsure of.
+pub const MISS_CONFIDENCE: f64 = 0.2;
+
+/// What an answer says of whether the map holds the frame's view.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Verdict {
+    /// Nothing like it, though the frame was fit to be localized: no candidate registered
+    /// (NO_MATCH), verification refused its best pose as unlikely ([`MISS_CONFIDENCE`]), or
+    /// odometry carried the camera outside the mapped area (OUTSIDE_MAP).
+    Missed,
+    /// A place, not sure enough: a refusal at [`MISS_CONFIDENCE`] or more, a look-alike, a weak
+    /// fix being re-acquired. A run of misses goes on across such frames (a wing of look-alike
+    /// rooms gives many), without counting them.
+    Unsure,
+    /// A LOCALIZED answer, or a frame that says nothing of the place (BAD_INPUT: the camera may
+    /// be blocked): it ends a run of misses.
+    Other,
+}
+
+impl Verdict {
+    fn of(r: &proto::LocalizeResponse) -> Self {
+        use proto::NotLocalizedCause as C;
+        if r.status == proto::Status::Localized as i32 {
+            return Self::Other;
+        }
+        match C::try_from(r.cause) {
+            Ok(C::NoMatch | C::OutsideMap) => Self::Missed,
+            Ok(C::Unverified)
+                if r.confidence < MISS_CONFIDENCE && r.reason.starts_with("verification:") =>
+            {
+                Self::Missed
+            }
+            Ok(C::Unverified | C::LookAlike) => Self::Unsure,
+            _ => Self::Other,
+        }
+    }
+}
+
+/// The run of misses a stream is in ([`Verdict`]): when its first miss was, how many misses and
+/// how many frames since.
+#[derive(Debug, Default)]
+struct Misses {
+    since: Option<Moment>,
+    missed: u32,
+    frames: u32,
+}
+
+/// A run of misses long enough to put a stream outside the mapped area: seconds since its first
+/// miss, misses, frames.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Run {
+    seconds: f64,
+    missed: u32,
+    frames: u32,
+}
+
+impl Misses {
+    /// Take answer `r` (a frame captured at `stamp_s`): the run, when `r` is a miss that comes
+    /// [`OUTSIDE_MAP_AFTER_S`] or more after the run's first and the run holds
+    /// [`OUTSIDE_MAP_FRAMES`] misses or more.
+    fn after(&mut self, r: &proto::LocalizeResponse, stamp_s: Option<f64>) -> Option<Run> {
+        match Verdict::of(r) {
+            Verdict::Other => {
+                *self = Self::default();
+                None
+            }
+            Verdict::Unsure => {
+                self.frames += self.since.is_some() as u32;
+                None
+            }
+            Verdict::Missed => {
+                let now = Moment::now(stamp_s);
+                let since = *self.since.get_or_insert(now);
+                self.missed += 1;
+                self.frames += 1;
+                let seconds = now.since(&since);
+                (seconds >= OUTSIDE_MAP_AFTER_S && self.missed >= OUTSIDE_MAP_FRAMES).then_some(
+                    Run {
+                        seconds,
+                        missed: self.missed,
+                        frames: self.frames,
+                    },
+                )
+            }
+        }
+    }
+}
+
+/// Say of a missed frame that the stream is outside the mapped area: cause OUTSIDE_MAP, the reason
+/// prefixed with [`OUTSIDE_MAP_PREFIX`] and the run's length, the frame's own reason kept after it.
+/// An answer that already says so is left as it is.
+fn outside_map(r: &mut proto::LocalizeResponse, run: Run) {
+    if r.cause == proto::NotLocalizedCause::OutsideMap as i32 {
+        return;
+    }
+    let Run {
+        seconds,
+        missed,
+        frames,
+    } = run;
+    let counts = if missed == frames {
+        format!("{frames} frames in a row, each fit to be localized, found nothing like it")
+    } else {
+        format!(
+            "{missed} of {frames} frames, each fit to be localized, found nothing like it, the others no place sure enough"
+        )
+    };
+    r.cause = proto::NotLocalizedCause::OutsideMap as i32;
+    r.reason = format!(
+        "{OUTSIDE_MAP_PREFIX} no place of the map has matched the camera's view for {seconds:.1} s ({counts}); the stream answers again when the camera is back where the map reaches (this frame: {})",
+        r.reason
+    );
+}
 
 /// When something happened to a stream: the server's clock, and the capture stamp of the frame
 /// (`LocalizeRequest.stamp_s`, seconds on the sensor's clock) when the client sent one.
@@ -1036,6 +1162,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
                 let mut track: Option<Track> = None;
                 // The stamp of the stream's last stamped frame.
                 let mut last_stamp: Option<f64> = None;
+                // The frames the map has not matched, one after another.
+                let mut misses = Misses::default();
                 loop {
                     // A shutdown ends the stream between frames (the transport has sent GOAWAY
                     // by then), so the robot reconnects at once instead of at the drain's end.
@@ -1177,6 +1305,9 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         // relocalizing frame is answered as a unary call would be).
                         if let Some(t) = track.as_ref().filter(|t| !t.established && !relocalize) {
                             provisional(&mut r, t);
+                        }
+                        if let Some(run) = misses.after(&r, stamp_s) {
+                            outside_map(&mut r, run);
                         }
                         count_answer(&r, &r.map_id);
                         // The track keeps map-frame poses; the caller gets its convention.
@@ -1758,5 +1889,112 @@ mod tests {
         assert_eq!(r.status, proto::Status::NotLocalized as i32);
         assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
         assert!(r.pose.is_none() && r.covariance.is_empty());
+    }
+
+    #[test]
+    fn frames_the_map_has_not_matched_for_a_second_say_outside_the_mapped_area() {
+        use proto::NotLocalizedCause as C;
+        let refused = |cause: C, confidence: f64, reason: &str| proto::LocalizeResponse {
+            status: proto::Status::NotLocalized as i32,
+            cause: cause as i32,
+            confidence,
+            reason: reason.into(),
+            ..Default::default()
+        };
+        let no_match = || {
+            refused(
+                C::NoMatch,
+                0.0,
+                "registration: no candidate gave a valid registration",
+            )
+        };
+        let unlikely = || {
+            refused(
+                C::Unverified,
+                0.03,
+                "verification: confidence 0.03 below the threshold",
+            )
+        };
+        let unsure = || refused(C::Unverified, 0.5, "verification: confidence 0.50 below");
+        let blocked = || {
+            refused(
+                C::BadInput,
+                0.0,
+                "input: only 3 keypoints lie on valid depth",
+            )
+        };
+        let localized = proto::LocalizeResponse {
+            status: proto::Status::Localized as i32,
+            confidence: 0.0,
+            ..Default::default()
+        };
+        // Misses: no registration, an unlikely pose, a camera already dead-reckoned outside.
+        for r in [
+            no_match(),
+            unlikely(),
+            refused(C::OutsideMap, 0.0, "outside the mapped area: odometry"),
+        ] {
+            assert_eq!(Verdict::of(&r), Verdict::Missed, "{r:?}");
+        }
+        // Unsure: a pose the map doubts, a look-alike, a stream re-acquiring on a weak fix.
+        for r in [
+            unsure(),
+            refused(C::LookAlike, 0.9, "verification: a pose turned"),
+            refused(C::Unverified, 0.0, "re-acquiring: the stream's map fix"),
+        ] {
+            assert_eq!(Verdict::of(&r), Verdict::Unsure, "{r:?}");
+        }
+        // Neither: a LOCALIZED answer, a starved frame (the camera may be blocked).
+        assert_eq!(Verdict::of(&localized), Verdict::Other);
+        assert_eq!(Verdict::of(&blocked()), Verdict::Other);
+
+        // Stamped frames at 10 Hz: misses say "outside" from the run's first second on.
+        let mut misses = Misses::default();
+        for k in 0..10 {
+            let stamp = 5.0 + 0.1 * k as f64;
+            assert_eq!(misses.after(&unlikely(), Some(stamp)), None, "frame {k}");
+        }
+        let run = misses
+            .after(&no_match(), Some(6.0))
+            .expect("a second of misses");
+        assert!((run.seconds - 1.0).abs() < 1e-9 && run.missed == 11 && run.frames == 11);
+        let mut r = no_match();
+        outside_map(&mut r, run);
+        assert_eq!(r.cause, C::OutsideMap as i32);
+        assert!(r.reason.starts_with(OUTSIDE_MAP_PREFIX), "{}", r.reason);
+        assert!(
+            r.reason.contains("1.0 s (11 frames in a row")
+                && r.reason.contains("no candidate gave"),
+            "{}",
+            r.reason
+        );
+        // A dead-reckoned answer keeps its own reason.
+        let mut own = refused(C::OutsideMap, 0.0, "outside the mapped area: odometry");
+        outside_map(&mut own, run);
+        assert_eq!(own.reason, "outside the mapped area: odometry");
+        // Unsure frames are not relabelled and do not end the run; the next miss still says so.
+        assert_eq!(misses.after(&unsure(), Some(6.1)), None);
+        let run = misses
+            .after(&no_match(), Some(6.2))
+            .expect("the run goes on");
+        assert!(run.missed == 12 && run.frames == 13);
+        let mut r = unlikely();
+        outside_map(&mut r, run);
+        assert!(r.reason.contains("12 of 13 frames"), "{}", r.reason);
+        // A blocked camera's frame ends the run: misses for less than a second after it say
+        // nothing of the map, a second of them does again; a LOCALIZED answer ends it too.
+        assert_eq!(misses.after(&blocked(), Some(6.3)), None);
+        for k in 0..9 {
+            assert_eq!(misses.after(&no_match(), Some(6.4 + 0.1 * k as f64)), None);
+        }
+        assert!(misses.after(&no_match(), Some(7.4)).is_some());
+        assert_eq!(misses.after(&localized, Some(7.5)), None);
+        assert_eq!(misses.after(&no_match(), Some(7.6)), None);
+        // Unsure frames alone start no run; two misses a second and more apart are too few.
+        let mut sparse = Misses::default();
+        assert_eq!(sparse.after(&unsure(), Some(0.0)), None);
+        assert_eq!(sparse.after(&no_match(), Some(0.5)), None);
+        assert_eq!(sparse.after(&no_match(), Some(2.0)), None);
+        assert!(sparse.after(&no_match(), Some(3.0)).is_some());
     }
 }
