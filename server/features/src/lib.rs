@@ -49,7 +49,7 @@ pub enum FeatureError {
 }
 
 /// Keypoints with descriptors of one image.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Features {
     /// Keypoints (x = column, y = row) in pixels of the input image, OpenCV convention.
     pub keypoints: Vec<[f32; 2]>,

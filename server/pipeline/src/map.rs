@@ -61,14 +61,26 @@ pub struct MapImage {
 impl MapImage {
     /// The features in the form the matchers take (f16 widened to f32).
     pub fn features(&self) -> Features {
-        Features {
-            keypoints: self.keypoints.clone(),
-            scores: self.scores.clone(),
-            descriptors: self.descriptors.iter().map(|x| x.to_f32()).collect(),
-            dim: self.dim,
-            binary: self.binary.clone(),
-            image_size: self.image_size,
-        }
+        let mut f = Features::default();
+        self.features_into(&mut f);
+        f
+    }
+
+    /// [`Self::features`] written into `out`, reusing its buffers (a query matched against image
+    /// after image allocates nothing after the first).
+    pub fn features_into(&self, out: &mut Features) {
+        use half::slice::HalfFloatSliceExt;
+        out.keypoints.clear();
+        out.keypoints.extend_from_slice(&self.keypoints);
+        out.scores.clear();
+        out.scores.extend_from_slice(&self.scores);
+        out.descriptors.clear();
+        out.descriptors.resize(self.descriptors.len(), 0.0);
+        self.descriptors.convert_to_f32_slice(&mut out.descriptors);
+        out.dim = self.dim;
+        out.binary.clear();
+        out.binary.extend_from_slice(&self.binary);
+        out.image_size = self.image_size;
     }
 
     /// The 3D point of keypoint `i`, where its depth was valid.

@@ -1836,7 +1836,16 @@ impl Pipeline {
         let m = match matched {
             Matched::Known(m) => m,
             Matched::By(matcher) => {
-                made = matcher.match_features(fq, &db.features())?;
+                // The image's features widened into this thread's buffers, not allocated anew for
+                // each candidate (the turned views match six a query).
+                thread_local! {
+                    static DB_FEATURES: std::cell::RefCell<Features> = Default::default();
+                }
+                made = DB_FEATURES.with(|f| {
+                    let mut f = f.borrow_mut();
+                    db.features_into(&mut f);
+                    matcher.match_features(fq, &f)
+                })?;
                 &made
             }
         };
