@@ -338,6 +338,9 @@ pub const ESTABLISH_TURN_DEG_PER_S: f64 = 45.0;
 pub const OUTSIDE_MAP_AFTER_S: f64 = 1.0;
 /// See [`OUTSIDE_MAP_AFTER_S`].
 pub const OUTSIDE_MAP_FRAMES: u32 = 3;
+/// A frame this long, seconds, after the run's last frame starts a new run: where the camera was
+/// before such a gap says nothing of where it is now.
+pub const OUTSIDE_MAP_MAX_GAP_S: f64 = 2.0;
 /// A refusal by verification is a miss when its calibrated confidence (the probability that the
 /// best pose found is right) is below this: the map holds no place like the view, rather than one
 /// it is unsure of.
@@ -368,7 +371,8 @@ impl Verdict {
         match C::try_from(r.cause) {
             Ok(C::NoMatch | C::OutsideMap) => Self::Missed,
             Ok(C::Unverified)
-                if r.confidence < MISS_CONFIDENCE && r.reason.starts_with("verification:") =>
+                if r.confidence < MISS_CONFIDENCE.min(r.min_confidence)
+                    && r.reason.starts_with("verification:") =>
             {
                 Self::Missed
             }
@@ -378,11 +382,14 @@ impl Verdict {
     }
 }
 
-/// The run of misses a stream is in ([`Verdict`]): when its first miss was, how many misses and
-/// how many frames since.
+/// The run of misses a stream is in ([`Verdict`]): the map it was against (id and
+/// [`LoadedMap::serial`]), when its first miss and its last frame were, how many misses and how many
+/// frames since the first.
 #[derive(Debug, Default)]
 struct Misses {
+    map: Option<(String, u64)>,
     since: Option<Moment>,
+    last: Option<Moment>,
     missed: u32,
     frames: u32,
 }
@@ -397,13 +404,37 @@ struct Run {
 }
 
 impl Misses {
-    /// Take answer `r` (a frame captured at `stamp_s`): the run, when `r` is a miss that comes
-    /// [`OUTSIDE_MAP_AFTER_S`] or more after the run's first and the run holds
-    /// [`OUTSIDE_MAP_FRAMES`] misses or more.
-    fn after(&mut self, r: &proto::LocalizeResponse, stamp_s: Option<f64>) -> Option<Run> {
+    /// Take answer `r` of map `map` (its id and [`LoadedMap::serial`]; a frame captured at
+    /// `stamp_s`): the run, when `r` is a miss that comes [`OUTSIDE_MAP_AFTER_S`] or more after the
+    /// run's first and the run holds [`OUTSIDE_MAP_FRAMES`] misses or more. Another map (or a new
+    /// version of it), or a frame [`OUTSIDE_MAP_MAX_GAP_S`] after the run's last, starts anew.
+    fn after(
+        &mut self,
+        r: &proto::LocalizeResponse,
+        map: (&str, u64),
+        stamp_s: Option<f64>,
+    ) -> Option<Run> {
+        let now = Moment::now(stamp_s);
+        let same_map = self
+            .map
+            .as_ref()
+            .is_some_and(|(id, serial)| (id.as_str(), *serial) == map);
+        if !same_map
+            || self
+                .last
+                .is_some_and(|t| now.since(&t) > OUTSIDE_MAP_MAX_GAP_S)
+        {
+            *self = Self {
+                map: Some((map.0.to_string(), map.1)),
+                ..Self::default()
+            };
+        }
+        self.last = Some(now);
         match Verdict::of(r) {
             Verdict::Other => {
-                *self = Self::default();
+                self.since = None;
+                self.missed = 0;
+                self.frames = 0;
                 None
             }
             Verdict::Unsure => {
@@ -411,7 +442,6 @@ impl Misses {
                 None
             }
             Verdict::Missed => {
-                let now = Moment::now(stamp_s);
                 let since = *self.since.get_or_insert(now);
                 self.missed += 1;
                 self.frames += 1;
@@ -441,15 +471,15 @@ fn outside_map(r: &mut proto::LocalizeResponse, run: Run) {
         frames,
     } = run;
     let counts = if missed == frames {
-        format!("{frames} frames in a row, each fit to be localized, found nothing like it")
+        format!("the map matched none of the last {frames} frames, each fit to be localized")
     } else {
         format!(
-            "{missed} of {frames} frames, each fit to be localized, found nothing like it, the others no place sure enough"
+            "the map matched none of {missed} of the last {frames} frames, each fit to be localized, and the others only to places too uncertain to answer"
         )
     };
     r.cause = proto::NotLocalizedCause::OutsideMap as i32;
     r.reason = format!(
-        "{OUTSIDE_MAP_PREFIX} no place of the map has matched the camera's view for {seconds:.1} s ({counts}); the stream answers again when the camera is back where the map reaches (this frame: {})",
+        "{OUTSIDE_MAP_PREFIX} no place of the map has matched the camera's view for {seconds:.1} s ({counts}); the stream answers again when the camera is back where the map reaches, and if the robot is in mapped rooms, something in front of the camera hides them (this frame: {})",
         r.reason
     );
 }
@@ -1226,6 +1256,9 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     // Stamps that go back belong to a recording started again: where the camera
                     // was says nothing about where it is now.
                     if let (Some(then), Some(now)) = (last_stamp, stamp_s) {
+                        if now < then {
+                            misses = Misses::default();
+                        }
                         if now < then && track.is_some() {
                             tracing::info!(from = then, to = now,
                                 "the stream's stamps went back; tracking starts afresh");
@@ -1251,6 +1284,7 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     };
                     let map_first = tracking.map_first;
                     let sent_id = msg.request_id.clone();
+                    let map_key = (map.id.clone(), map.serial);
                     let result =
                         match id {
                             Ok(id) => this.one(msg, Some(map), id.clone(), deadline, tracking).await.map(
@@ -1306,7 +1340,11 @@ impl proto::localizer_server::Localizer for LocalizerService {
                         if let Some(t) = track.as_ref().filter(|t| !t.established && !relocalize) {
                             provisional(&mut r, t);
                         }
-                        if let Some(run) = misses.after(&r, stamp_s) {
+                        // A relocalizing frame is answered as a unary call would be, and what
+                        // came before it says nothing of where the camera is now.
+                        if relocalize {
+                            misses = Misses::default();
+                        } else if let Some(run) = misses.after(&r, (&map_key.0, map_key.1), stamp_s) {
                             outside_map(&mut r, run);
                         }
                         count_answer(&r, &r.map_id);
@@ -1899,6 +1937,7 @@ mod tests {
             cause: cause as i32,
             confidence,
             reason: reason.into(),
+            min_confidence: 0.7,
             ..Default::default()
         };
         let no_match = || {
@@ -1936,11 +1975,18 @@ mod tests {
         ] {
             assert_eq!(Verdict::of(&r), Verdict::Missed, "{r:?}");
         }
-        // Unsure: a pose the map doubts, a look-alike, a stream re-acquiring on a weak fix.
+        // Unsure: a pose the map doubts, a look-alike, a stream re-acquiring on a weak fix, and a
+        // refusal at the map's own threshold when that is below MISS_CONFIDENCE (a place that
+        // verified, held loosely).
+        let loose = proto::LocalizeResponse {
+            min_confidence: 0.1,
+            ..refused(C::Unverified, 0.15, "verification: the place verifies")
+        };
         for r in [
             unsure(),
             refused(C::LookAlike, 0.9, "verification: a pose turned"),
             refused(C::Unverified, 0.0, "re-acquiring: the stream's map fix"),
+            loose,
         ] {
             assert_eq!(Verdict::of(&r), Verdict::Unsure, "{r:?}");
         }
@@ -1948,14 +1994,19 @@ mod tests {
         assert_eq!(Verdict::of(&localized), Verdict::Other);
         assert_eq!(Verdict::of(&blocked()), Verdict::Other);
 
+        let map = ("m", 1);
         // Stamped frames at 10 Hz: misses say "outside" from the run's first second on.
         let mut misses = Misses::default();
         for k in 0..10 {
             let stamp = 5.0 + 0.1 * k as f64;
-            assert_eq!(misses.after(&unlikely(), Some(stamp)), None, "frame {k}");
+            assert_eq!(
+                misses.after(&unlikely(), map, Some(stamp)),
+                None,
+                "frame {k}"
+            );
         }
         let run = misses
-            .after(&no_match(), Some(6.0))
+            .after(&no_match(), map, Some(6.0))
             .expect("a second of misses");
         assert!((run.seconds - 1.0).abs() < 1e-9 && run.missed == 11 && run.frames == 11);
         let mut r = no_match();
@@ -1963,7 +2014,8 @@ mod tests {
         assert_eq!(r.cause, C::OutsideMap as i32);
         assert!(r.reason.starts_with(OUTSIDE_MAP_PREFIX), "{}", r.reason);
         assert!(
-            r.reason.contains("1.0 s (11 frames in a row")
+            r.reason
+                .contains("for 1.0 s (the map matched none of the last 11 frames")
                 && r.reason.contains("no candidate gave"),
             "{}",
             r.reason
@@ -1973,28 +2025,53 @@ mod tests {
         outside_map(&mut own, run);
         assert_eq!(own.reason, "outside the mapped area: odometry");
         // Unsure frames are not relabelled and do not end the run; the next miss still says so.
-        assert_eq!(misses.after(&unsure(), Some(6.1)), None);
+        assert_eq!(misses.after(&unsure(), map, Some(6.1)), None);
         let run = misses
-            .after(&no_match(), Some(6.2))
+            .after(&no_match(), map, Some(6.2))
             .expect("the run goes on");
         assert!(run.missed == 12 && run.frames == 13);
         let mut r = unlikely();
         outside_map(&mut r, run);
-        assert!(r.reason.contains("12 of 13 frames"), "{}", r.reason);
+        assert!(
+            r.reason.contains("none of 12 of the last 13 frames"),
+            "{}",
+            r.reason
+        );
         // A blocked camera's frame ends the run: misses for less than a second after it say
         // nothing of the map, a second of them does again; a LOCALIZED answer ends it too.
-        assert_eq!(misses.after(&blocked(), Some(6.3)), None);
+        assert_eq!(misses.after(&blocked(), map, Some(6.3)), None);
         for k in 0..9 {
-            assert_eq!(misses.after(&no_match(), Some(6.4 + 0.1 * k as f64)), None);
+            let stamp = 6.4 + 0.1 * k as f64;
+            assert_eq!(misses.after(&no_match(), map, Some(stamp)), None);
         }
-        assert!(misses.after(&no_match(), Some(7.4)).is_some());
-        assert_eq!(misses.after(&localized, Some(7.5)), None);
-        assert_eq!(misses.after(&no_match(), Some(7.6)), None);
-        // Unsure frames alone start no run; two misses a second and more apart are too few.
+        assert!(misses.after(&no_match(), map, Some(7.4)).is_some());
+        assert_eq!(misses.after(&localized, map, Some(7.5)), None);
+        assert_eq!(misses.after(&no_match(), map, Some(7.6)), None);
+        // Another map, or a new version of this one, starts anew; so does a long gap.
+        let mut other = Misses::default();
+        for (k, m) in [map, map, map, ("m", 2), ("m", 2)].into_iter().enumerate() {
+            assert_eq!(
+                other.after(&no_match(), m, Some(0.4 * k as f64)),
+                None,
+                "{k}"
+            );
+        }
+        assert_eq!(other.after(&no_match(), ("n", 2), Some(2.0)), None);
+        let mut gap = Misses::default();
+        assert_eq!(gap.after(&no_match(), map, Some(0.0)), None);
+        assert_eq!(gap.after(&no_match(), map, Some(0.1)), None);
+        assert_eq!(gap.after(&no_match(), map, Some(30.0)), None, "after 30 s");
+        // An unsure frame starts no run: its time does not count towards the second.
         let mut sparse = Misses::default();
-        assert_eq!(sparse.after(&unsure(), Some(0.0)), None);
-        assert_eq!(sparse.after(&no_match(), Some(0.5)), None);
-        assert_eq!(sparse.after(&no_match(), Some(2.0)), None);
-        assert!(sparse.after(&no_match(), Some(3.0)).is_some());
+        assert_eq!(sparse.after(&unsure(), map, Some(0.0)), None);
+        for stamp in [0.5, 0.8, 1.2] {
+            assert_eq!(sparse.after(&no_match(), map, Some(stamp)), None, "{stamp}");
+        }
+        assert!(sparse.after(&no_match(), map, Some(1.5)).is_some());
+        // Without stamps the server's clock measures the run (a second of it is a second here).
+        let mut unstamped = Misses::default();
+        for _ in 0..3 {
+            assert_eq!(unstamped.after(&no_match(), map, None), None);
+        }
     }
 }
