@@ -291,15 +291,20 @@ fn sigterm_refuses_new_requests_drains_held_ones_and_exits_zero() {
     let dir = tempfile::tempdir().unwrap();
     let (db, query) = common::demo_map(dir.path());
 
-    let (mut server, addr, metrics) = spawn(&db, &["--workers", "1", "--drain-timeout-s", "60"]);
+    // A queue of 8: the five held requests must all be taken whether or not the worker has picked
+    // up the first when the fifth arrives (with the default 4 x workers the fifth was sometimes
+    // refused as RESOURCE_EXHAUSTED, a race of the test, not of the drain).
+    let (mut server, addr, metrics) = spawn(
+        &db,
+        &["--workers", "1", "--queue", "8", "--drain-timeout-s", "60"],
+    );
     let rt = runtime();
     rt.block_on(async {
         let url = format!("http://{addr}");
         wait_serving(&url).await;
         let c = LocalizerClient::connect(url.clone()).await.unwrap();
         let req = wire::raw_request(&query.rgb, &query.depth, None);
-        // Five requests held (one running on the only worker, four queued: the default queue is
-        // 4 x workers), then SIGTERM.
+        // Five requests held (one running on the only worker, the others queued), then SIGTERM.
         let mut held = tokio::task::JoinSet::new();
         for _ in 0..5 {
             let (mut c, r) = (c.clone(), req.clone());
