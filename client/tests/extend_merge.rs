@@ -49,6 +49,20 @@ fn images(map: &Path) -> Vec<(String, Isometry3<f64>)> {
 }
 
 /// A TUM trajectory file with every pose moved by `t` (a SLAM session whose origin was elsewhere).
+/// `pntr maps merge A B --out OUT` refused: its message, after checking that nothing was written.
+fn refused_merge(a: &Path, b: &Path, out: &Path) -> String {
+    let msg = err(&pntr(&[
+        "maps",
+        "merge",
+        a.to_str().unwrap(),
+        b.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert!(!out.exists(), "a refused merge wrote {}", out.display());
+    msg
+}
+
 fn move_trajectory(src: &Path, dst: &Path, t: &Isometry3<f64>) {
     let mut out = String::new();
     for v in tum_rows(src) {
@@ -250,16 +264,8 @@ fn sessions_extend_and_merge_maps() {
             "--no-self-calibration",
         ],
     );
-    let msg = err(&pntr(&[
-        "maps",
-        "merge",
-        a.to_str().unwrap(),
-        again.to_str().unwrap(),
-        "--out",
-        dir.path().join("twice.pntrmap").to_str().unwrap(),
-    ]));
+    let msg = refused_merge(&a, &again, &dir.path().join("twice.pntrmap"));
     assert!(msg.contains("B is the same drive as A"), "{msg}");
-    assert!(!dir.path().join("twice.pntrmap").exists());
     let merged = dir.path().join("merged.pntrmap");
     let m = ok_json(&pntr(&[
         "maps",
@@ -562,44 +568,20 @@ fn sessions_extend_and_merge_maps() {
     // Sessions of another apartment are refused: too few keyframes agree.
     let c = dir.path().join("c.pntrmap");
     build(&seq(&elsewhere), &c, &[]);
-    let msg = err(&pntr(&[
-        "maps",
-        "merge",
-        a.to_str().unwrap(),
-        c.to_str().unwrap(),
-        "--out",
-        dir.path().join("no.pntrmap").to_str().unwrap(),
-    ]));
+    let msg = refused_merge(&a, &c, &dir.path().join("no.pntrmap"));
     assert!(msg.contains("too few keyframes agree"), "{msg}");
-    assert!(!dir.path().join("no.pntrmap").exists());
     // One map given twice would hold every image twice: refused, saying so.
-    let msg = err(&pntr(&[
-        "maps",
-        "merge",
-        a.to_str().unwrap(),
-        a.to_str().unwrap(),
-        "--out",
-        dir.path().join("twice.pntrmap").to_str().unwrap(),
-    ]));
+    let msg = refused_merge(&a, &a, &dir.path().join("twice.pntrmap"));
     assert!(
         msg.contains("already in map A") && msg.contains("maps merge A A"),
         "{msg}"
     );
-    assert!(!dir.path().join("twice.pntrmap").exists());
     // A map extended from A (A's images and more) is the merge already: said so.
-    let msg = err(&pntr(&[
-        "maps",
-        "merge",
-        a.to_str().unwrap(),
-        ext.to_str().unwrap(),
-        "--out",
-        dir.path().join("grown.pntrmap").to_str().unwrap(),
-    ]));
+    let msg = refused_merge(&a, &ext, &dir.path().join("grown.pntrmap"));
     assert!(
         msg.contains("was extended from A") && msg.contains("merged map already"),
         "{msg}"
     );
-    assert!(!dir.path().join("grown.pntrmap").exists());
 }
 
 /// groundtruth.txt rows: (stamp, position).
