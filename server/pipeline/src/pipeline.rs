@@ -305,6 +305,24 @@ pub const MIN_EXPLAINED: f64 = 0.2;
 /// on our drives: at most 0.18; a pose 0.25 m or more off: 0.4 and more.
 pub const MAX_TRACK_CONTRADICTION: f64 = 0.3;
 
+/// Farthest a re-anchoring map answer may lie from the frame's odometry pose, metres, for the map's
+/// views to referee between the two ([`Pipeline::referee`]): both poses then see most of what the
+/// map answer's views see. Farther apart, the answer challenges the track instead.
+pub const SLIP_MAX_M: f64 = 1.0;
+/// ... and the largest turn between them, degrees.
+pub const SLIP_MAX_DEG: f64 = 15.0;
+/// How much more of the frame's depth the map answer's views must agree with at the map's pose
+/// than at the odometry pose (shares, 0..1) for the track to have slipped. Chosen on a robot
+/// drive along a striped wall whose odometry lost a third of the camera's motion (seed 5, the map
+/// of the whole mapping drive, and its database-view map): at the five disagreements, each map
+/// answer within 1 cm of the truth and the track 0.17-0.43 m off, the views agreed with 0.99 of
+/// the frame at the map's pose and 0.47-0.78 at the track's; where the map answer was the one
+/// 0.12 m off, 0.96 and 0.93 (BENCHMARKS.md, "Tracks that slip").
+pub const SLIP_AGREE_MARGIN: f64 = 0.15;
+/// ... and how much more of it they must see through at the odometry pose (the track's pose put
+/// 0.13-0.42 of the frame where the views saw through, the map's 0.00-0.01).
+pub const SLIP_VIOLATION_MARGIN: f64 = 0.05;
+
 /// How the reason of a [`Cause::OutsideMap`] answer begins (a contract: supervisors match on it).
 pub const OUTSIDE_MAP_PREFIX: &str = "outside the mapped area:";
 
@@ -386,6 +404,33 @@ pub struct Localization {
     /// pose (metres, degrees), before they were fused; `None` otherwise. How
     /// a stream tells a fix that follows the camera's motion from one that merely lies near it.
     pub track_gap: Option<(f64, f64)>,
+    /// For such a map answer that disagreed with the odometry pose beyond the fusion gate
+    /// ([`fusion_gate_m`]): the map's views contradict the odometry pose where they agree with the
+    /// map's ([`Pipeline::referee`], [`SLIP_AGREE_MARGIN`], [`SLIP_VIOLATION_MARGIN`]), so the
+    /// track had slipped and this answer anchors it instead of challenging it; the stream keeps
+    /// its track established.
+    pub track_slipped: bool,
+}
+
+/// What the map's views say of two poses of one tracked frame ([`Pipeline::referee`]).
+#[derive(Debug, Clone, Copy)]
+struct Slip {
+    /// The dense evidence at the map answer's pose.
+    map: Evidence,
+    /// The same at the odometry pose.
+    track: Evidence,
+}
+
+impl Slip {
+    /// Whether the track slipped: at its pose the views agree with [`SLIP_AGREE_MARGIN`] less of
+    /// the frame's depth than at the map's and see through [`SLIP_VIOLATION_MARGIN`] more of it. A
+    /// paired test, like verification's between a pose and its turned rival, so it holds where no
+    /// absolute floor does (the track's own contradiction check, [`MAX_TRACK_CONTRADICTION`], let
+    /// a striped wall's slip reach 0.43 m).
+    fn slipped(&self) -> bool {
+        self.track.views_agree + SLIP_AGREE_MARGIN <= self.map.views_agree
+            && self.track.views_violation >= self.map.views_violation + SLIP_VIOLATION_MARGIN
+    }
 }
 
 /// A candidate pose that verification scored.
@@ -964,6 +1009,7 @@ impl Pipeline {
             keyframe,
             track_lost: false,
             track_gap: None,
+            track_slipped: false,
         }))
     }
 
@@ -1034,6 +1080,28 @@ impl Pipeline {
             fusion_gate_m(hop.covariance.as_deref()),
             10.0,
         ) {
+            // Near enough that both poses see what the map answer's views see: the views referee.
+            // A track they contradict where the map's pose agrees has slipped (odometry that lost
+            // the camera's motion along a striped wall): the map answer anchors the track.
+            let referee = self.referee(&loc, frame, &hop_pose);
+            if let Some(r) = &referee {
+                tracing::debug!(
+                    gap_m = loc.track_gap.map(|g| g.0),
+                    map_agree = r.map.views_agree,
+                    map_violation = r.map.views_violation,
+                    track_agree = r.track.views_agree,
+                    track_violation = r.track.views_violation,
+                    slipped = r.slipped(),
+                    "the map's views referee between a map answer and the track"
+                );
+            }
+            if referee.is_some_and(|r| r.slipped()) {
+                let loc = Localization {
+                    track_slipped: true,
+                    ..loc
+                };
+                return self.with_keyframe(loc, frame, opts);
+            }
             // The refused map answer still challenges the track: a chain that slipped onto a
             // wrong pose is moved when confident map answers keep agreeing with each other
             // against it (the service's challenge rule).
@@ -1057,6 +1125,59 @@ impl Pipeline {
             }
         }
         self.with_keyframe(loc, frame, opts)
+    }
+
+    /// What the map's views say of a LOCALIZED map answer `loc` of a tracked frame and the frame's
+    /// odometry pose `track_pose` (map frame and axes), when the two lie within [`SLIP_MAX_M`] and
+    /// [`SLIP_MAX_DEG`] of each other: both judged by the map answer's matched view and the other
+    /// views of its Point ([`Self::evidence_at`], the same views for both poses). `None` farther
+    /// apart, or without a thumbnail or a matched image.
+    fn referee(
+        &self,
+        loc: &Localization,
+        frame: &Frame,
+        track_pose: &Isometry3<f64>,
+    ) -> Option<Slip> {
+        let (thumb, image, pose) = (frame.thumb?, loc.image?, loc.pose?);
+        let (gap_m, gap_deg) = loc.track_gap?;
+        if gap_m > SLIP_MAX_M || gap_deg > SLIP_MAX_DEG {
+            return None;
+        }
+        let to_cv = |p: &Isometry3<f64>| convert_axes(p, self.axes, CameraAxes::OpenCv);
+        Some(Slip {
+            map: self.evidence_at(thumb, image, &to_cv(&pose)),
+            track: self.evidence_at(thumb, image, &to_cv(track_pose)),
+        })
+    }
+
+    /// Dense evidence ([`dense_evidence`]) of a frame (`thumb`) at `world_from_query` (OpenCV
+    /// axes, map frame) against map image `image` and up to [`MAX_NEARBY_VIEWS`] other views of
+    /// its Point.
+    fn evidence_at(
+        &self,
+        thumb: &Thumb,
+        image: usize,
+        world_from_query: &Isometry3<f64>,
+    ) -> Evidence {
+        let db = &self.map.images[image];
+        let db_from_query = self.world_from_image(image).inverse() * world_from_query;
+        let mut views: Vec<usize> = self
+            .point_views
+            .get(&(db.scene, db.point))
+            .cloned()
+            .unwrap_or_default();
+        views.retain(|&i| i != image);
+        views.truncate(MAX_NEARBY_VIEWS);
+        let nearby: Vec<(&Thumb, Isometry3<f64>)> = views
+            .iter()
+            .map(|&i| {
+                (
+                    &self.map.images[i].thumb,
+                    self.world_from_image(i).inverse() * world_from_query,
+                )
+            })
+            .collect();
+        dense_evidence(thumb, &db.thumb, &db_from_query, &nearby)
     }
 
     /// The map's surfaces ([`Coverage::of_map`]), made on first use (or by [`Self::coverage_maker`]).
@@ -1354,6 +1475,7 @@ impl Pipeline {
                 keyframe: None,
                 track_lost: false,
                 track_gap: None,
+                track_slipped: false,
             });
         };
         let world_from_query = self
@@ -1431,6 +1553,7 @@ impl Pipeline {
             keyframe: None,
             track_lost: false,
             track_gap: None,
+            track_slipped: false,
         })
     }
 

@@ -586,6 +586,9 @@ struct Followup {
     /// [`pntr_pipeline::pipeline::Localization::track_gap`]: how far a re-anchoring map answer lay from the frame's own
     /// odometry pose (metres, degrees).
     track_gap: Option<(f64, f64)>,
+    /// [`pntr_pipeline::pipeline::Localization::track_slipped`]: the map's views judged that the
+    /// track had slipped and this map answer anchors it.
+    track_slipped: bool,
     /// The frame's capture stamp (`LocalizeRequest.stamp_s`), when it carries one.
     stamp_s: Option<f64>,
 }
@@ -662,8 +665,11 @@ impl Track {
                                 <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
                     }),
                 };
+                // A fix the map's views prefer to the track's own pose (the track slipped) takes
+                // the established track over, as a fused fix would.
                 r.inliers >= STRONG_FIX_INLIERS
                     || (recent && agrees && follows && previous.is_some_and(|p| p.confirmed))
+                    || (recent && f.track_slipped && previous.is_some_and(|p| p.established))
             },
             keyframe: f.keyframe,
             anchored_at: match previous {
@@ -1067,6 +1073,7 @@ impl LocalizerService {
             serial: lm.serial,
             track_lost: loc.track_lost,
             track_gap: loc.track_gap,
+            track_slipped: loc.track_slipped,
             stamp_s: None,
         };
         release(lm);
@@ -1829,6 +1836,31 @@ mod tests {
         )
         .unwrap();
         assert!(follows.established);
+        // A weak fix the map's views preferred to the track's own pose (the track had slipped
+        // 0.3 m) takes an established track over; a track not yet established stays so.
+        let slipped = Followup {
+            track_slipped: true,
+            ..gap(0.3)
+        };
+        let taken = Track::after(
+            Some(&anchored),
+            &fix(0.65, 20, proto::Mode::Tracking),
+            slipped,
+        )
+        .unwrap();
+        assert!(taken.confirmed && taken.established);
+        assert_eq!(taken.position_m.x, 0.65);
+        let slipped = Followup {
+            track_slipped: true,
+            ..gap(0.3)
+        };
+        let still = Track::after(
+            Some(&carried),
+            &fix(0.65, 20, proto::Mode::Tracking),
+            slipped,
+        )
+        .unwrap();
+        assert!(!still.established);
         let on =
             Track::after(Some(&anchored), &fix(0.4, 90, proto::Mode::Tracking), hop()).unwrap();
         assert!(on.established, "odometry keeps it");
