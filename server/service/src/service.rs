@@ -1838,28 +1838,17 @@ mod tests {
         assert!(follows.established);
         // A weak fix the map's views preferred to the track's own pose (the track had slipped
         // 0.3 m) takes an established track over; a track not yet established stays so.
-        let slipped = Followup {
-            track_slipped: true,
-            ..gap(0.3)
+        let slipped_from = |track: &Track| {
+            let f = Followup {
+                track_slipped: true,
+                ..gap(0.3)
+            };
+            Track::after(Some(track), &fix(0.65, 20, proto::Mode::Tracking), f).unwrap()
         };
-        let taken = Track::after(
-            Some(&anchored),
-            &fix(0.65, 20, proto::Mode::Tracking),
-            slipped,
-        )
-        .unwrap();
+        let taken = slipped_from(&anchored);
         assert!(taken.confirmed && taken.established);
         assert_eq!(taken.position_m.x, 0.65);
-        let slipped = Followup {
-            track_slipped: true,
-            ..gap(0.3)
-        };
-        let still = Track::after(
-            Some(&carried),
-            &fix(0.65, 20, proto::Mode::Tracking),
-            slipped,
-        )
-        .unwrap();
+        let still = slipped_from(&carried);
         assert!(!still.established);
         let on =
             Track::after(Some(&anchored), &fix(0.4, 90, proto::Mode::Tracking), hop()).unwrap();
