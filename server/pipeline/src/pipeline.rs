@@ -311,16 +311,17 @@ pub const MAX_TRACK_CONTRADICTION: f64 = 0.3;
 pub const SLIP_MAX_M: f64 = 1.0;
 /// ... and the largest turn between them, degrees.
 pub const SLIP_MAX_DEG: f64 = 15.0;
-/// How much more of the frame's depth the map answer's views must agree with at the map's pose
-/// than at the odometry pose (shares, 0..1) for the track to have slipped. Chosen on a robot
-/// drive along a striped wall whose odometry lost a third of the camera's motion (seed 5, the map
-/// of the whole mapping drive, and its database-view map): at the five disagreements, each map
-/// answer within 1 cm of the truth and the track 0.17-0.43 m off, the views agreed with 0.99 of
-/// the frame at the map's pose and 0.47-0.78 at the track's; where the map answer was the one
-/// 0.12 m off, 0.96 and 0.93 (BENCHMARKS.md, "Tracks that slip").
+/// How much larger a share of the frame's samples that land on the map answer's views
+/// ([`Evidence::views_agree`]) must agree with them at the map's pose than at the odometry pose
+/// for the track to have slipped. Chosen on a robot drive along a striped wall whose odometry lost
+/// a third of the camera's motion (seed 5, the map of the whole mapping drive, and its
+/// database-view map): where the map answer was within 1 cm of the truth and the track 0.17-0.43 m
+/// off, 0.99 agreed at the map's pose and 0.47-0.78 at the track's; one 0.12 m off (seed 3's
+/// mapping drive, route 2) agreed on 0.96 and the right track on 0.93 (BENCHMARKS.md, "Tracks that
+/// slip").
 pub const SLIP_AGREE_MARGIN: f64 = 0.15;
-/// ... and how much more of it they must see through at the odometry pose (the track's pose put
-/// 0.13-0.42 of the frame where the views saw through, the map's 0.00-0.01).
+/// ... and how much larger a share they must see through at the odometry pose
+/// ([`Evidence::views_violation`]; the slipped tracks' poses 0.13-0.42, the map's 0.00-0.05).
 pub const SLIP_VIOLATION_MARGIN: f64 = 0.05;
 
 /// How the reason of a [`Cause::OutsideMap`] answer begins (a contract: supervisors match on it).
@@ -407,8 +408,8 @@ pub struct Localization {
     /// For such a map answer that disagreed with the odometry pose beyond the fusion gate
     /// ([`fusion_gate_m`]): the map's views contradict the odometry pose where they agree with the
     /// map's ([`Pipeline::referee`], [`SLIP_AGREE_MARGIN`], [`SLIP_VIOLATION_MARGIN`]), so the
-    /// track had slipped and this answer anchors it instead of challenging it; the stream keeps
-    /// its track established.
+    /// track had slipped and this answer anchors it instead of challenging it; a stream whose track
+    /// was established and answered within the last second keeps it established.
     pub track_slipped: bool,
 }
 
@@ -1054,9 +1055,11 @@ impl Pipeline {
     /// when the map was tried first (a re-anchoring frame) and the hop held: when the two poses
     /// disagree (by more than [`fusion_gate_m`] or 10 deg), the camera cannot have jumped, so
     /// odometry answers and the map answer goes along as a challenger (`off_track`: two confident
-    /// ones that agree move the track); otherwise the map answer and the track are fused by their
-    /// covariances ([`odometry::fuse`]) and the frame becomes the anchored keyframe at the fused
-    /// pose. Either way [`Localization::track_gap`] says how far apart they were.
+    /// ones that agree move the track), unless the map's views say the track slipped
+    /// ([`Self::referee`], [`Slip::slipped`]): then the map answer anchors the keyframe at its own
+    /// pose ([`Localization::track_slipped`]); otherwise the map answer and the track are fused by
+    /// their covariances ([`odometry::fuse`]) and the frame becomes the anchored keyframe at the
+    /// fused pose. Either way [`Localization::track_gap`] says how far apart they were.
     fn settle(
         &self,
         mut loc: Localization,
@@ -1083,7 +1086,8 @@ impl Pipeline {
             // Near enough that both poses see what the map answer's views see: the views referee.
             // A track they contradict where the map's pose agrees has slipped (odometry that lost
             // the camera's motion along a striped wall): the map answer anchors the track.
-            let referee = self.referee(&loc, frame, &hop_pose);
+            let referee = self.referee(&loc, &pose, frame, &hop_pose);
+            let slipped = referee.is_some_and(|r| r.slipped());
             if let Some(r) = &referee {
                 tracing::debug!(
                     gap_m = loc.track_gap.map(|g| g.0),
@@ -1091,11 +1095,11 @@ impl Pipeline {
                     map_violation = r.map.views_violation,
                     track_agree = r.track.views_agree,
                     track_violation = r.track.views_violation,
-                    slipped = r.slipped(),
+                    slipped,
                     "the map's views referee between a map answer and the track"
                 );
             }
-            if referee.is_some_and(|r| r.slipped()) {
+            if slipped {
                 let loc = Localization {
                     track_slipped: true,
                     ..loc
@@ -1127,25 +1131,26 @@ impl Pipeline {
         self.with_keyframe(loc, frame, opts)
     }
 
-    /// What the map's views say of a LOCALIZED map answer `loc` of a tracked frame and the frame's
-    /// odometry pose `track_pose` (map frame and axes), when the two lie within [`SLIP_MAX_M`] and
-    /// [`SLIP_MAX_DEG`] of each other: both judged by the map answer's matched view and the other
-    /// views of its Point ([`Self::evidence_at`], the same views for both poses). `None` farther
-    /// apart, or without a thumbnail or a matched image.
+    /// What the map's views say of a LOCALIZED map answer `loc` (its pose `pose`) of a tracked
+    /// frame and the frame's odometry pose `track_pose` (both map frame and axes), when the two lie
+    /// within [`SLIP_MAX_M`] and [`SLIP_MAX_DEG`] of each other (`loc.track_gap`): both judged by
+    /// the map answer's matched view and the other views of its Point ([`Self::evidence_at`], the
+    /// same views for both poses). `None` farther apart, or without a thumbnail or a matched image.
     fn referee(
         &self,
         loc: &Localization,
+        pose: &Isometry3<f64>,
         frame: &Frame,
         track_pose: &Isometry3<f64>,
     ) -> Option<Slip> {
-        let (thumb, image, pose) = (frame.thumb?, loc.image?, loc.pose?);
+        let (thumb, image) = (frame.thumb?, loc.image?);
         let (gap_m, gap_deg) = loc.track_gap?;
         if gap_m > SLIP_MAX_M || gap_deg > SLIP_MAX_DEG {
             return None;
         }
         let to_cv = |p: &Isometry3<f64>| convert_axes(p, self.axes, CameraAxes::OpenCv);
         Some(Slip {
-            map: self.evidence_at(thumb, image, &to_cv(&pose)),
+            map: self.evidence_at(thumb, image, &to_cv(pose)),
             track: self.evidence_at(thumb, image, &to_cv(track_pose)),
         })
     }
@@ -2101,6 +2106,34 @@ pub fn check_query(q: &Query) -> Result<(), PipelineError> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_slip_needs_both_margins() {
+        let e = |agree: f64, violation: f64| Evidence {
+            views_agree: agree,
+            views_violation: violation,
+            ..Default::default()
+        };
+        let slip = |track: Evidence| {
+            Slip {
+                map: e(0.99, 0.01),
+                track,
+            }
+            .slipped()
+        };
+        // The striped wall's slip: far less agreement and more seen through at the track's pose.
+        assert!(slip(e(0.66, 0.30)));
+        assert!(slip(e(0.83, 0.07)), "both margins met");
+        // One margin short: a challenger, not a slip.
+        assert!(!slip(e(0.85, 0.30)), "agreement within the margin");
+        assert!(!slip(e(0.50, 0.05)), "see-through within the margin");
+        // The map answer the worse of the two (the track right): never a slip.
+        let right_track = Slip {
+            map: e(0.66, 0.30),
+            track: e(0.99, 0.01),
+        };
+        assert!(!right_track.slipped());
+    }
+
     use super::*;
 
     /// The gate's quantity on the covariance the pipeline computes from inliers: a real sensor's

@@ -665,8 +665,8 @@ impl Track {
                                 <= ESTABLISH_GAP_DEG + ESTABLISH_TURN_DEG_PER_S * dt
                     }),
                 };
-                // A fix the map's views prefer to the track's own pose (the track slipped) takes
-                // the established track over, as a fused fix would.
+                // A fix the map's views prefer to the track's own pose (the track slipped) keeps
+                // an established track established, where it now lies.
                 r.inliers >= STRONG_FIX_INLIERS
                     || (recent && agrees && follows && previous.is_some_and(|p| p.confirmed))
                     || (recent && f.track_slipped && previous.is_some_and(|p| p.established))
@@ -1850,6 +1850,14 @@ mod tests {
         assert_eq!(taken.position_m.x, 0.65);
         let still = slipped_from(&carried);
         assert!(!still.established);
+        // The same fix without the views' word is one that does not follow the motion.
+        let unrefereed = Track::after(
+            Some(&anchored),
+            &fix(0.65, 20, proto::Mode::Tracking),
+            gap(0.3),
+        )
+        .unwrap();
+        assert!(!unrefereed.established);
         let on =
             Track::after(Some(&anchored), &fix(0.4, 90, proto::Mode::Tracking), hop()).unwrap();
         assert!(on.established, "odometry keeps it");
