@@ -48,21 +48,28 @@ fn images(map: &Path) -> Vec<(String, Isometry3<f64>)> {
         .collect()
 }
 
-/// A TUM trajectory file with every pose moved by `t` (a SLAM session whose origin was elsewhere).
-/// `pntr maps merge A B --out OUT` refused: its message, after checking that nothing was written.
-fn refused_merge(a: &Path, b: &Path, out: &Path) -> String {
-    let msg = err(&pntr(&[
+/// `pntr maps merge A B --out OUT` with `extra` arguments.
+fn merge(a: &Path, b: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec![
         "maps",
         "merge",
         a.to_str().unwrap(),
         b.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
-    ]));
+    ];
+    args.extend_from_slice(extra);
+    pntr(&args)
+}
+
+/// `pntr maps merge A B --out OUT` refused: its message, after checking that nothing was written.
+fn refused_merge(a: &Path, b: &Path, out: &Path) -> String {
+    let msg = err(&merge(a, b, out, &[]));
     assert!(!out.exists(), "a refused merge wrote {}", out.display());
     msg
 }
 
+/// A TUM trajectory file with every pose moved by `t` (a SLAM session whose origin was elsewhere).
 fn move_trajectory(src: &Path, dst: &Path, t: &Isometry3<f64>) {
     let mut out = String::new();
     for v in tum_rows(src) {
@@ -267,15 +274,7 @@ fn sessions_extend_and_merge_maps() {
     let msg = refused_merge(&a, &again, &dir.path().join("twice.pntrmap"));
     assert!(msg.contains("B is the same drive as A"), "{msg}");
     let merged = dir.path().join("merged.pntrmap");
-    let m = ok_json(&pntr(&[
-        "maps",
-        "merge",
-        a.to_str().unwrap(),
-        b.to_str().unwrap(),
-        "--out",
-        merged.to_str().unwrap(),
-        "--json",
-    ]));
+    let m = ok_json(&merge(&a, &b, &merged, &["--json"]));
     let a_from_b = json_pose(
         &m["transform"]["translation"],
         &m["transform"]["rotation_wxyz"],
@@ -366,21 +365,20 @@ fn sessions_extend_and_merge_maps() {
     // `maps merge --sequence` does both in one step: the same map, byte for byte (its own
     // calibration fitted on the same frames), never stale.
     let merged_fitted = dir.path().join("merged-fitted.pntrmap");
-    let m2 = ok_json(&pntr(&[
-        "maps",
-        "merge",
-        a.to_str().unwrap(),
-        b.to_str().unwrap(),
-        "--out",
-        merged_fitted.to_str().unwrap(),
-        "--sequence",
-        seq(&first).to_str().unwrap(),
-        "--self-calibration-frames",
-        "60",
-        "--models",
-        MODELS,
-        "--json",
-    ]));
+    let m2 = ok_json(&merge(
+        &a,
+        &b,
+        &merged_fitted,
+        &[
+            "--sequence",
+            seq(&first).to_str().unwrap(),
+            "--self-calibration-frames",
+            "60",
+            "--models",
+            MODELS,
+            "--json",
+        ],
+    ));
     assert_eq!(
         (&m2["calibration"]["source"], &m2["calibration"]["stale"]),
         (&"map".into(), &false.into()),

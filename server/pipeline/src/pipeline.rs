@@ -1164,16 +1164,40 @@ impl Pipeline {
         image: usize,
         world_from_query: &Isometry3<f64>,
     ) -> Evidence {
-        let db = &self.map.images[image];
         let db_from_query = self.world_from_image(image).inverse() * world_from_query;
+        let nearby = self.nearby_views(image, &[], world_from_query);
+        dense_evidence(
+            thumb,
+            &self.map.images[image].thumb,
+            &db_from_query,
+            &nearby,
+        )
+    }
+
+    /// The map views that judge a pose registered against map image `image` besides it: the other
+    /// images of its Point, then the images among `hits` of its scene, at most
+    /// [`MAX_NEARBY_VIEWS`], each with `view_from_query` for the query at `world_from_query`
+    /// (OpenCV axes, map frame).
+    fn nearby_views(
+        &self,
+        image: usize,
+        hits: &[Hit],
+        world_from_query: &Isometry3<f64>,
+    ) -> Vec<(&Thumb, Isometry3<f64>)> {
+        let db = &self.map.images[image];
         let mut views: Vec<usize> = self
             .point_views
             .get(&(db.scene, db.point))
             .cloned()
             .unwrap_or_default();
+        for h in hits {
+            if self.map.images[h.id].scene == db.scene && !views.contains(&h.id) {
+                views.push(h.id);
+            }
+        }
         views.retain(|&i| i != image);
         views.truncate(MAX_NEARBY_VIEWS);
-        let nearby: Vec<(&Thumb, Isometry3<f64>)> = views
+        views
             .iter()
             .map(|&i| {
                 (
@@ -1181,8 +1205,7 @@ impl Pipeline {
                     self.world_from_image(i).inverse() * world_from_query,
                 )
             })
-            .collect();
-        dense_evidence(thumb, &db.thumb, &db_from_query, &nearby)
+            .collect()
     }
 
     /// The map's surfaces ([`Coverage::of_map`]), made on first use (or by [`Self::coverage_maker`]).
@@ -1846,27 +1869,7 @@ impl Pipeline {
         let db_from_query = c.db_from_query.expect("valid");
         let world_from_query = self.world_from_query(c).expect("valid");
         // Nearby views: the matched image's Point and the other retrieved images of its scene.
-        let mut views: Vec<usize> = self
-            .point_views
-            .get(&(db.scene, db.point))
-            .cloned()
-            .unwrap_or_default();
-        for h in hits {
-            if self.map.images[h.id].scene == db.scene && !views.contains(&h.id) {
-                views.push(h.id);
-            }
-        }
-        views.retain(|&i| i != c.image);
-        views.truncate(MAX_NEARBY_VIEWS);
-        let nearby: Vec<(&Thumb, Isometry3<f64>)> = views
-            .iter()
-            .map(|&i| {
-                let im = &self.map.images[i];
-                let world_from_view =
-                    convert_axes(&im.world_from_camera, self.axes, CameraAxes::OpenCv);
-                (&im.thumb, world_from_view.inverse() * world_from_query)
-            })
-            .collect();
+        let nearby = self.nearby_views(c.image, hits, &world_from_query);
         let mut e = dense_evidence(thumb, &db.thumb, &db_from_query, &nearby);
         e.log_inliers = (1.0 + c.inliers as f64).ln();
         e.inlier_ratio = c.inliers as f64 / c.pairs.max(1) as f64;
