@@ -343,17 +343,19 @@ fn sessions_extend_and_merge_maps() {
             "{j}"
         );
     }
-    let refit = ok_json(&pntr(&[
-        "calibrate",
-        "--db",
-        merged_s,
+    // The map's own calibration fitted on the first session's frames (60 of them).
+    let first_seq = seq(&first);
+    let own_fit = [
         "--sequence",
-        seq(&first).to_str().unwrap(),
+        first_seq.to_str().unwrap(),
         "--self-calibration-frames",
         "60",
         "--models",
         MODELS,
-    ]));
+    ];
+    let mut args = vec!["calibrate", "--db", merged_s];
+    args.extend_from_slice(&own_fit);
+    let refit = ok_json(&pntr(&args));
     assert_eq!(refit["source"], "map", "{refit}");
     assert!(refit["held_out_frames"].as_u64().unwrap() > 0, "{refit}");
     assert_eq!(info_json(merged_s)["calibration"]["stale"], false);
@@ -369,15 +371,7 @@ fn sessions_extend_and_merge_maps() {
         &a,
         &b,
         &merged_fitted,
-        &[
-            "--sequence",
-            seq(&first).to_str().unwrap(),
-            "--self-calibration-frames",
-            "60",
-            "--models",
-            MODELS,
-            "--json",
-        ],
+        &[&own_fit[..], &["--json"]].concat(),
     ));
     assert_eq!(
         (&m2["calibration"]["source"], &m2["calibration"]["stale"]),
