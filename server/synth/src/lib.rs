@@ -115,6 +115,9 @@ pub struct SceneSummary {
     /// For a mapping run, the seconds the whole run takes (every Point visited and turned at):
     /// more than `trajectory_seconds` means the drive was cut before it covered the apartment.
     pub mapping_run_seconds: Option<f64>,
+    /// Points no drive reaches ([`trajectory::unreachable_points`]: rooms the furniture closes off
+    /// at the robot's clearance); a drive or mapping run leaves them out.
+    pub unreachable_points: usize,
 }
 
 /// What a synthesis run produced.
@@ -382,6 +385,7 @@ pub fn synthesize(
             size_m: (ps.scene.width_m, ps.scene.depth_m),
             sequence_frames,
             mapping_run_seconds,
+            unreachable_points: trajectory::unreachable_points(&ps.scene, &ps.points),
         });
     }
     Ok(Summary {
