@@ -68,8 +68,8 @@ pub struct SynthArgs {
     /// right, y down, z forward), calibration.txt.
     #[arg(long, value_name = "SECONDS")]
     pub trajectory_seconds: Option<f64>,
-    /// Make the drive a mapping run, as an operator mapping a building drives: every Point visited
-    /// once, a full circle in place at each, stopping after the last (`--trajectory-seconds` is then
+    /// Make the drive a mapping run, as an operator mapping a building drives: every Point the robot
+    /// can reach visited once, a full circle in place at each, stopping after the last (`--trajectory-seconds` is then
     /// a cap).
     #[arg(long, requires = "trajectory_seconds")]
     pub mapping_run: bool,
@@ -254,7 +254,7 @@ fn warnings(s: &Summary) -> Vec<String> {
             let drawn = sc.sequence_frames as f64 / pntr_synth::trajectory::DEFAULT_RATE_HZ;
             (whole > drawn + 1e-6).then(|| {
                 format!(
-                    "{}: the mapping run needs {whole:.1} s to visit every Point, and --trajectory-seconds cut it at {drawn:.1} s: a map built from it leaves part of the apartment out (give --trajectory-seconds {} for the whole run)",
+                    "{}: the mapping run needs {whole:.1} s to visit every Point it can reach, and --trajectory-seconds cut it at {drawn:.1} s: a map built from it leaves part of the apartment out (give --trajectory-seconds {} for the whole run)",
                     sc.name,
                     whole.ceil()
                 )

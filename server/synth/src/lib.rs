@@ -60,7 +60,7 @@ pub struct SynthConfig {
     /// Also render, per scene, a robot's drive of this many seconds ([`trajectory`]: 0.5 m/s,
     /// 10 Hz, through the query camera) into `sequences/<scene>/` in the TUM RGB-D layout.
     pub trajectory_seconds: Option<f64>,
-    /// The drive is a mapping run ([`trajectory::plan_mapping_run`]: every Point once, a full circle
+    /// The drive is a mapping run ([`trajectory::plan_mapping_run`]: every reachable Point once, a full circle
     /// at each, then stop); `trajectory_seconds` caps it.
     pub mapping_run: bool,
     /// Another route through the same scene ([`trajectory::plan_drive_on`]); `None`: the default.

@@ -2,8 +2,8 @@
 //! walking pace from Point to Point, through the doors between rooms, sampled at the camera's rate.
 //!
 //! How: free floor is a 0.1 m grid of cells with enough clearance for the robot's body; the robot
-//! visits the scene's Points (nearest unvisited first, starting from Point 0, looping when all are
-//! visited) along shortest grid paths (A*), shortened by keeping only the corners a straight line
+//! visits the scene's Points it can reach (those of the free region holding the most of them;
+//! nearest unvisited first, starting from the first of them, looping when all are visited) along shortest grid paths (A*), shortened by keeping only the corners a straight line
 //! cannot cut without losing clearance, and driven at constant speed. The camera looks ahead along the
 //! path (a point [`LOOK_AHEAD_M`] further), so it turns smoothly before corners, at most
 //! [`MAX_TURN_DEG_PER_S`], with a slow pitch and roll sway of about a degree, at the database views'
@@ -327,12 +327,13 @@ pub fn plan_mapping_run(
     let obstacles = scene.obstacles();
     let grid = Grid::new(scene, &obstacles);
     let max_frames = (max_seconds * rate_hz).round().max(1.0) as usize;
-    let mut keys: Vec<usize> = points
+    let keys: Vec<usize> = points
         .iter()
         .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
         .collect();
-    keys.dedup();
+    // The region is chosen by its Points (as `unreachable_points` counts them), then shared cells merged.
     let mut keys = grid.reachable(&keys);
+    keys.dedup();
     let mut route_rng = route_seed.map(route_rng);
     let phase: [f64; 2] = [rng.gen_range(0.0..6.3), rng.gen_range(0.0..6.3)];
     let mut yaw: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
@@ -431,9 +432,9 @@ fn at(pts: &[(f64, f64)], cum: &[f64], s: f64) -> (f64, f64) {
 }
 
 /// Plan a drive of `seconds` through `scene`, visiting the key positions of `points`, sampled at
-/// `rate_hz` while moving at `speed_mps`. Deterministic for a given `rng` state. Returns fewer poses
-/// only when the scene has fewer than two reachable Points (then the robot turns on the spot at
-/// Point 0).
+/// `rate_hz` while moving at `speed_mps`. Deterministic for a given `rng` state. Only the Points of
+/// the free region holding the most of them are driven to ([`unreachable_points`]); with fewer
+/// than two there, the robot turns on the spot at the one.
 pub fn plan_drive(
     scene: &Scene,
     points: &[PointPlan],
@@ -445,7 +446,8 @@ pub fn plan_drive(
     plan_drive_on(scene, points, seconds, rate_hz, speed_mps, rng, None)
 }
 
-/// [`plan_drive`] along the route `route_seed` picks: without one the robot starts at Point 0 and
+/// [`plan_drive`] along the route `route_seed` picks: without one the robot starts at the first reachable Point (Point 0 unless furniture closes
+/// it off) and
 /// always drives to the nearest unvisited Point; with one it starts at a Point the seed draws and
 /// weighs each distance by a factor in 0.6..1.4 the seed draws, so the Points come in another order
 /// and parts of the scene are driven the other way.
