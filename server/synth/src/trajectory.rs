@@ -662,21 +662,13 @@ mod tests {
             );
             // Stops: far fewer frames than the cap, and the circle's frames at each stop sweep
             // every direction (a 45 deg/s turn: at least 80 frames standing still).
-            let mut still = 0usize;
-            let mut stops = 0usize;
             for w in drive.windows(2) {
                 let moved = (w[1].world_from_camera.translation.vector
                     - w[0].world_from_camera.translation.vector)
                     .norm();
-                if moved < 1e-9 {
-                    still += 1;
-                } else {
-                    stops += (still >= 79) as usize;
-                    still = 0;
-                }
                 assert!(moved <= 0.05 + 1e-9, "seed {seed}: {moved} m in one frame");
             }
-            stops += (still >= 79) as usize;
+            let stops = circles(&drive);
             let reachable = planned.points.len();
             assert!(
                 stops >= reachable.min(6) && stops <= reachable,
