@@ -68,8 +68,8 @@ pub struct SynthArgs {
     /// right, y down, z forward), calibration.txt.
     #[arg(long, value_name = "SECONDS")]
     pub trajectory_seconds: Option<f64>,
-    /// Make the drive a mapping run, as an operator mapping a building drives: every Point visited
-    /// once, a full circle in place at each, stopping after the last (`--trajectory-seconds` is then
+    /// Make the drive a mapping run, as an operator mapping a building drives: every Point the robot
+    /// can reach visited once, a full circle in place at each, stopping after the last (`--trajectory-seconds` is then
     /// a cap).
     #[arg(long, requires = "trajectory_seconds")]
     pub mapping_run: bool,
@@ -219,28 +219,49 @@ fn summary_json(s: &Summary) -> serde_json::Value {
             "size_m": [sc.size_m.0, sc.size_m.1],
             "sequence_frames": sc.sequence_frames,
             "mapping_run_seconds": sc.mapping_run_seconds,
+            "unreachable_points": sc.unreachable_points,
         })).collect::<Vec<_>>(),
         "warnings": warnings(s),
     })
 }
 
 /// What the user should know about the run: a mapping run that `--trajectory-seconds` cut before it
-/// visited every Point (a map built from it leaves part of the apartment out).
+/// visited every Point (a map built from it leaves part of the apartment out), and a drive that
+/// cannot reach every Point (rooms the furniture closes off).
 fn warnings(s: &Summary) -> Vec<String> {
-    s.scenes
+    let closed_off = s
+        .scenes
+        .iter()
+        .filter(|sc| sc.sequence_frames > 0 && sc.unreachable_points > 0)
+        .map(|sc| {
+            format!(
+                "{}: {} of its {} Points lie in rooms the furniture closes off to the robot: the drive in sequences/{} never reaches them{}",
+                sc.name,
+                sc.unreachable_points,
+                sc.points,
+                sc.name,
+                if sc.mapping_run_seconds.is_some() {
+                    ", and a map built from this mapping run leaves them out"
+                } else {
+                    ""
+                }
+            )
+        });
+    let cut = s.scenes
         .iter()
         .filter_map(|sc| {
             let whole = sc.mapping_run_seconds?;
             let drawn = sc.sequence_frames as f64 / pntr_synth::trajectory::DEFAULT_RATE_HZ;
             (whole > drawn + 1e-6).then(|| {
                 format!(
-                    "{}: the mapping run needs {whole:.1} s to visit every Point, and --trajectory-seconds cut it at {drawn:.1} s: a map built from it leaves part of the apartment out (give --trajectory-seconds {} for the whole run)",
+                    "{}: the mapping run needs {whole:.1} s to visit every Point it can reach, and --trajectory-seconds cut it at {drawn:.1} s: a map built from it leaves part of the apartment out (give --trajectory-seconds {} for the whole run)",
                     sc.name,
                     whole.ceil()
                 )
             })
         })
-        .collect()
+        .collect::<Vec<_>>();
+    cut.into_iter().chain(closed_off).collect()
 }
 
 fn print_summary(s: &Summary) {

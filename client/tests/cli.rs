@@ -557,6 +557,49 @@ fn a_closed_stdout_ends_pntr_quietly() {
 }
 
 #[test]
+fn synth_warns_when_a_drive_cannot_reach_every_point() {
+    // Seed 11's apartment has a room the furniture closes off (two of its 23 Points, Point 0 among
+    // them): the mapping run starts where it can reach the rest, and synth says what it leaves out.
+    let dir = tempfile::tempdir().unwrap();
+    let out = pntr(&[
+        "synth",
+        "--out",
+        dir.path().to_str().unwrap(),
+        "--queries-per-point",
+        "1",
+        "--seed",
+        "11",
+        "--trajectory-seconds",
+        "20",
+        "--mapping-run",
+        "--json",
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+    let j = ok_json(&out);
+    let scene = &j["scenes"][0];
+    assert_eq!(scene["unreachable_points"], 2, "{j}");
+    assert_eq!(scene["sequence_frames"], 200, "{j}");
+    // The whole run visits the other 21 Points: far longer than one place's circle (8 s).
+    assert!(
+        scene["mapping_run_seconds"].as_f64().unwrap() > 150.0,
+        "{j}"
+    );
+    let warnings: Vec<&str> = j["warnings"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| w.as_str().unwrap())
+        .collect();
+    assert!(
+        warnings.iter().any(|w| w
+            .contains("2 of its 23 Points lie in rooms the furniture closes off")
+            && w.contains("leaves them out")),
+        "{warnings:?}"
+    );
+    assert!(stderr.contains("closes off"), "{stderr}");
+}
+
+#[test]
 fn synth_warns_when_trajectory_seconds_cut_a_mapping_run() {
     let run = |seconds: &str| {
         let dir = tempfile::tempdir().unwrap();

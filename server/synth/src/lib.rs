@@ -60,7 +60,7 @@ pub struct SynthConfig {
     /// Also render, per scene, a robot's drive of this many seconds ([`trajectory`]: 0.5 m/s,
     /// 10 Hz, through the query camera) into `sequences/<scene>/` in the TUM RGB-D layout.
     pub trajectory_seconds: Option<f64>,
-    /// The drive is a mapping run ([`trajectory::plan_mapping_run`]: every Point once, a full circle
+    /// The drive is a mapping run ([`trajectory::plan_mapping_run`]: every reachable Point once, a full circle
     /// at each, then stop); `trajectory_seconds` caps it.
     pub mapping_run: bool,
     /// Another route through the same scene ([`trajectory::plan_drive_on`]); `None`: the default.
@@ -115,6 +115,9 @@ pub struct SceneSummary {
     /// For a mapping run, the seconds the whole run takes (every Point visited and turned at):
     /// more than `trajectory_seconds` means the drive was cut before it covered the apartment.
     pub mapping_run_seconds: Option<f64>,
+    /// Points no drive reaches ([`trajectory::unreachable_points`]: rooms the furniture closes off
+    /// at the robot's clearance); a drive or mapping run leaves them out.
+    pub unreachable_points: usize,
 }
 
 /// What a synthesis run produced.
@@ -382,6 +385,7 @@ pub fn synthesize(
             size_m: (ps.scene.width_m, ps.scene.depth_m),
             sequence_frames,
             mapping_run_seconds,
+            unreachable_points: trajectory::unreachable_points(&ps.scene, &ps.points),
         });
     }
     Ok(Summary {

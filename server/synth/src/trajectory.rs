@@ -2,15 +2,15 @@
 //! walking pace from Point to Point, through the doors between rooms, sampled at the camera's rate.
 //!
 //! How: free floor is a 0.1 m grid of cells with enough clearance for the robot's body; the robot
-//! visits the scene's Points (nearest unvisited first, starting from Point 0, looping when all are
-//! visited) along shortest grid paths (A*), shortened by keeping only the corners a straight line
+//! visits the scene's Points it can reach (those of the free region holding the most of them;
+//! nearest unvisited first, starting from the first of them, looping when all are visited) along shortest grid paths (A*), shortened by keeping only the corners a straight line
 //! cannot cut without losing clearance, and driven at constant speed. The camera looks ahead along the
 //! path (a point [`LOOK_AHEAD_M`] further), so it turns smoothly before corners, at most
 //! [`MAX_TURN_DEG_PER_S`], with a slow pitch and roll sway of about a degree, at the database views'
 //! height.
 
 use std::cmp::Ordering;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, HashMap};
 
 use nalgebra::{Isometry3, Translation3};
 use rand::{Rng, SeedableRng};
@@ -172,6 +172,67 @@ impl Grid {
         None
     }
 
+    /// Label of every cell's connected free region (cells joined by the steps [`Grid::path`] takes;
+    /// a diagonal step needs both side cells free, so 4-neighbour flood fill finds the same
+    /// regions); `usize::MAX` for a blocked cell.
+    fn regions(&self) -> Vec<usize> {
+        let mut label = vec![usize::MAX; self.free.len()];
+        let mut next = 0;
+        let mut stack = Vec::new();
+        for start in 0..self.free.len() {
+            if !self.free[start] || label[start] != usize::MAX {
+                continue;
+            }
+            label[start] = next;
+            stack.push(start);
+            while let Some(c) = stack.pop() {
+                let (cx, cz) = (c % self.nx, c / self.nx);
+                let mut visit = |n: usize| {
+                    if self.free[n] && label[n] == usize::MAX {
+                        label[n] = next;
+                        stack.push(n);
+                    }
+                };
+                if cx > 0 {
+                    visit(c - 1);
+                }
+                if cx + 1 < self.nx {
+                    visit(c + 1);
+                }
+                if cz > 0 {
+                    visit(c - self.nx);
+                }
+                if cz + 1 < self.nz {
+                    visit(c + self.nx);
+                }
+            }
+            next += 1;
+        }
+        label
+    }
+
+    /// The Points' cells (`keys`, in order) that the robot can drive between: those of the free
+    /// region holding the most of them (ties: the region of the earliest key), in their order. A
+    /// Point whose room furniture closes off is left out, so that a drive never starts where it
+    /// cannot leave.
+    fn reachable(&self, keys: &[usize]) -> Vec<usize> {
+        let label = self.regions();
+        let mut count: HashMap<usize, usize> = HashMap::new();
+        for &k in keys {
+            *count.entry(label[k]).or_default() += 1;
+        }
+        let mut best: Option<usize> = None;
+        for &k in keys {
+            if best.is_none_or(|b| count[&label[k]] > count[&b]) {
+                best = Some(label[k]);
+            }
+        }
+        keys.iter()
+            .copied()
+            .filter(|&k| Some(label[k]) == best)
+            .collect()
+    }
+
     /// True when the straight segment a-b stays on free cells (sampled every half cell).
     fn line_free(&self, a: (f64, f64), b: (f64, f64)) -> bool {
         let len = ((b.0 - a.0).powi(2) + (b.1 - a.1).powi(2)).sqrt();
@@ -248,8 +309,9 @@ fn camera_pose(x: f64, z: f64, yaw: f64, t: f64, phase: [f64; 2]) -> Isometry3<f
     )
 }
 
-/// The drive an operator makes to map a building: the robot visits every reachable Point once (in
-/// the order [`plan_drive_on`] picks for `route_seed`), turns a full circle in place at each
+/// The drive an operator makes to map a building: the robot visits every reachable Point once (the
+/// free region holding the most Points, [`unreachable_points`] for the rest; in the order
+/// [`plan_drive_on`] picks for `route_seed`), turns a full circle in place at each
 /// ([`MAPPING_TURN_DEG_PER_S`]), drives between them at `speed_mps` looking ahead, and stops after
 /// the last Point's circle. `max_seconds` caps it. Sampled at `rate_hz`; deterministic for a given
 /// `rng` state and `route_seed`.
@@ -265,10 +327,12 @@ pub fn plan_mapping_run(
     let obstacles = scene.obstacles();
     let grid = Grid::new(scene, &obstacles);
     let max_frames = (max_seconds * rate_hz).round().max(1.0) as usize;
-    let mut keys: Vec<usize> = points
+    let keys: Vec<usize> = points
         .iter()
         .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
         .collect();
+    // The region is chosen by its Points (as `unreachable_points` counts them), then shared cells merged.
+    let mut keys = grid.reachable(&keys);
     keys.dedup();
     let mut route_rng = route_seed.map(route_rng);
     let phase: [f64; 2] = [rng.gen_range(0.0..6.3), rng.gen_range(0.0..6.3)];
@@ -340,6 +404,19 @@ pub fn plan_mapping_run(
     out
 }
 
+/// How many of `points` no drive through `scene` reaches: the Points outside the free region that
+/// holds the most of them (a room whose doorway furniture blocks, at the robot's clearance). A
+/// mapping run or a drive leaves them out; the dataset's views and queries there stay.
+pub fn unreachable_points(scene: &Scene, points: &[PointPlan]) -> usize {
+    let obstacles = scene.obstacles();
+    let grid = Grid::new(scene, &obstacles);
+    let keys: Vec<usize> = points
+        .iter()
+        .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
+        .collect();
+    points.len() - grid.reachable(&keys).len()
+}
+
 /// Point along the polyline `pts` (with cumulative lengths `cum`) at arc length `s` (clamped).
 fn at(pts: &[(f64, f64)], cum: &[f64], s: f64) -> (f64, f64) {
     let s = s.clamp(0.0, *cum.last().unwrap_or(&0.0));
@@ -355,9 +432,9 @@ fn at(pts: &[(f64, f64)], cum: &[f64], s: f64) -> (f64, f64) {
 }
 
 /// Plan a drive of `seconds` through `scene`, visiting the key positions of `points`, sampled at
-/// `rate_hz` while moving at `speed_mps`. Deterministic for a given `rng` state. Returns fewer poses
-/// only when the scene has fewer than two reachable Points (then the robot turns on the spot at
-/// Point 0).
+/// `rate_hz` while moving at `speed_mps`. Deterministic for a given `rng` state. Only the Points of
+/// the free region holding the most of them are driven to ([`unreachable_points`]); with fewer
+/// than two there, the robot turns on the spot at the one.
 pub fn plan_drive(
     scene: &Scene,
     points: &[PointPlan],
@@ -369,7 +446,8 @@ pub fn plan_drive(
     plan_drive_on(scene, points, seconds, rate_hz, speed_mps, rng, None)
 }
 
-/// [`plan_drive`] along the route `route_seed` picks: without one the robot starts at Point 0 and
+/// [`plan_drive`] along the route `route_seed` picks: without one the robot starts at the first reachable Point (Point 0 unless furniture closes
+/// it off) and
 /// always drives to the nearest unvisited Point; with one it starts at a Point the seed draws and
 /// weighs each distance by a factor in 0.6..1.4 the seed draws, so the Points come in another order
 /// and parts of the scene are driven the other way.
@@ -386,10 +464,11 @@ pub fn plan_drive_on(
     let grid = Grid::new(scene, &obstacles);
     let frames = (seconds * rate_hz).round().max(1.0) as usize;
     let length_needed = speed_mps * seconds + LOOK_AHEAD_M;
-    let mut keys: Vec<usize> = points
+    let keys: Vec<usize> = points
         .iter()
         .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
         .collect();
+    let mut keys = grid.reachable(&keys);
     let mut route_rng = route_seed.map(route_rng);
     if let Some(r) = route_rng.as_mut() {
         if !keys.is_empty() {
@@ -583,21 +662,13 @@ mod tests {
             );
             // Stops: far fewer frames than the cap, and the circle's frames at each stop sweep
             // every direction (a 45 deg/s turn: at least 80 frames standing still).
-            let mut still = 0usize;
-            let mut stops = 0usize;
             for w in drive.windows(2) {
                 let moved = (w[1].world_from_camera.translation.vector
                     - w[0].world_from_camera.translation.vector)
                     .norm();
-                if moved < 1e-9 {
-                    still += 1;
-                } else {
-                    stops += (still >= 79) as usize;
-                    still = 0;
-                }
                 assert!(moved <= 0.05 + 1e-9, "seed {seed}: {moved} m in one frame");
             }
-            stops += (still >= 79) as usize;
+            let stops = circles(&drive);
             let reachable = planned.points.len();
             assert!(
                 stops >= reachable.min(6) && stops <= reachable,
@@ -618,6 +689,79 @@ mod tests {
                 !same_start || differs,
                 "seed {seed}: route 3 is the default route"
             );
+        }
+    }
+
+    /// Circles of a full turn in place (at least 80 still frames at 45 deg/s and 10 Hz) in `drive`.
+    fn circles(drive: &[TimedPose]) -> usize {
+        let mut still = 0usize;
+        let mut stops = 0usize;
+        for w in drive.windows(2) {
+            let moved = (w[1].world_from_camera.translation.vector
+                - w[0].world_from_camera.translation.vector)
+                .norm();
+            if moved < 1e-9 {
+                still += 1;
+            } else {
+                stops += (still >= 79) as usize;
+                still = 0;
+            }
+        }
+        stops + (still >= 79) as usize
+    }
+
+    #[test]
+    fn drives_start_where_they_can_reach_the_other_points() {
+        // Seeds whose apartments have a room the furniture closes off at the robot's clearance
+        // (two Points each); in seed 11 it holds Point 0, where the default route starts: the
+        // mapping run used to turn its one circle there and stop (81 frames of a 300 s run), and
+        // the drive to turn on the spot.
+        for seed in [6u64, 11] {
+            let cfg = crate::SynthConfig {
+                queries_per_point: 0,
+                seed,
+                ..Default::default()
+            };
+            let planned = crate::plan_scene(&cfg, 0);
+            let unreachable = unreachable_points(&planned.scene, &planned.points);
+            assert_eq!(unreachable, 2, "seed {seed}");
+            let reachable = planned.points.len() - unreachable;
+            for route in [None, Some(1), Some(2)] {
+                let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                let run = plan_mapping_run(
+                    &planned.scene,
+                    &planned.points,
+                    1e5,
+                    10.0,
+                    0.5,
+                    &mut rng,
+                    route,
+                );
+                // Points sharing a free cell share a circle.
+                let n = circles(&run);
+                assert!(
+                    n + 2 >= reachable && n <= reachable,
+                    "seed {seed} route {route:?}: {n} circles for {reachable} reachable Points"
+                );
+                let mut rng = ChaCha8Rng::seed_from_u64(seed);
+                let drive = plan_drive_on(
+                    &planned.scene,
+                    &planned.points,
+                    60.0,
+                    10.0,
+                    0.5,
+                    &mut rng,
+                    route,
+                );
+                let v = |i: usize| drive[i].world_from_camera.translation.vector;
+                let far = (0..drive.len())
+                    .map(|i| (v(i) - v(0)).norm())
+                    .fold(0.0, f64::max);
+                assert!(
+                    far > 3.0,
+                    "seed {seed} route {route:?}: the drive reached {far:.1} m"
+                );
+            }
         }
     }
 }
