@@ -91,11 +91,11 @@ fn sessions_extend_and_merge_maps() {
         dir.path().join("second"),
         dir.path().join("elsewhere"),
     );
-    synth(&first, "44", &[]);
+    synth(&first, "47", &[]);
     // The same apartment driven along another route, under other lighting.
     synth(
         &second,
-        "44",
+        "47",
         &["--route-seed", "2", "--realism", "lighting"],
     );
     synth(&elsewhere, "45", &[]);
