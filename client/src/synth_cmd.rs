@@ -219,10 +219,16 @@ fn summary_json(s: &Summary) -> serde_json::Value {
             "size_m": [sc.size_m.0, sc.size_m.1],
             "sequence_frames": sc.sequence_frames,
             "mapping_run_seconds": sc.mapping_run_seconds,
-            "unreachable_points": sc.unreachable_points,
+            "unreachable_points": sc.unreachable_points.len(),
+            "unreachable_point_ids": point_ids(&sc.unreachable_points),
         })).collect::<Vec<_>>(),
         "warnings": warnings(s),
     })
+}
+
+/// Points by the names the dataset's query ids use (`point7` of `synth000/point7/q3`).
+fn point_ids(points: &[usize]) -> Vec<String> {
+    points.iter().map(|i| format!("point{i}")).collect()
 }
 
 /// What the user should know about the run: a mapping run that `--trajectory-seconds` cut before it
@@ -232,13 +238,14 @@ fn warnings(s: &Summary) -> Vec<String> {
     let closed_off = s
         .scenes
         .iter()
-        .filter(|sc| sc.sequence_frames > 0 && sc.unreachable_points > 0)
+        .filter(|sc| sc.sequence_frames > 0 && !sc.unreachable_points.is_empty())
         .map(|sc| {
             format!(
-                "{}: {} of its {} Points lie in rooms the furniture closes off to the robot: the drive in sequences/{} never reaches them{}",
+                "{}: {} of its {} Points ({}) lie in rooms the furniture closes off to the robot: the drive in sequences/{} never reaches them{}",
                 sc.name,
-                sc.unreachable_points,
+                sc.unreachable_points.len(),
                 sc.points,
+                point_ids(&sc.unreachable_points).join(", "),
                 sc.name,
                 if sc.mapping_run_seconds.is_some() {
                     ", and a map built from this mapping run leaves them out"

@@ -578,6 +578,9 @@ fn synth_warns_when_a_drive_cannot_reach_every_point() {
     let j = ok_json(&out);
     let scene = &j["scenes"][0];
     assert_eq!(scene["unreachable_points"], 2, "{j}");
+    let ids = scene["unreachable_point_ids"].as_array().unwrap();
+    assert_eq!(ids.len(), 2, "{j}");
+    assert!(ids.iter().any(|i| i == "point0"), "{j}");
     assert_eq!(scene["sequence_frames"], 200, "{j}");
     // The whole run visits the other 21 Points: far longer than one place's circle (8 s).
     assert!(
@@ -591,9 +594,11 @@ fn synth_warns_when_a_drive_cannot_reach_every_point() {
         .map(|w| w.as_str().unwrap())
         .collect();
     assert!(
-        warnings.iter().any(|w| w
-            .contains("2 of its 23 Points lie in rooms the furniture closes off")
-            && w.contains("leaves them out")),
+        warnings
+            .iter()
+            .any(|w| w.contains("2 of its 23 Points (point0, ")
+                && w.contains(") lie in rooms the furniture closes off")
+                && w.contains("leaves them out")),
         "{warnings:?}"
     );
     assert!(stderr.contains("closes off"), "{stderr}");

@@ -115,9 +115,9 @@ pub struct SceneSummary {
     /// For a mapping run, the seconds the whole run takes (every Point visited and turned at):
     /// more than `trajectory_seconds` means the drive was cut before it covered the apartment.
     pub mapping_run_seconds: Option<f64>,
-    /// Points no drive reaches ([`trajectory::unreachable_points`]: rooms the furniture closes off
-    /// at the robot's clearance); a drive or mapping run leaves them out.
-    pub unreachable_points: usize,
+    /// Indices of the Points no drive reaches, ascending ([`trajectory::unreachable_points`]: rooms
+    /// the furniture closes off at the robot's clearance); a drive or mapping run leaves them out.
+    pub unreachable_points: Vec<usize>,
 }
 
 /// What a synthesis run produced.

@@ -404,17 +404,23 @@ pub fn plan_mapping_run(
     out
 }
 
-/// How many of `points` no drive through `scene` reaches: the Points outside the free region that
-/// holds the most of them (a room whose doorway furniture blocks, at the robot's clearance). A
-/// mapping run or a drive leaves them out; the dataset's views and queries there stay.
-pub fn unreachable_points(scene: &Scene, points: &[PointPlan]) -> usize {
+/// Which of `points` (their indices, ascending) no drive through `scene` reaches: the Points outside
+/// the free region that holds the most of them (a room whose doorway furniture blocks, at the
+/// robot's clearance), and any with no free cell at all. A mapping run or a drive leaves them out;
+/// the dataset's views and queries there stay.
+pub fn unreachable_points(scene: &Scene, points: &[PointPlan]) -> Vec<usize> {
     let obstacles = scene.obstacles();
     let grid = Grid::new(scene, &obstacles);
-    let keys: Vec<usize> = points
+    let keys: Vec<Option<usize>> = points
         .iter()
-        .filter_map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
+        .map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
         .collect();
-    points.len() - grid.reachable(&keys).len()
+    let reachable = grid.reachable(&keys.iter().flatten().copied().collect::<Vec<_>>());
+    keys.iter()
+        .enumerate()
+        .filter(|(_, k)| k.is_none_or(|k| !reachable.contains(&k)))
+        .map(|(i, _)| i)
+        .collect()
 }
 
 /// Point along the polyline `pts` (with cumulative lengths `cum`) at arc length `s` (clamped).
@@ -724,8 +730,8 @@ mod tests {
             };
             let planned = crate::plan_scene(&cfg, 0);
             let unreachable = unreachable_points(&planned.scene, &planned.points);
-            assert_eq!(unreachable, 2, "seed {seed}");
-            let reachable = planned.points.len() - unreachable;
+            assert_eq!(unreachable.len(), 2, "seed {seed}");
+            let reachable = planned.points.len() - unreachable.len();
             for route in [None, Some(1), Some(2)] {
                 let mut rng = ChaCha8Rng::seed_from_u64(seed);
                 let run = plan_mapping_run(
