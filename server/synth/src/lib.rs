@@ -112,7 +112,7 @@ pub struct SceneSummary {
     pub size_m: (f32, f32),
     /// Frames of the drive written to `sequences/<scene>/` (0 without `trajectory_seconds`).
     pub sequence_frames: usize,
-    /// For a mapping run, the seconds the whole run takes (every Point visited and turned at):
+    /// For a mapping run, the seconds the whole run takes (every reachable Point visited and turned at):
     /// more than `trajectory_seconds` means the drive was cut before it covered the apartment.
     pub mapping_run_seconds: Option<f64>,
     /// Indices of the Points no drive reaches, ascending ([`trajectory::unreachable_points`]: rooms
