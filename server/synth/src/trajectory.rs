@@ -417,14 +417,15 @@ pub fn plan_mapping_run(
 pub fn unreachable_points(scene: &Scene, points: &[PointPlan]) -> Vec<usize> {
     let obstacles = scene.obstacles();
     let grid = Grid::new(scene, &obstacles);
-    let reachable = grid.reachable_keys(points);
-    points
+    // Each Point's cell found once, then judged as the drives judge it.
+    let keys: Vec<Option<usize>> = points
         .iter()
+        .map(|p| grid.nearest_free(p.key_xz.0, p.key_xz.1))
+        .collect();
+    let reachable = grid.reachable(&keys.iter().flatten().copied().collect::<Vec<_>>());
+    keys.iter()
         .enumerate()
-        .filter(|(_, p)| {
-            grid.nearest_free(p.key_xz.0, p.key_xz.1)
-                .is_none_or(|k| !reachable.contains(&k))
-        })
+        .filter(|(_, k)| k.is_none_or(|k| !reachable.contains(&k)))
         .map(|(i, _)| i)
         .collect()
 }
