@@ -20,7 +20,9 @@
 # must agree. Queries go through `pntr replay` at 20 frames/s, each frame alone (--no-prior) and as
 # one stream (tracking). Prints one line per run: localized share, recalls at (5 cm, 5 deg),
 # (10 cm, 5 deg), (0.25 m, 2 deg), (0.25 m, 5 deg: the wide-baseline bar), median errors, answers
-# more than 0.5 m or 10 deg off, latency.
+# more than 0.5 m or 10 deg off, latency; and a second line for the frames that share at least 30%
+# of their view with some frame of the map's recording (scripts/shared_view.py): on these splits
+# the camera leaves what the map saw, and that line separates the pipeline's accuracy from coverage.
 set -euo pipefail
 SRC=${1:?usage: bench_real.sh SEVEN_SCENES_DIR OUT_DIR [PNTR_BIN_DIR]}
 OUT=${2:?usage: bench_real.sh SEVEN_SCENES_DIR OUT_DIR [PNTR_BIN_DIR]}
@@ -81,36 +83,45 @@ serve() { # map -> sets ADDR and SERVER
   until grep -qs listening "$OUT/server.txt"; do kill -0 $SERVER; sleep 0.2; done
   ADDR=$(awk '{print $4}' "$OUT/server.txt")
 }
-summary() { # tag json
-  "$PY" - "$1" "$2" <<'PY'
+summary() { # tag json shared.json
+  "$PY" - "$1" "$2" "$3" <<'PY'
 import json, sys
-tag, path = sys.argv[1], sys.argv[2]
+tag, path, shared_path = sys.argv[1], sys.argv[2], sys.argv[3]
 r = json.load(open(path))
 rows = [json.loads(l) for l in open(path.replace(".json", ".frames.jsonl"))]
-n = len(rows)
-err = [(x["error_m"], x["error_deg"]) for x in rows if x.get("error_m") is not None]
-rec = lambda m, d: sum(1 for e in err if e[0] <= m and e[1] <= d) / max(n, 1)
-med = lambda v: sorted(v)[len(v) // 2] if v else float("nan")
-print("%-28s n %3d localized %.3f | (5cm,5deg) %.3f (10cm,5deg) %.3f (0.25m,2deg) %.3f (0.25m,5deg) %.3f | median %.1f cm %.2f deg | >0.5m/10deg %d | p50 %.0f ms"
-      % (tag, n, r["localized_share"], rec(.05, 5), rec(.10, 5), rec(.25, 2), rec(.25, 5),
-         100 * med([e[0] for e in err]), med([e[1] for e in err]),
-         sum(1 for e in err if e[0] > .5 or e[1] > 10), r["latency_ms"]["p50"]))
+def line(rows):
+    n = len(rows)
+    err = [(x["error_m"], x["error_deg"]) for x in rows if x.get("error_m") is not None]
+    rec = lambda m, d: sum(1 for e in err if e[0] <= m and e[1] <= d) / max(n, 1)
+    med = lambda v: sorted(v)[len(v) // 2] if v else float("nan")
+    return ("n %3d localized %.3f | (5cm,5deg) %.3f (10cm,5deg) %.3f (0.25m,2deg) %.3f (0.25m,5deg) %.3f | median %.1f cm %.2f deg | >0.5m/10deg %d"
+            % (n, sum(x["status"] == "LOCALIZED" for x in rows) / max(n, 1), rec(.05, 5), rec(.10, 5), rec(.25, 2),
+               rec(.25, 5), 100 * med([e[0] for e in err]), med([e[1] for e in err]),
+               sum(1 for e in err if e[0] > .5 or e[1] > 10)))
+print("%-28s %s | p50 %.0f ms" % (tag, line(rows), r["latency_ms"]["p50"]))
+# The frames that share at least 30% of their view with the map's recording: what coverage
+# leaves to the pipeline (frames that share less are mostly right to refuse).
+shared = {round(float(x["stamp"]), 4): x["shared"] for x in json.load(open(shared_path))}
+covered = [x for x in rows if shared.get(round(x["timestamp"], 4), 0) >= 0.3]
+print("%-28s %s" % ("  sharing >= 30% of the view", line(covered)))
 PY
 }
-run() { # tag map_source build_flags query_source replay_flags
-  local tag=$1 map="$OUT/$1.pntrmap"
+run() { # tag map_source build_flags query_source replay_flags [split whose shared views to use]
+  local tag=$1 map="$OUT/$1.pntrmap" shared="$OUT/${6:-$1}.shared.json"
   [ -f "$map" ] || "$BIN/pntr" build-db --sequence "$2" $3 --out "$map" --json >"$OUT/$tag.build.json" 2>"$OUT/$tag.build.err"
+  # How much of each query's view the map's recording saw (ground-truth depth carried across).
+  [ -f "$shared" ] || "$PY" "$ROOT/scripts/shared_view.py" "$2" "$4" --intrinsics $K --out "$shared" >/dev/null
   serve "$map"
   for mode in single stream; do
     local flags=$5; [ $mode = single ] && flags="$flags --no-prior"
     "$BIN/pntr" replay --addr "$ADDR" --sequence "$4" $flags --rate 20 \
       --trajectory "$OUT/$tag.$mode.txt" --json "$OUT/$tag.$mode.json" --frames-log "$OUT/$tag.$mode.frames.jsonl" >/dev/null 2>&1
-    summary "$tag $mode" "$OUT/$tag.$mode.json"
+    summary "$tag $mode" "$OUT/$tag.$mode.json" "$shared"
   done
   kill $SERVER; wait $SERVER 2>/dev/null || true
 }
 run A "$OUT/tum_0_249" "--intrinsics $K" "$OUT/tum_250_499" "--intrinsics $K"
-run A_7scenes "$OUT/7scenes_0_249" "--intrinsics $K --depth-to-colour=$OFFSET" "$OUT/7scenes_250_499" "--intrinsics $K --depth-to-colour=$OFFSET"
+run A_7scenes "$OUT/7scenes_0_249" "--intrinsics $K --depth-to-colour=$OFFSET" "$OUT/7scenes_250_499" "--intrinsics $K --depth-to-colour=$OFFSET" A
 run B "$OUT/tum_250_499" "--intrinsics $K" "$OUT/tum_0_249" "--intrinsics $K"
-run W "$OUT/tum_0_149" "--intrinsics $K" "$OUT/tum_wide" "--intrinsics $K"
-run W2 "$OUT/tum_350_499" "--intrinsics $K" "$OUT/tum_wide2" "--intrinsics $K"
+run W "$OUT/tum_0_149" "--intrinsics $K" "$OUT/tum_wide" "--intrinsics $K" wide
+run W2 "$OUT/tum_350_499" "--intrinsics $K" "$OUT/tum_wide2" "--intrinsics $K" wide2

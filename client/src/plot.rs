@@ -1261,6 +1261,8 @@ mod tests {
         let query = |id: &str, p: [f64; 3], e: Option<(f64, f64)>| QueryOutcome {
             id: format!("scene/{id}"),
             position_m: p,
+            world_from_camera: [p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0],
+            estimate_world_from_camera: None,
             error: e,
             estimate_error: e,
             estimate_offset_camera_m: None,

@@ -272,6 +272,29 @@ fn build_db_then_eval_write_the_documented_json_keys() {
             "{q}"
         );
         assert_eq!(q["position_m"].as_array().unwrap().len(), 3, "{q}");
+        // The poses in TUM order: the ground truth's position is `position_m`, its quaternion a
+        // unit one with qw >= 0; a LOCALIZED answer's estimate lies within its own error.
+        let pose = |v: &serde_json::Value| -> Vec<f64> {
+            v.as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect()
+        };
+        let truth = pose(&q["world_from_camera"]);
+        assert_eq!(truth.len(), 7, "{q}");
+        assert_eq!(truth[..3], pose(&q["position_m"])[..], "{q}");
+        let norm = truth[3..].iter().map(|x| x * x).sum::<f64>().sqrt();
+        assert!((norm - 1.0).abs() < 1e-6 && truth[6] >= 0.0, "{q}");
+        if !q["error"].is_null() {
+            let estimate = pose(&q["estimate_world_from_camera"]);
+            let moved = (0..3)
+                .map(|i| (estimate[i] - truth[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            let error_m = q["error"][0].as_f64().unwrap();
+            assert!((moved - error_m).abs() < 1e-6, "{q}");
+        }
         let rank = &q["right_point_rank"];
         assert!(
             rank.is_null() || rank.as_u64().is_some_and(|r| r < 10),

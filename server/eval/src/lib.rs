@@ -307,6 +307,12 @@ pub struct QueryOutcome {
     pub id: String,
     /// Ground-truth camera position, map frame, metres.
     pub position_m: [f64; 3],
+    /// The ground-truth pose `world_from_camera` (map frame, camera axes of the dataset: Habitat's
+    /// x right, y up, z backward) as `[tx, ty, tz, qx, qy, qz, qw]`, metres (TUM order).
+    pub world_from_camera: [f64; 7],
+    /// The best pose found (LOCALIZED or not) in the same form; `None` without an estimate. With
+    /// the ground truth, it lets a failure be rendered or plotted where the localiser put it.
+    pub estimate_world_from_camera: Option<[f64; 7]>,
     /// (metres, degrees) error of the LOCALIZED pose; `None` when not localized.
     pub error: Option<(f64, f64)>,
     /// (metres, degrees) error of the best pose found, LOCALIZED or not.
@@ -576,6 +582,8 @@ pub fn run_observed(
         per_query.push(QueryOutcome {
             id: entry.query_id(qi),
             position_m: gt.translation.vector.into(),
+            world_from_camera: tum_pose(&gt),
+            estimate_world_from_camera: a.estimate.or(a.pose).map(|p| tum_pose(&p)),
             error: *errors.last().expect("pushed above"),
             estimate_error: scored.last().and_then(|s| s.1),
             estimate_offset_camera_m: a.estimate.or(a.pose).map(|p| {
@@ -1049,4 +1057,11 @@ mod trajectory_tests {
         let none = trajectory_errors(&[(None, Some(gt(0)))]);
         assert!(none.ate_rmse_m.is_nan() && none.max_error_m.is_nan());
     }
+}
+
+/// `pose` as `[tx, ty, tz, qx, qy, qz, qw]` (TUM order; the quaternion's sign chosen with qw >= 0).
+fn tum_pose(pose: &Isometry3<f64>) -> [f64; 7] {
+    let t = pose.translation.vector;
+    let [w, x, y, z] = pntr_core::pose::canonical_wxyz(&pose.rotation);
+    [t.x, t.y, t.z, x, y, z, w]
 }
