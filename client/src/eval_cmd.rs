@@ -109,7 +109,10 @@ pub struct EvalArgs {
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
     /// Also write each in-map query's outcome to this file, one JSON object a line (`id`,
-    /// `position_m`, `error` (of the LOCALIZED pose), `estimate_error` (of the best pose found),
+    /// `position_m`, `world_from_camera` (the ground truth) and `estimate_world_from_camera` (the
+    /// best pose found, or null), each [tx, ty, tz, qx, qy, qz, qw] in the dataset's Habitat axes,
+    /// `error` (of the LOCALIZED pose), `estimate_error` (of the best pose found),
+    /// `estimate_offset_camera_m` (where that pose lies in the true camera's axes),
     /// `retrieval_error` (of the top image's pose), each [metres, degrees] or null, `confidence`,
     /// `right_point_rank` (where the query's own Point first appears among the candidates, or null)
     /// and `reason` (why it is NOT_LOCALIZED, or null)): which queries failed, and at which stage.
