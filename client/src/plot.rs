@@ -811,14 +811,28 @@ fn on_ground<'a>(
     points.into_iter().map(|p| (p[a], p[b])).collect()
 }
 
+/// Legend of the places where wrong answers put the camera on `map_<scene>`.
+const WRONG_ESTIMATES: &str = "where the wrong answers put the camera";
+
 /// `map_<scene>`: the database cameras `db` of `scene` from above and its `queries` at their true
-/// positions, coloured by how they turned out.
+/// positions, coloured by how they turned out; each wrong answer is joined to where it put the
+/// camera (`estimate_world_from_camera`).
 fn scene_figure(scene: &str, db: &[[f64; 3]], queries: &[&QueryOutcome]) -> Figure {
     let ground = ground_axes(db);
+    // Wrong LOCALIZED answers: the true position and the estimate's.
+    let wrong: Vec<([f64; 3], [f64; 3])> = queries
+        .iter()
+        .filter(|q| outcome_class(q) == 2)
+        .filter_map(|q| {
+            let e = q.estimate_world_from_camera?;
+            Some((q.position_m, [e[0], e[1], e[2]]))
+        })
+        .collect();
     let all: Vec<[f64; 3]> = db
         .iter()
         .copied()
         .chain(queries.iter().map(|q| q.position_m))
+        .chain(wrong.iter().map(|w| w.1))
         .collect();
     let mut series = vec![Series::labelled(
         "database cameras",
@@ -826,6 +840,22 @@ fn scene_figure(scene: &str, db: &[[f64; 3]], queries: &[&QueryOutcome]) -> Figu
         Mark::Square(0.06),
         on_ground(db, ground),
     )];
+    let wrong_colour = CLASSES[2].1;
+    for (truth, estimate) in &wrong {
+        series.push(Series::plain(
+            wrong_colour.mix(0.6),
+            Mark::Line(1),
+            on_ground([truth, estimate], ground),
+        ));
+    }
+    if !wrong.is_empty() {
+        series.push(Series::labelled(
+            WRONG_ESTIMATES,
+            RGBColor(120, 0, 0),
+            Mark::Dot(2),
+            on_ground(wrong.iter().map(|w| &w.1), ground),
+        ));
+    }
     let mut counts = [0usize; 4];
     for (k, (label, colour)) in CLASSES.iter().enumerate() {
         let class: Vec<&QueryOutcome> = queries
@@ -851,6 +881,37 @@ fn scene_figure(scene: &str, db: &[[f64; 3]], queries: &[&QueryOutcome]) -> Figu
 /// Most scenes drawn as maps by `eval --plot` (one picture each).
 pub const MAX_MAP_SCENES: usize = 8;
 
+/// Per scene: the cameras and the queries of its `map_<scene>` picture.
+type SceneGroups<'a> = BTreeMap<&'a str, (Vec<[f64; 3]>, Vec<&'a QueryOutcome>)>;
+
+/// The cameras and queries of each scene's `map_<scene>` picture: the map's cameras of that scene
+/// (`map_positions_m`), those of a map built from recordings (empty scene name: they lie in the world
+/// frame of the queries' scenes, where eval measures the answers, so every scene's picture shows
+/// them), and the scene's queries (the first part of their id).
+fn scene_groups<'a>(
+    map_positions_m: &'a [(String, [f64; 3])],
+    per_query: &'a [QueryOutcome],
+) -> SceneGroups<'a> {
+    let mut scenes: SceneGroups<'a> = BTreeMap::new();
+    for q in per_query {
+        let scene = q.id.split('/').next().unwrap_or_default();
+        scenes.entry(scene).or_default().1.push(q);
+    }
+    let (recorded, named): (Vec<_>, Vec<_>) = map_positions_m
+        .iter()
+        .partition(|(scene, _)| scene.is_empty());
+    for (scene, p) in named {
+        scenes.entry(scene.as_str()).or_default().0.push(*p);
+    }
+    if scenes.is_empty() && !recorded.is_empty() {
+        scenes.insert("map", Default::default());
+    }
+    for (db, _) in scenes.values_mut() {
+        db.extend(recorded.iter().map(|(_, p)| *p));
+    }
+    scenes
+}
+
 /// Write the evaluation pictures of `report` into `dir`; `title` names the run. Returns the files.
 pub fn eval_plots(report: &EvalReport, dir: &Path, title: &str) -> Result<Vec<PathBuf>> {
     let mut figures = vec![
@@ -862,14 +923,7 @@ pub fn eval_plots(report: &EvalReport, dir: &Path, title: &str) -> Result<Vec<Pa
             title,
         ),
     ];
-    let mut scenes: BTreeMap<&str, (Vec<[f64; 3]>, Vec<&QueryOutcome>)> = BTreeMap::new();
-    for (scene, p) in &report.map_positions_m {
-        scenes.entry(scene.as_str()).or_default().0.push(*p);
-    }
-    for q in &report.per_query {
-        let scene = q.id.split('/').next().unwrap_or_default();
-        scenes.entry(scene).or_default().1.push(q);
-    }
+    let scenes = scene_groups(&report.map_positions_m, &report.per_query);
     for (scene, (db, queries)) in scenes.iter().take(MAX_MAP_SCENES) {
         figures.push(scene_figure(scene, db, queries));
     }
@@ -1257,6 +1311,87 @@ mod tests {
     }
 
     #[test]
+    fn a_map_from_recordings_is_drawn_on_the_queries_scene() {
+        let query = |id: &str| QueryOutcome {
+            id: id.to_string(),
+            position_m: [0.0; 3],
+            world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+            estimate_world_from_camera: None,
+            error: None,
+            estimate_error: None,
+            estimate_offset_camera_m: None,
+            retrieval_error: None,
+            confidence: 0.0,
+            right_point_rank: None,
+            reason: None,
+        };
+        let queries = vec![query("synth000/point0/q0"), query("synth001/point0/q0")];
+        // A map from a recording: its images have no scene; each scene's picture shows them, and
+        // no picture is made for the empty name.
+        let recorded = vec![
+            (String::new(), [1.0, 1.5, 2.0]),
+            (String::new(), [2.0, 1.5, 2.0]),
+        ];
+        let groups = scene_groups(&recorded, &queries);
+        assert_eq!(
+            groups.keys().copied().collect::<Vec<_>>(),
+            ["synth000", "synth001"]
+        );
+        for (db, q) in groups.values() {
+            assert_eq!(db.len(), 2);
+            assert_eq!(q.len(), 1);
+        }
+        // The dataset's own views stay with their scene.
+        let views = vec![("synth001".to_string(), [5.0, 1.5, 5.0])];
+        let groups = scene_groups(&views, &queries);
+        assert!(groups["synth000"].0.is_empty());
+        assert_eq!(groups["synth001"].0, vec![[5.0, 1.5, 5.0]]);
+    }
+
+    #[test]
+    fn scene_maps_join_each_wrong_answer_to_where_it_put_the_camera() {
+        let query = |id: &str, p: [f64; 3], e: (f64, f64), at: [f64; 3]| QueryOutcome {
+            id: format!("scene/{id}"),
+            position_m: p,
+            world_from_camera: [p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0],
+            estimate_world_from_camera: Some([at[0], at[1], at[2], 0.0, 0.0, 0.0, 1.0]),
+            error: Some(e),
+            estimate_error: Some(e),
+            estimate_offset_camera_m: None,
+            retrieval_error: None,
+            confidence: 0.9,
+            right_point_rank: None,
+            reason: None,
+        };
+        let db: Vec<[f64; 3]> = (0..4).map(|i| [f64::from(i), 1.5, 0.0]).collect();
+        let right = query("q0", [1.0, 1.5, 1.0], (0.01, 0.2), [1.01, 1.5, 1.0]);
+        let wrong = query("q1", [2.0, 1.5, 1.0], (6.0, 90.0), [8.0, 1.5, 3.0]);
+        let lines = |fig: &Figure| -> Vec<Vec<(f64, f64)>> {
+            fig.panels[0]
+                .series
+                .iter()
+                .filter(|s| s.label.is_none() && matches!(s.mark, Mark::Line(_)))
+                .map(|s| s.points.clone())
+                .collect()
+        };
+        let labelled = |fig: &Figure, label: &str| {
+            fig.panels[0]
+                .series
+                .iter()
+                .find(|s| s.label.as_deref() == Some(label))
+                .map(|s| s.points.clone())
+        };
+        // Ground plane (x, z): the wrong answer's line runs from (2, 1) to (8, 3).
+        let fig = scene_figure("scene", &db, &[&right, &wrong]);
+        assert_eq!(lines(&fig), vec![vec![(2.0, 1.0), (8.0, 3.0)]]);
+        assert_eq!(labelled(&fig, WRONG_ESTIMATES), Some(vec![(8.0, 3.0)]));
+        // No wrong answer, nothing drawn for them.
+        let fig = scene_figure("scene", &db, &[&right]);
+        assert!(lines(&fig).is_empty());
+        assert_eq!(labelled(&fig, WRONG_ESTIMATES), None);
+    }
+
+    #[test]
     fn no_picture_puts_a_legend_over_its_data() {
         let query = |id: &str, p: [f64; 3], e: Option<(f64, f64)>| QueryOutcome {
             id: format!("scene/{id}"),
@@ -1275,7 +1410,11 @@ mod tests {
             .map(|i| {
                 let f = f64::from(i);
                 let e = (i % 5 != 0).then_some((0.02 * f, 0.3 * f));
-                query(&format!("q{i}"), [f % 7.0, 1.5, (f * 0.37) % 5.0], e)
+                let mut q = query(&format!("q{i}"), [f % 7.0, 1.5, (f * 0.37) % 5.0], e);
+                // The wrong answers (beyond 1 m or 10 deg) put the camera 2 m along x.
+                let p = q.position_m;
+                q.estimate_world_from_camera = Some([p[0] + 2.0, p[1], p[2], 0.0, 0.0, 0.0, 1.0]);
+                q
             })
             .collect();
         let db: Vec<[f64; 3]> = (0..30)

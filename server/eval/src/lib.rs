@@ -187,8 +187,9 @@ pub struct EvalReport {
     /// Each in-map query's outcome, in evaluation order (for plots; not in the JSON).
     #[serde(skip)]
     pub per_query: Vec<QueryOutcome>,
-    /// (scene, position in metres) of every database camera of the evaluated scenes (for plots; not
-    /// in the JSON).
+    /// (scene, position in metres) of every camera of the map in the evaluated scenes: the dataset's
+    /// database views it holds, and with an empty scene name the images of a map built from
+    /// recordings, which lie in the dataset's world frame (for plots; not in the JSON).
     #[serde(skip)]
     pub map_positions_m: Vec<(String, [f64; 3])>,
 }
@@ -733,8 +734,10 @@ pub fn run_observed(
         modes,
         covariance: covariance_report(&covariances),
         per_query,
+        // A map from recordings holds none of the dataset's views: draw its own images.
         map_positions_m: db_pose
             .values()
+            .filter(|(_, scene, _)| !foreign_map || scene.is_empty())
             .map(|(p, scene, _)| (scene.clone(), p.translation.vector.into()))
             .collect(),
     })
