@@ -1547,9 +1547,9 @@ impl Pipeline {
                 } else {
                     String::new()
                 };
+                let (p, threshold) = apart(p, self.min_confidence);
                 format!(
-                    "verification: confidence {p:.2} below the threshold {:.2} ({}){shape}{turned}",
-                    self.min_confidence,
+                    "verification: confidence {p} below the threshold {threshold} ({}){shape}{turned}",
                     evidence.summary()
                 )
             }),
@@ -2107,8 +2107,30 @@ pub fn check_query(q: &Query) -> Result<(), PipelineError> {
     Ok(())
 }
 
+/// `value` and `threshold` printed with two decimals, or with as many more (up to six) as it takes
+/// for them to differ: "confidence 0.9996 below the threshold 0.9999", never "1.00 below 1.00".
+fn apart(value: f64, threshold: f64) -> (String, String) {
+    let mut digits = 2;
+    while digits < 6 && format!("{value:.digits$}") == format!("{threshold:.digits$}") {
+        digits += 1;
+    }
+    (format!("{value:.digits$}"), format!("{threshold:.digits$}"))
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_refusal_never_prints_its_confidence_equal_to_the_threshold() {
+        assert_eq!(apart(0.42, 0.61), ("0.42".into(), "0.61".into()));
+        assert_eq!(apart(0.99963, 0.9999), ("0.9996".into(), "0.9999".into()));
+        assert_eq!(apart(0.6049, 0.605), ("0.6049".into(), "0.6050".into()));
+        // Equal to six decimals: six are printed.
+        assert_eq!(
+            apart(0.5, 0.5000001),
+            ("0.500000".into(), "0.500000".into())
+        );
+    }
+
     #[test]
     fn a_slip_needs_both_margins() {
         let e = |agree: f64, violation: f64| Evidence {
