@@ -884,10 +884,13 @@ pub const MAX_MAP_SCENES: usize = 8;
 /// Per scene: the cameras and the queries of its `map_<scene>` picture.
 type SceneGroups<'a> = BTreeMap<&'a str, (Vec<[f64; 3]>, Vec<&'a QueryOutcome>)>;
 
+/// Name of the picture of a map's images from recordings when the queries come from several scenes.
+const RECORDED_MAP: &str = "map";
+
 /// The cameras and queries of each scene's `map_<scene>` picture: the map's cameras of that scene
-/// (`map_positions_m`), those of a map built from recordings (empty scene name: they lie in the world
-/// frame of the queries' scenes, where eval measures the answers, so every scene's picture shows
-/// them), and the scene's queries (the first part of their id).
+/// (`map_positions_m`), the scene's queries (the first part of their id), and the map's images
+/// from recordings (empty scene name): on the queries' scene when there is one (they lie in its
+/// world frame, where eval measures the answers), else on a picture of their own, `map_map`.
 fn scene_groups<'a>(
     map_positions_m: &'a [(String, [f64; 3])],
     per_query: &'a [QueryOutcome],
@@ -900,14 +903,21 @@ fn scene_groups<'a>(
     let (recorded, named): (Vec<_>, Vec<_>) = map_positions_m
         .iter()
         .partition(|(scene, _)| scene.is_empty());
+    // A recording covers one place: with several scenes it is not known which, so its cameras get
+    // a picture of their own.
+    let home = match scenes.len() {
+        1 => *scenes.keys().next().expect("one scene"),
+        _ => RECORDED_MAP,
+    };
     for (scene, p) in named {
         scenes.entry(scene.as_str()).or_default().0.push(*p);
     }
-    if scenes.is_empty() && !recorded.is_empty() {
-        scenes.insert("map", Default::default());
-    }
-    for (db, _) in scenes.values_mut() {
-        db.extend(recorded.iter().map(|(_, p)| *p));
+    if !recorded.is_empty() {
+        scenes
+            .entry(home)
+            .or_default()
+            .0
+            .extend(recorded.iter().map(|(_, p)| *p));
     }
     scenes
 }
@@ -1326,21 +1336,24 @@ mod tests {
             reason: None,
         };
         let queries = vec![query("synth000/point0/q0"), query("synth001/point0/q0")];
-        // A map from a recording: its images have no scene; each scene's picture shows them, and
-        // no picture is made for the empty name.
+        // A map from a recording: its images have no scene; the queries' scene's picture shows
+        // them, and no picture is made for the empty name.
         let recorded = vec![
             (String::new(), [1.0, 1.5, 2.0]),
             (String::new(), [2.0, 1.5, 2.0]),
         ];
+        let groups = scene_groups(&recorded, &queries[..1]);
+        assert_eq!(groups.keys().copied().collect::<Vec<_>>(), ["synth000"]);
+        assert_eq!(groups["synth000"].0.len(), 2);
+        assert_eq!(groups["synth000"].1.len(), 1);
+        // Queries of two scenes: which one the recording covers is not known.
         let groups = scene_groups(&recorded, &queries);
         assert_eq!(
             groups.keys().copied().collect::<Vec<_>>(),
-            ["synth000", "synth001"]
+            [RECORDED_MAP, "synth000", "synth001"]
         );
-        for (db, q) in groups.values() {
-            assert_eq!(db.len(), 2);
-            assert_eq!(q.len(), 1);
-        }
+        assert_eq!(groups[RECORDED_MAP].0.len(), 2);
+        assert!(groups["synth000"].0.is_empty() && groups["synth001"].0.is_empty());
         // The dataset's own views stay with their scene.
         let views = vec![("synth001".to_string(), [5.0, 1.5, 5.0])];
         let groups = scene_groups(&views, &queries);
@@ -1384,6 +1397,8 @@ mod tests {
         // Ground plane (x, z): the wrong answer's line runs from (2, 1) to (8, 3).
         let fig = scene_figure("scene", &db, &[&right, &wrong]);
         assert_eq!(lines(&fig), vec![vec![(2.0, 1.0), (8.0, 3.0)]]);
+        // The picture reaches where the wrong answer put the camera (the cameras end at x = 3).
+        assert!(fig.panels[0].x.hi >= 8.0, "{:?}", fig.panels[0].x.hi);
         assert_eq!(labelled(&fig, WRONG_ESTIMATES), Some(vec![(8.0, 3.0)]));
         // No wrong answer, nothing drawn for them.
         let fig = scene_figure("scene", &db, &[&right]);

@@ -99,7 +99,24 @@ fn a_mapping_drive_builds_a_map_that_localizes_the_scene_and_its_own_frames() {
 
     // The scene's HPointLoc queries (Habitat axes) against the drive's map (optical axes).
     let report = dir.path().join("eval.json");
-    ok(&eval(&root, &map, &["--json", report.to_str().unwrap()]));
+    let eval_plots = dir.path().join("eval_plots");
+    ok(&eval(
+        &root,
+        &map,
+        &[
+            "--json",
+            report.to_str().unwrap(),
+            "--plot",
+            eval_plots.to_str().unwrap(),
+        ],
+    ));
+    // The drive's keyframes are drawn with the scene's queries, on one picture.
+    let pictures: Vec<String> = std::fs::read_dir(&eval_plots)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("map_") && n.ends_with(".png"))
+        .collect();
+    assert_eq!(pictures, ["map_synth000.png"], "{pictures:?}");
     let r = read_json(&report);
     let recall = r["recall"]["0.25m_2deg"].as_f64().unwrap();
     assert!(recall >= 0.8, "recall {recall}: {r}");

@@ -188,8 +188,8 @@ pub struct EvalReport {
     #[serde(skip)]
     pub per_query: Vec<QueryOutcome>,
     /// (scene, position in metres) of every camera of the map in the evaluated scenes: the dataset's
-    /// database views it holds, and with an empty scene name the images of a map built from
-    /// recordings, which lie in the dataset's world frame (for plots; not in the JSON).
+    /// database views it holds, and with an empty scene name its images from recordings, which lie
+    /// in the dataset's world frame (for plots; not in the JSON).
     #[serde(skip)]
     pub map_positions_m: Vec<(String, [f64; 3])>,
 }
@@ -734,12 +734,17 @@ pub fn run_observed(
         modes,
         covariance: covariance_report(&covariances),
         per_query,
-        // A map from recordings holds none of the dataset's views: draw its own images.
-        map_positions_m: db_pose
-            .values()
-            .filter(|(_, scene, _)| !foreign_map || scene.is_empty())
-            .map(|(p, scene, _)| (scene.clone(), p.translation.vector.into()))
-            .collect(),
+        // The cameras the map holds: its own images when it names them (a map from recordings, a
+        // map extended by them, one of some of the dataset's views), every database view otherwise.
+        map_positions_m: {
+            let held: std::collections::HashSet<&str> =
+                opts.map_images.iter().map(|(id, _)| id.as_str()).collect();
+            db_pose
+                .iter()
+                .filter(|(id, _)| held.is_empty() || held.contains(id.as_str()))
+                .map(|(_, (p, scene, _))| (scene.clone(), p.translation.vector.into()))
+                .collect()
+        },
     })
 }
 
