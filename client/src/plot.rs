@@ -1320,21 +1320,31 @@ mod tests {
         (plot, legend)
     }
 
-    #[test]
-    fn a_map_from_recordings_is_drawn_on_the_queries_scene() {
-        let query = |id: &str| QueryOutcome {
+    /// A query's outcome at `p` with `error` (also the estimate's) and the estimate at `at`.
+    fn outcome(
+        id: &str,
+        p: [f64; 3],
+        error: Option<(f64, f64)>,
+        at: Option<[f64; 3]>,
+    ) -> QueryOutcome {
+        QueryOutcome {
             id: id.to_string(),
-            position_m: [0.0; 3],
-            world_from_camera: [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-            estimate_world_from_camera: None,
-            error: None,
-            estimate_error: None,
+            position_m: p,
+            world_from_camera: [p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0],
+            estimate_world_from_camera: at.map(|a| [a[0], a[1], a[2], 0.0, 0.0, 0.0, 1.0]),
+            error,
+            estimate_error: error,
             estimate_offset_camera_m: None,
             retrieval_error: None,
-            confidence: 0.0,
+            confidence: 0.5,
             right_point_rank: None,
             reason: None,
-        };
+        }
+    }
+
+    #[test]
+    fn a_map_from_recordings_is_drawn_on_the_queries_scene() {
+        let query = |id: &str| outcome(id, [0.0; 3], None, None);
         let queries = vec![query("synth000/point0/q0"), query("synth001/point0/q0")];
         // A map from a recording: its images have no scene; the queries' scene's picture shows
         // them, and no picture is made for the empty name.
@@ -1363,18 +1373,8 @@ mod tests {
 
     #[test]
     fn scene_maps_join_each_wrong_answer_to_where_it_put_the_camera() {
-        let query = |id: &str, p: [f64; 3], e: (f64, f64), at: [f64; 3]| QueryOutcome {
-            id: format!("scene/{id}"),
-            position_m: p,
-            world_from_camera: [p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0],
-            estimate_world_from_camera: Some([at[0], at[1], at[2], 0.0, 0.0, 0.0, 1.0]),
-            error: Some(e),
-            estimate_error: Some(e),
-            estimate_offset_camera_m: None,
-            retrieval_error: None,
-            confidence: 0.9,
-            right_point_rank: None,
-            reason: None,
+        let query = |id: &str, p: [f64; 3], e: (f64, f64), at: [f64; 3]| {
+            outcome(&format!("scene/{id}"), p, Some(e), Some(at))
         };
         let db: Vec<[f64; 3]> = (0..4).map(|i| [f64::from(i), 1.5, 0.0]).collect();
         let right = query("q0", [1.0, 1.5, 1.0], (0.01, 0.2), [1.01, 1.5, 1.0]);
@@ -1409,17 +1409,8 @@ mod tests {
     #[test]
     fn no_picture_puts_a_legend_over_its_data() {
         let query = |id: &str, p: [f64; 3], e: Option<(f64, f64)>| QueryOutcome {
-            id: format!("scene/{id}"),
-            position_m: p,
-            world_from_camera: [p[0], p[1], p[2], 0.0, 0.0, 0.0, 1.0],
-            estimate_world_from_camera: None,
-            error: e,
-            estimate_error: e,
-            estimate_offset_camera_m: None,
             retrieval_error: e.map(|(t, r)| (2.0 * t, 2.0 * r)),
-            confidence: 0.5,
-            right_point_rank: None,
-            reason: None,
+            ..outcome(&format!("scene/{id}"), p, e, None)
         };
         let queries: Vec<QueryOutcome> = (0..40)
             .map(|i| {

@@ -274,13 +274,8 @@ fn build_db_then_eval_write_the_documented_json_keys() {
         assert_eq!(q["position_m"].as_array().unwrap().len(), 3, "{q}");
         // The poses in TUM order: the ground truth's position is `position_m`, its quaternion a
         // unit one with qw >= 0; a LOCALIZED answer's estimate lies within its own error.
-        let pose = |v: &serde_json::Value| -> Vec<f64> {
-            v.as_array()
-                .unwrap()
-                .iter()
-                .map(|x| x.as_f64().unwrap())
-                .collect()
-        };
+        let pose =
+            |v: &serde_json::Value| -> Vec<f64> { serde_json::from_value(v.clone()).unwrap() };
         let truth = pose(&q["world_from_camera"]);
         assert_eq!(truth.len(), 7, "{q}");
         assert_eq!(truth[..3], pose(&q["position_m"])[..], "{q}");
