@@ -73,20 +73,23 @@ pub struct ReplayArgs {
     /// Replay at most this many frames (0 = all).
     #[arg(long, default_value_t = 0)]
     pub frames: usize,
-    /// Estimated trajectory in TUM format (`timestamp tx ty tz qx qy qz qw`), LOCALIZED frames only.
+    /// Write the estimated trajectory in TUM format (`timestamp tx ty tz qx qy qz qw`), LOCALIZED
+    /// frames only, to this file.
     #[arg(long)]
-    pub trajectory: PathBuf,
-    /// The JSON report.
+    pub trajectory: Option<PathBuf>,
+    /// Write the JSON report (the summary line's figures and more: recalls, median errors, stage
+    /// times, modes) to this file.
     #[arg(long)]
-    pub json: PathBuf,
+    pub json: Option<PathBuf>,
     /// Also draw both trajectories from above over the map's camera positions (PNG and SVG) into
     /// this folder.
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
-    /// Also write one JSON line per frame (timestamp, status, mode, reason, cause, confidence, inliers,
-    /// matched image, position and rotation standard deviations from the covariance, the map version
-    /// that answered, latency, and with ground truth the translation and rotation errors): what
-    /// answered each frame, and why a frame was not localized.
+    /// Also write one JSON line per frame (frame index in the drive's order, timestamp, status, mode,
+    /// reason, cause, confidence, inliers, matched image, position and rotation standard deviations
+    /// from the covariance, the map version that answered, latency, and with ground truth the
+    /// translation and rotation errors): what answered each frame, and why a frame was not
+    /// localized.
     #[arg(long, value_name = "OUT.jsonl")]
     pub frames_log: Option<PathBuf>,
     /// Also write what happened to this MCAP file, with Foxglove's schemas (open it in Foxglove):
@@ -127,6 +130,8 @@ fn open_recording(args: &ReplayArgs) -> Result<Recording> {
 
 /// One answered frame.
 struct Answered {
+    /// Index of the frame in the drive's own order (0 = its first frame).
+    frame: usize,
     timestamp: f64,
     estimate: Option<Isometry3<f64>>,
     truth: Option<Isometry3<f64>>,
@@ -186,6 +191,29 @@ fn pose_accuracy(out: &[Answered]) -> serde_json::Value {
     })
 }
 
+/// The accuracy part of the report ([`pose_accuracy`]) in one line for the terminal: the recalls
+/// and median errors against the ground truth; `None` without ground truth.
+fn accuracy_line(accuracy: &serde_json::Value) -> Option<String> {
+    let n = accuracy["frames_with_ground_truth"]
+        .as_u64()
+        .filter(|&n| n > 0)?;
+    let recall = |key: &str| accuracy["recall"][key].as_f64().unwrap_or(0.0);
+    let median = match (
+        accuracy["median_error_m"].as_f64(),
+        accuracy["median_error_deg"].as_f64(),
+    ) {
+        (Some(m), Some(deg)) => format!("{:.1} cm, {deg:.2} deg", 100.0 * m),
+        _ => "none localized".to_string(),
+    };
+    Some(format!(
+        "against the ground truth of {n} frames (not LOCALIZED counts as a miss): recall (5 cm, 5 deg) {:.3}, (10 cm, 5 deg) {:.3}, (0.25 m, 2 deg) {:.3}; median error {median}; LOCALIZED more than 0.5 m or 10 deg off: {}",
+        recall("5cm_5deg"),
+        recall("10cm_5deg"),
+        recall("25cm_2deg"),
+        accuracy["localized_over_0_5m_or_10deg"].as_u64().unwrap_or(0)
+    ))
+}
+
 /// One JSON line per answered frame; errors are geodesic (rotation) and Euclidean (translation)
 /// against the ground truth, for LOCALIZED frames that have one.
 fn frames_log(out: &[Answered]) -> String {
@@ -199,6 +227,7 @@ fn frames_log(out: &[Answered]) -> String {
             _ => (None, None),
         };
         let line = json!({
+            "frame": a.frame,
             "timestamp": a.timestamp,
             "status": a.status,
             "mode": a.mode,
@@ -495,6 +524,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             }
         }
         out.push(Answered {
+            frame: i,
             timestamp,
             estimate,
             truth: seq.world_from_camera(i),
@@ -537,7 +567,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             traj.push('\n');
         }
     }
-    crate::output::write_text(&args.trajectory, &traj)?;
+    if let Some(path) = &args.trajectory {
+        crate::output::write_text(path, &traj)?;
+    }
     if let Some(b) = bag {
         match b.finish() {
             Ok(path) => eprintln!("ROS 2 bag written to {}", path.display()),
@@ -601,7 +633,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         "effects": args.effects,
         "record_errors": record_errors,
     });
-    crate::output::write_json(&args.json, &report)?;
+    if let Some(path) = &args.json {
+        crate::output::write_json(path, &report)?;
+    }
     println!(
         "{} frames: {:.1}% localized ({:.1}% by tracking or prior), ATE {:.3} m, RPE {:.3} m / {:.2} deg, max error {:.3} m ({} over 1 m); latency p50 {:.1} ms p90 {:.1} ms p99 {:.1} ms; {:.1} frames/s",
         out.len(),
@@ -617,11 +651,19 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         percentile(&lat, 99.0),
         out.len() as f64 / wall.max(1e-9)
     );
-    eprintln!(
-        "trajectory written to {}, report to {}",
-        args.trajectory.display(),
-        args.json.display()
-    );
+    if let Some(line) = accuracy_line(&report["accuracy"]) {
+        println!("{line}");
+    }
+    let written: Vec<String> = [("trajectory", &args.trajectory), ("report", &args.json)]
+        .into_iter()
+        .filter_map(|(what, path)| {
+            path.as_ref()
+                .map(|p| format!("{what} written to {}", p.display()))
+        })
+        .collect();
+    if !written.is_empty() {
+        eprintln!("{}", written.join(", "));
+    }
     if let Some(dir) = &args.plot {
         let truth: Vec<[f64; 3]> = out
             .iter()

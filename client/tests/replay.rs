@@ -300,6 +300,38 @@ fn a_synthetic_drive_replays_through_the_stream_with_and_without_tracking() {
     );
     assert_eq!(read_json(&x_json)["stamps_sent"], false);
 
+    // The files are optional: without --trajectory and --json replay prints its summary and, the
+    // drive having ground truth, the recalls; the frames log numbers each frame in the drive's
+    // order (a new user had to work it out from the stamps).
+    let log = dir.path().join("frames.jsonl");
+    let printed = ok(&pntr(&[
+        "replay",
+        "--addr",
+        &addr,
+        "--sequence",
+        seq.to_str().unwrap(),
+        "--frames",
+        "3",
+        "--rate",
+        "20",
+        "--frames-log",
+        log.to_str().unwrap(),
+    ]));
+    assert!(
+        printed.contains("3 frames") && printed.contains("recall (5 cm, 5 deg) "),
+        "{printed}"
+    );
+    let numbered: Vec<u64> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["frame"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(numbered, [0, 1, 2]);
+
     // A full disk under `--record` and `--record-bag`: one error line each, naming the file and
     // the cause, not a warning per message; the replay's report still written; nothing half
     // written left behind. The disk fills here by a file-size limit (`ulimit -f`, the signal it

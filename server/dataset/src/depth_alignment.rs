@@ -185,7 +185,7 @@ pub fn misregistration_hint(frames: &[Alignment]) -> Option<String> {
         return None;
     };
     Some(format!(
-        "the depth's outlines lie off the colour image's edges by ({}, {}) px on the left of the frame and ({}, {}) px on the right (medians over {} frames; registered depth lies within a few px): the depth looks not registered to the colour image but {how}; give the depth camera's --depth-intrinsics and --depth-to-colour so that pntr registers it, or record depth aligned to colour",
+        "the depth's outlines lie off the colour image's edges by ({}, {}) px on the left of the frame and ({}, {}) px on the right (medians over {} frames; registered depth lies within a few px): the depth looks not registered to the colour image but {how}; give the depth camera's --depth-intrinsics and --depth-to-colour so that pntr registers it, or record depth aligned to colour (where they are given, check them and the colour camera's --intrinsics: a wrong focal length stretches the registered depth alike)",
         left[0],
         left[1],
         right[0],

@@ -128,9 +128,15 @@ impl Recording {
             }
         }
         if opts.colour_from_depth.is_some() && depth_k.is_none() {
+            // A 7-Scenes folder names its depth camera in camera-intrinsics.txt: say it is missing.
+            let file = if matches!(source, Source::SevenScenes(_)) {
+                ", or copy the recording's camera-intrinsics.txt into this folder"
+            } else {
+                ""
+            };
             return Err(DatasetError::Layout {
                 path: path.to_path_buf(),
-                problem: "a depth-to-colour offset needs the depth camera's intrinsics too (--depth-intrinsics fx,fy,cx,cy)".into(),
+                problem: format!("a depth-to-colour offset needs the depth camera's intrinsics too (--depth-intrinsics fx,fy,cx,cy{file})"),
             });
         }
         let depth_camera = depth_k.map(|k| {
@@ -357,6 +363,35 @@ pub fn depth_unit_hint(depth: &DepthMap, units_per_m: Option<f64>) -> Option<Str
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_seven_scenes_folder_without_its_depth_camera_names_the_missing_file() {
+        // A query folder made of the frames alone: the offset is given, camera-intrinsics.txt is
+        // not there (a new user copied the frames only).
+        let dir = tempfile::tempdir().unwrap();
+        for (name, text) in [
+            ("frame-000250.color.png", ""),
+            ("frame-000250.depth.png", ""),
+            (
+                "frame-000250.pose.txt",
+                "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n",
+            ),
+        ] {
+            std::fs::write(dir.path().join(name), text).unwrap();
+        }
+        let opts = RecordingOptions {
+            colour_from_depth: Some(Isometry3::identity()),
+            ..Default::default()
+        };
+        let e = Recording::open(dir.path(), &opts)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            e.contains("--depth-intrinsics") && e.contains("camera-intrinsics.txt"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn a_depth_in_the_wrong_unit_is_named() {

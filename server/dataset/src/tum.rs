@@ -246,7 +246,7 @@ impl TumSequence {
         if !root.exists() {
             return Err(layout(
                 root,
-                "no such file or folder (expected a TUM RGB-D sequence folder, a ROS 2 bag folder or an .mcap file)",
+                "no such file or folder (expected a TUM RGB-D sequence folder, a 7-Scenes folder, a ROS 2 bag folder or an .mcap file)",
             ));
         }
         if !root.is_dir() {

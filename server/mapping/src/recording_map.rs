@@ -575,7 +575,6 @@ fn collect(
                     rec.path.display()
                 )));
             }
-            tracing::warn!("{}: {said}; they are left out", rec.path.display());
             report
                 .warnings
                 .push(format!("{}: {said}; they are left out", rec.path.display()));
@@ -585,7 +584,6 @@ fn collect(
             rec.path.display()
         );
         if let Some(hint) = pntr_dataset::depth_alignment::misregistration_hint(&alignments) {
-            tracing::warn!("{}: {hint}", rec.path.display());
             report
                 .warnings
                 .push(format!("{}: {hint}", rec.path.display()));
