@@ -48,6 +48,11 @@ pub struct LocalizeArgs {
     /// Query number within the scene (Points in order, their queries in order).
     #[arg(long)]
     pub query: Option<usize>,
+    /// Depth from a separate depth camera: registered to the colour image here, before it is sent
+    /// (a 16-bit PNG; the depth camera's intrinsics from `--depth-intrinsics`, else from a
+    /// 7-Scenes `camera-intrinsics.txt` beside the depth file).
+    #[command(flatten)]
+    pub depth_camera: crate::recordings::DepthCameraArgs,
     /// Frame convention of the answer: `map` (the map's own frame and camera axes) or `ros` (z-up
     /// map frame, optical camera axes x right, y down, z forward) [default: the server's].
     #[arg(long, value_parser = ["map", "ros"])]
@@ -89,12 +94,67 @@ fn depth_units(depth: &Path, given: Option<f64>) -> Result<f64> {
     Ok(1000.0)
 }
 
-/// A request from image files, checked here so that a bad file is named before anything is sent.
+/// A separate depth camera's image (`depth`, metres, the depth file's own pixels) registered to
+/// the colour camera `colour` of a `w` x `h` image ([`pntr_dataset::depth_camera::register_depth`]):
+/// the depth camera is `given` (`--depth-intrinsics`, `--depth-to-colour`), its intrinsics else
+/// from a 7-Scenes `camera-intrinsics.txt` beside the depth file.
+///
+/// Errors: no colour camera, no depth intrinsics, or a depth image of another size than the depth
+/// camera's; each names the file or the flag.
+fn registered(
+    depth: &Path,
+    map: &pntr_core::DepthMap,
+    given: &crate::recordings::DepthCameraOptions,
+    colour: Option<&proto::Intrinsics>,
+    (w, h): (u32, u32),
+) -> Result<pntr_core::DepthMap> {
+    use pntr_dataset::sevenscenes::{camera_intrinsics, CAMERA_INTRINSICS};
+    let Some(colour) = colour else {
+        bail!("registering the depth to the colour image needs the colour camera: give --intrinsics fx,fy,cx,cy");
+    };
+    let colour = pntr_service::decode::intrinsics(Some(colour), w, h)
+        .map_err(|s| anyhow::anyhow!("--intrinsics: {}", s.message()))?;
+    let size = (map.width, map.height);
+    let k = match given.0 {
+        Some([fx, fy, cx, cy]) => pntr_core::Intrinsics {
+            fx,
+            fy,
+            cx,
+            cy,
+            width: size.0,
+            height: size.1,
+            distortion: [0.0; 5],
+        },
+        None => {
+            let file = depth.with_file_name(CAMERA_INTRINSICS);
+            if !file.is_file() {
+                bail!(
+                    "{}: registering it needs the depth camera's intrinsics: give --depth-intrinsics fx,fy,cx,cy, or put the recording's {CAMERA_INTRINSICS} beside it",
+                    depth.display()
+                );
+            }
+            camera_intrinsics(&file, size)?
+        }
+    };
+    let camera = pntr_dataset::depth_camera::DepthCamera {
+        intrinsics: k,
+        colour_from_depth: given.1.unwrap_or_else(nalgebra::Isometry3::identity),
+    };
+    pntr_dataset::depth_camera::register_depth(map, &camera, &colour)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", depth.display()))
+}
+
+/// A request from image files, checked here so that a bad file is named before anything is sent;
+/// with a separate depth camera (`depth_camera`), the depth registered to the colour camera
+/// (`colour`) first.
 fn request_from_files(
     rgb: &Path,
     depth: &Path,
     depth_scale: Option<f64>,
+    depth_camera: &crate::recordings::DepthCameraOptions,
+    colour: Option<&proto::Intrinsics>,
 ) -> Result<proto::LocalizeRequest> {
+    let separate = depth_camera.0.is_some() || depth_camera.1.is_some();
     let bytes = read(rgb)?;
     let ext = |p: &Path| {
         p.extension()
@@ -135,13 +195,21 @@ fn request_from_files(
             if let Some(hint) = pntr_dataset::recording::depth_unit_hint(&map, Some(units)) {
                 bail!("{}: {hint}", depth.display());
             }
-            if units == 1000.0 {
+            if separate {
+                let r = registered(depth, &map, depth_camera, colour, (w, h))?;
+                dbytes = r.data.iter().flat_map(|m| m.to_le_bytes()).collect();
+                (w, h, proto::DepthEncoding::Float32Meters)
+            } else if units == 1000.0 {
                 (dw, dh, proto::DepthEncoding::Png16Millimeters)
             } else {
                 dbytes = metres.iter().flat_map(|m| m.to_le_bytes()).collect();
                 (dw, dh, proto::DepthEncoding::Float32Meters)
             }
         }
+        "f32" if separate => bail!(
+            "{}: a separate depth camera's image is registered from a 16-bit PNG (give the depth camera's own PNG, or depth already registered without --depth-intrinsics and --depth-to-colour)",
+            depth.display()
+        ),
         "f32" => {
             if dbytes.len() != (w * h * 4) as usize {
                 bail!(
@@ -260,8 +328,20 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
 
 /// `pntr localize`.
 pub fn run(args: &LocalizeArgs) -> Result<()> {
+    let depth_camera = args.depth_camera.depth_camera()?;
+    let colour = match &args.intrinsics {
+        Some(k) => Some(crate::recordings::parse_intrinsics(k)?),
+        None => None,
+    };
+    let separate = depth_camera.0.is_some() || depth_camera.1.is_some();
+    if separate && args.dataset.is_some() {
+        bail!("--depth-intrinsics and --depth-to-colour are for image files (--rgb, --depth): a dataset's depth is registered already");
+    }
     let (mut req, truth) = match (&args.rgb, &args.depth, &args.dataset) {
-        (Some(rgb), Some(depth), None) => (request_from_files(rgb, depth, args.depth_scale)?, None),
+        (Some(rgb), Some(depth), None) => (
+            request_from_files(rgb, depth, args.depth_scale, &depth_camera, colour.as_ref())?,
+            None,
+        ),
         (None, None, Some(root)) => {
             let index = DatasetIndex::open(root)?;
             let scene = index.scene(args.scene.as_deref().unwrap_or_default())?;
@@ -292,8 +372,8 @@ pub fn run(args: &LocalizeArgs) -> Result<()> {
         }
         _ => bail!("give --rgb and --depth, or --dataset, --scene and --query"),
     };
-    if let Some(k) = &args.intrinsics {
-        req.intrinsics = Some(crate::recordings::parse_intrinsics(k)?);
+    if let Some(k) = colour {
+        req.intrinsics = Some(k);
     } else if args.rgb.is_some() {
         let size = (req.depth.as_ref().map(|d| (d.width, d.height))).unwrap_or_default();
         if size != (256, 256) {

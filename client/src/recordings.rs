@@ -39,9 +39,19 @@ pub struct TopicArgs {
     /// ROS 2 bag: the camera's optical frame in TF (default: the colour images' frame_id).
     #[arg(long)]
     pub camera_frame: Option<String>,
+    /// A separate depth camera (`--depth-intrinsics`, `--depth-to-colour`).
+    #[command(flatten)]
+    pub depth: DepthCameraArgs,
+}
+
+/// Depth from a separate depth camera, registered to the colour image by pntr (`pntr replay`,
+/// `pntr build-db --sequence`, `pntr localize`).
+#[derive(clap::Args, Debug, Clone, Default)]
+pub struct DepthCameraArgs {
     /// Depth from a separate depth camera (not registered to colour): its `fx,fy,cx,cy` (its image
     /// size is the depth images'). pntr registers each depth image to the colour camera. A 7-Scenes
-    /// folder's camera-intrinsics.txt is taken when this is not given.
+    /// folder's camera-intrinsics.txt (for single files, the one beside the depth file) is taken
+    /// when this is not given.
     #[arg(long, value_name = "FX,FY,CX,CY")]
     pub depth_intrinsics: Option<String>,
     /// The depth camera's offset: `tx,ty,tz[,qx,qy,qz,qw]` (metres; quaternion x, y, z, w) taking a
@@ -55,7 +65,7 @@ pub struct TopicArgs {
     pub depth_to_colour: Option<String>,
 }
 
-impl TopicArgs {
+impl DepthCameraArgs {
     /// The reader's options for a separate depth camera: `--depth-intrinsics` and
     /// `--depth-to-colour`, parsed.
     pub fn depth_camera(&self) -> Result<DepthCameraOptions> {
@@ -107,6 +117,13 @@ impl TopicArgs {
             }
         };
         Ok((k, e))
+    }
+}
+
+impl TopicArgs {
+    /// [`DepthCameraArgs::depth_camera`] of these arguments.
+    pub fn depth_camera(&self) -> Result<DepthCameraOptions> {
+        self.depth.depth_camera()
     }
 
     /// The reader's topics.

@@ -26,6 +26,28 @@ use crate::DatasetError;
 pub const FRAME_RATE_HZ: f64 = 30.0;
 /// Depth PNG units per metre (millimetres).
 pub const DEPTH_UNITS_PER_M: f64 = 1000.0;
+/// The file of a 7-Scenes folder that holds its depth camera's 3x3 camera matrix.
+pub const CAMERA_INTRINSICS: &str = "camera-intrinsics.txt";
+
+/// The camera of a `camera-intrinsics.txt` file (a 3x3 matrix K, row-major, whitespace-separated)
+/// for images of `size` (width, height) pixels, without distortion.
+///
+/// Errors name the file: unreadable, not nine numbers, or not a camera matrix.
+pub fn camera_intrinsics(path: &Path, size: (u32, u32)) -> Result<Intrinsics, DatasetError> {
+    let k = numbers(path, 9)?;
+    let i = Intrinsics {
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+        width: size.0,
+        height: size.1,
+        distortion: [0.0; 5],
+    };
+    i.validate()
+        .map_err(|e| layout(path, format!("not a camera matrix: {e}")))?;
+    Ok(i)
+}
 
 /// One frame's files.
 #[derive(Debug, Clone)]
@@ -160,23 +182,11 @@ impl SevenScenes {
                 world_from_camera,
             });
         }
-        let k_path = root.join("camera-intrinsics.txt");
+        let k_path = root.join(CAMERA_INTRINSICS);
         let intrinsics = if k_path.is_file() {
-            let k = numbers(&k_path, 9)?;
             let (w, h) = image::image_dimensions(&frames[0].depth)
                 .map_err(|e| layout(&frames[0].depth, format!("cannot read its size: {e}")))?;
-            let i = Intrinsics {
-                fx: k[0],
-                fy: k[4],
-                cx: k[2],
-                cy: k[5],
-                width: w,
-                height: h,
-                distortion: [0.0; 5],
-            };
-            i.validate()
-                .map_err(|e| layout(&k_path, format!("not a camera matrix: {e}")))?;
-            Some(i)
+            Some(camera_intrinsics(&k_path, (w, h))?)
         } else {
             None
         };
