@@ -297,18 +297,7 @@ fn other_cameras_localize_and_integration_mistakes_are_named() {
         (rgb, depth)
     };
     let localize = |rgb: &Path, depth: &Path, k: &str| -> Output {
-        pntr(&[
-            "localize",
-            "--addr",
-            &addr,
-            "--rgb",
-            rgb.to_str().unwrap(),
-            "--depth",
-            depth.to_str().unwrap(),
-            "--intrinsics",
-            k,
-            "--json",
-        ])
+        support::localize_files(&addr, rgb, depth, &["--intrinsics", k])
     };
     let fmt = |k: &Intrinsics| format!("{},{},{},{}", k.fx, k.fy, k.cx, k.cy);
     let mut localized = 0;

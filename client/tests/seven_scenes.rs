@@ -161,25 +161,9 @@ fn a_kinect_layout_with_unregistered_depth_builds_the_map_registered_depth_gives
     let frame = 12;
     let file = |ext: &str| kinect.join(format!("frame-{frame:06}.{ext}"));
     let one = |extra: &[&str]| {
-        let (rgb, depth, addr) = (
-            file("color.png"),
-            file("depth.png"),
-            server.addr.to_string(),
-        );
-        let mut args = vec![
-            "localize",
-            "--addr",
-            &addr,
-            "--rgb",
-            rgb.to_str().unwrap(),
-            "--depth",
-            depth.to_str().unwrap(),
-            "--frame-convention",
-            "map",
-            "--json",
-        ];
-        args.extend_from_slice(extra);
-        support::pntr(&args)
+        let addr = server.addr.to_string();
+        let map_frame = [&["--frame-convention", "map"][..], extra].concat();
+        support::localize_files(&addr, &file("color.png"), &file("depth.png"), &map_frame)
     };
     let answer: serde_json::Value =
         serde_json::from_str(&ok(&one(&["--intrinsics", &colour, &offset]))).unwrap();

@@ -136,6 +136,16 @@ pub fn eval(dataset: &Path, db: &Path, extra: &[&str]) -> Output {
     pntr(&[&args[..], extra].concat())
 }
 
+/// `pntr localize --addr addr --rgb rgb --depth depth --json` with `extra` arguments (one frame's
+/// files).
+pub fn localize_files(addr: &str, rgb: &Path, depth: &Path, extra: &[&str]) -> Output {
+    let (rgb, depth) = (rgb.to_str().unwrap(), depth.to_str().unwrap());
+    let args = [
+        "localize", "--addr", addr, "--rgb", rgb, "--depth", depth, "--json",
+    ];
+    pntr(&[&args[..], extra].concat())
+}
+
 /// `pntr replay --addr addr --sequence seq --trajectory trajectory --json report` with `extra`
 /// arguments.
 pub fn replay(addr: &str, seq: &Path, trajectory: &Path, report: &Path, extra: &[&str]) -> Output {
