@@ -145,16 +145,15 @@ fn registered(
 }
 
 /// A request from image files, checked here so that a bad file is named before anything is sent;
-/// with a separate depth camera (`depth_camera`), the depth registered to the colour camera
-/// (`colour`) first.
+/// with a separate depth camera (`depth_camera`, when one is given), the depth registered to the
+/// colour camera (`colour`) first.
 fn request_from_files(
     rgb: &Path,
     depth: &Path,
     depth_scale: Option<f64>,
-    depth_camera: &crate::recordings::DepthCameraOptions,
+    depth_camera: Option<&crate::recordings::DepthCameraOptions>,
     colour: Option<&proto::Intrinsics>,
 ) -> Result<proto::LocalizeRequest> {
-    let separate = depth_camera.0.is_some() || depth_camera.1.is_some();
     let bytes = read(rgb)?;
     let ext = |p: &Path| {
         p.extension()
@@ -195,8 +194,8 @@ fn request_from_files(
             if let Some(hint) = pntr_dataset::recording::depth_unit_hint(&map, Some(units)) {
                 bail!("{}: {hint}", depth.display());
             }
-            if separate {
-                let r = registered(depth, &map, depth_camera, colour, (w, h))?;
+            if let Some(given) = depth_camera {
+                let r = registered(depth, &map, given, colour, (w, h))?;
                 dbytes = r.data.iter().flat_map(|m| m.to_le_bytes()).collect();
                 (w, h, proto::DepthEncoding::Float32Meters)
             } else if units == 1000.0 {
@@ -206,7 +205,7 @@ fn request_from_files(
                 (dw, dh, proto::DepthEncoding::Float32Meters)
             }
         }
-        "f32" if separate => bail!(
+        "f32" if depth_camera.is_some() => bail!(
             "{}: a separate depth camera's image is registered from a 16-bit PNG (give the depth camera's own PNG, or depth already registered without --depth-intrinsics and --depth-to-colour)",
             depth.display()
         ),
@@ -328,18 +327,18 @@ fn print(r: &LocalizeResponse, truth: Option<(f64, f64, String)>, as_json: bool)
 
 /// `pntr localize`.
 pub fn run(args: &LocalizeArgs) -> Result<()> {
-    let depth_camera = args.depth_camera.depth_camera()?;
+    let given = args.depth_camera.depth_camera()?;
+    let depth_camera = (given.0.is_some() || given.1.is_some()).then_some(&given);
     let colour = match &args.intrinsics {
         Some(k) => Some(crate::recordings::parse_intrinsics(k)?),
         None => None,
     };
-    let separate = depth_camera.0.is_some() || depth_camera.1.is_some();
-    if separate && args.dataset.is_some() {
+    if depth_camera.is_some() && args.dataset.is_some() {
         bail!("--depth-intrinsics and --depth-to-colour are for image files (--rgb, --depth): a dataset's depth is registered already");
     }
     let (mut req, truth) = match (&args.rgb, &args.depth, &args.dataset) {
         (Some(rgb), Some(depth), None) => (
-            request_from_files(rgb, depth, args.depth_scale, &depth_camera, colour.as_ref())?,
+            request_from_files(rgb, depth, args.depth_scale, depth_camera, colour.as_ref())?,
             None,
         ),
         (None, None, Some(root)) => {
