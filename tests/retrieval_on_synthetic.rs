@@ -222,6 +222,31 @@ fn vlad_finds_the_right_point_and_faiss_agrees_with_brute_force() {
         agree as f64 >= 0.95 * queries.len() as f64,
         "hnsw top-1 agrees on {agree}"
     );
+    // Among a subset, HNSW and a flat index read back from its bytes (what a served map holds)
+    // rank exactly as brute force over the subset, with its scores; a repeated id counts once.
+    let mut reread =
+        GlobalIndex::from_bytes(&index.to_bytes().unwrap(), book.vlad_dim(), n_db).unwrap();
+    let twice: Vec<usize> = among.iter().chain(&among).copied().collect();
+    for q in &queries {
+        let sub: Vec<f32> = among
+            .iter()
+            .flat_map(|&i| db[i * book.vlad_dim()..(i + 1) * book.vlad_dim()].to_vec())
+            .collect();
+        let want = brute_force(&sub, book.vlad_dim(), q, 5);
+        for (name, got) in [
+            ("hnsw", hnsw.search_among(q, 5, &among).unwrap()),
+            ("re-read flat", reread.search_among(q, 5, &twice).unwrap()),
+        ] {
+            assert_eq!(
+                got.iter().map(|h| h.id).collect::<Vec<_>>(),
+                want.iter().map(|h| among[h.id]).collect::<Vec<_>>(),
+                "{name}"
+            );
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g.score - w.score).abs() < 1e-4, "{name}: {g:?} {w:?}");
+            }
+        }
+    }
 
     // Save, load: identical descriptors. A flipped byte is caught by the checksum.
     let dir = tempfile::tempdir().unwrap();

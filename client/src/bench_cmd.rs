@@ -3,8 +3,11 @@
 //! Closed loop (`--concurrency C`): C clients send back to back, so the server sets the pace and the
 //! figure is the throughput it sustains at that concurrency. Open loop (`--rate R`): requests leave on a
 //! fixed schedule whatever the answers do, and latency is counted from the scheduled send time, so a
-//! slow server cannot hide its queueing (no coordinated omission). Frames are read from the dataset and
-//! encoded before the clock starts; a warm-up is sent and not counted.
+//! slow server cannot hide its queueing (no coordinated omission). Robots (`--robots N`): N
+//! LocalizeStreams sending frames in order as robots do ([`crate::load`]). Soak (`--soak`): load
+//! phases for minutes to hours while the server's memory is read ([`crate::soak`]). Frames are read
+//! from a dataset's queries or a recording (`--sequence`) and encoded before the clock starts; a
+//! warm-up is sent and not counted.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -19,7 +22,8 @@ use pntr_service::tonic::transport::Channel;
 use pntr_service::{tokio, wire};
 use serde::Serialize;
 
-use crate::remote::{channel, client, request, stage_seconds, ConnectArgs};
+use crate::load::{one, Record, RobotTally, Robots};
+use crate::remote::{channel, client, ConnectArgs};
 
 /// Arguments of `pntr bench`.
 #[derive(clap::Args, Debug)]
@@ -27,9 +31,44 @@ pub struct BenchArgs {
     /// Where the server is, and how to authenticate.
     #[command(flatten)]
     pub connect: ConnectArgs,
-    /// Dataset whose query frames are sent.
-    #[arg(long)]
-    pub dataset: PathBuf,
+    /// Dataset whose query frames are sent (or --sequence).
+    #[arg(
+        long,
+        required_unless_present = "sequence",
+        conflicts_with = "sequence"
+    )]
+    pub dataset: Option<PathBuf>,
+    /// A recording whose frames are sent instead, read as `pntr replay` reads it: a TUM RGB-D
+    /// folder, a ROS 2 bag (folder or `.mcap`) or a 7-Scenes folder; --frames of its frames, evenly
+    /// spaced and in order, sent as a robot's compressed topics carry them (JPEG quality 90 colour,
+    /// uint16 millimetre depth) at the recording's size.
+    #[arg(long, value_name = "DIR|FILE.mcap")]
+    pub sequence: Option<PathBuf>,
+    /// ROS 2 bag topics and a separate depth camera (--sequence).
+    #[command(flatten)]
+    pub topics: crate::recordings::TopicArgs,
+    /// --sequence: the colour camera as `fx,fy,cx,cy[,k1,k2,p1,p2[,k3]]` when the recording names
+    /// none (7-Scenes: 525,525,320,240).
+    #[arg(long, value_name = "FX,FY,CX,CY")]
+    pub intrinsics: Option<String>,
+    /// --sequence: depth units per metre, replacing what the recording's format says.
+    #[arg(long, value_name = "UNITS_PER_M")]
+    pub depth_scale: Option<f64>,
+    /// Robots: this many LocalizeStreams, each sending the frames in order, forward then back,
+    /// instead of single calls (--concurrency and --rate are then not used).
+    #[arg(long, conflicts_with = "rate")]
+    pub robots: Option<usize>,
+    /// With --robots: frames per second each robot's camera delivers (a frame due while the robot's
+    /// previous one is unanswered is a missed slot); default: back to back.
+    #[arg(long, value_name = "HZ")]
+    pub rate_hz: Option<f64>,
+    /// With --robots: each robot leaves after this many answered frames and comes back on a new
+    /// stream (robots that connect and leave); in a soak's `churn` phase, default 10.
+    #[arg(long, value_name = "FRAMES")]
+    pub churn_frames: Option<usize>,
+    /// The soak mode.
+    #[command(flatten)]
+    pub soak: crate::soak::SoakArgs,
     /// Only this scene's queries.
     #[arg(long)]
     pub scene: Option<String>,
@@ -83,14 +122,6 @@ pub struct Overhead {
     ratio: f64,
 }
 
-struct Record {
-    latency: f64,
-    code: Option<String>,
-    localized: bool,
-    stages: Vec<(String, f64)>,
-    map_version: String,
-}
-
 /// Latency percentiles, ms.
 #[derive(Debug, Clone, Serialize)]
 pub struct Latency {
@@ -118,6 +149,18 @@ pub struct BenchReport {
     rate: Option<f64>,
     duration_s: f64,
     frames: usize,
+    /// Robots (--robots): LocalizeStreams at once, streams opened and camera slots missed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    robots: Option<RobotsReport>,
+}
+
+/// What the robots of a run did.
+#[derive(Debug, Clone, Serialize)]
+pub struct RobotsReport {
+    robots: usize,
+    rate_hz: Option<f64>,
+    streams_opened: u64,
+    missed_slots: u64,
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -173,13 +216,113 @@ fn report(
         rate,
         duration_s: wall,
         frames,
+        robots: None,
     }
+}
+
+/// A frame as a robot's compressed topics carry it: JPEG quality 90 colour, uint16 millimetre depth.
+fn compressed_request(
+    rgb: &pntr_core::RgbImage,
+    depth: &pntr_core::DepthMap,
+    k: &pntr_core::Intrinsics,
+) -> Result<proto::LocalizeRequest> {
+    let mut jpeg = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+        .encode(
+            &rgb.data,
+            rgb.width,
+            rgb.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .context("encoding a frame as JPEG")?;
+    Ok(proto::LocalizeRequest {
+        rgb: Some(proto::Image {
+            width: rgb.width,
+            height: rgb.height,
+            encoding: proto::ImageEncoding::Jpeg as i32,
+            data: jpeg,
+        }),
+        depth: Some(proto::Depth {
+            width: depth.width,
+            height: depth.height,
+            encoding: proto::DepthEncoding::Uint16Millimeters as i32,
+            data: depth
+                .to_millimetres()
+                .into_iter()
+                .flat_map(u16::to_le_bytes)
+                .collect(),
+        }),
+        intrinsics: Some(wire::intrinsics_message(k)),
+        ..Default::default()
+    })
+}
+
+/// `--frames` frames of the recording `--sequence`, evenly spaced and in order.
+fn sequence_frames(
+    args: &BenchArgs,
+    path: &std::path::Path,
+) -> Result<Vec<(proto::LocalizeRequest, pntr_pipeline::pipeline::Query)>> {
+    let (rec, camera) = crate::recordings::open_recording(
+        path,
+        None,
+        &args.topics,
+        args.depth_scale,
+        args.intrinsics.as_deref(),
+    )?;
+    for w in rec.warnings() {
+        eprintln!("warning: {w}");
+    }
+    if rec.is_empty() {
+        bail!("{}: no frames", path.display());
+    }
+    let n = args.frames.clamp(1, rec.len());
+    let mut out = Vec::with_capacity(n);
+    for i in 0..n {
+        let at = i * rec.len() / n;
+        let (rgb, depth) = match rec.load(at) {
+            Ok(f) => f,
+            Err(e) => {
+                eprintln!("warning: frame {at} skipped: {e}");
+                continue;
+            }
+        };
+        if (camera.width, camera.height) != (rgb.width, rgb.height) {
+            bail!(
+                "{}: the frames are {}x{} but the camera describes {}x{}: give --intrinsics for the recorded size",
+                path.display(),
+                rgb.width,
+                rgb.height,
+                camera.width,
+                camera.height
+            );
+        }
+        if let Some(hint) = pntr_dataset::recording::depth_unit_hint(&depth, args.depth_scale) {
+            bail!("{}: frame {at}: {hint}", path.display());
+        }
+        out.push((
+            compressed_request(&rgb, &depth, &camera)?,
+            pntr_pipeline::pipeline::Query {
+                rgb,
+                depth,
+                intrinsics: camera,
+            },
+        ));
+    }
+    if out.is_empty() {
+        bail!("{}: none of its frames could be read", path.display());
+    }
+    Ok(out)
 }
 
 fn load_frames(
     args: &BenchArgs,
 ) -> Result<Vec<(proto::LocalizeRequest, pntr_pipeline::pipeline::Query)>> {
-    let index = DatasetIndex::open(&args.dataset)?;
+    let dataset = match (&args.dataset, &args.sequence) {
+        (_, Some(seq)) => return sequence_frames(args, seq),
+        (Some(d), None) => d,
+        (None, None) => bail!("give --dataset or --sequence"),
+    };
+    let index = DatasetIndex::open(dataset)?;
     let scenes: Vec<_> = match &args.scene {
         Some(s) => vec![index.scene(s)?],
         None => index.scenes.iter().collect(),
@@ -194,7 +337,7 @@ fn load_frames(
         }
     }
     if all.is_empty() {
-        bail!("{}: no query frames", args.dataset.display());
+        bail!("{}: no query frames", dataset.display());
     }
     let n = args.frames.clamp(1, all.len());
     let step = all.len() as f64 / n as f64;
@@ -214,38 +357,6 @@ fn load_frames(
     Ok(out)
 }
 
-async fn one(
-    mut c: LocalizerClient<Channel>,
-    connect: &ConnectArgs,
-    req: proto::LocalizeRequest,
-    started: Instant,
-) -> Record {
-    let res = match request(connect, req) {
-        Ok(r) => c.localize(r).await,
-        Err(e) => Err(pntr_service::tonic::Status::internal(e.to_string())),
-    };
-    let latency = started.elapsed().as_secs_f64();
-    match res {
-        Ok(r) => {
-            let r = r.into_inner();
-            Record {
-                latency,
-                code: None,
-                localized: r.status == proto::Status::Localized as i32,
-                stages: stage_seconds(&r),
-                map_version: r.map_version,
-            }
-        }
-        Err(s) => Record {
-            latency,
-            code: Some(pntr_service::service::code_name(s.code()).to_string()),
-            localized: false,
-            stages: Vec::new(),
-            map_version: String::new(),
-        },
-    }
-}
-
 /// Run one measurement (closed loop at `concurrency`, or open loop at `rate`) for `duration` seconds.
 async fn measure(
     args: &BenchArgs,
@@ -255,7 +366,7 @@ async fn measure(
     rate: Option<f64>,
     duration: f64,
     live: bool,
-) -> (Vec<Record>, f64) {
+) -> (Vec<Record>, f64, Option<RobotsReport>) {
     let records = Arc::new(Mutex::new(Vec::new()));
     let next = Arc::new(AtomicUsize::new(0));
     let t0 = Instant::now();
@@ -286,8 +397,29 @@ async fn measure(
         })
     };
     let mut tasks = Vec::new();
-    match rate {
-        None => {
+    let tally = Arc::new(RobotTally::default());
+    match (rate, args.robots) {
+        (_, Some(robots)) => {
+            let sink: Arc<dyn Fn(Record) + Send + Sync> = {
+                let records = records.clone();
+                Arc::new(move |r| records.lock().expect("records").push(r))
+            };
+            let load = Robots {
+                robots,
+                rate_hz: args.rate_hz,
+                churn_frames: args.churn_frames.unwrap_or(0),
+            };
+            tasks.push(tokio::spawn(crate::load::drive(
+                c.clone(),
+                args.connect.clone(),
+                frames.clone(),
+                load,
+                end,
+                sink,
+                tally.clone(),
+            )));
+        }
+        (None, None) => {
             for _ in 0..concurrency.max(1) {
                 let (c, frames, next, records, connect) = (
                     c.clone(),
@@ -305,7 +437,7 @@ async fn measure(
                 }));
             }
         }
-        Some(r) => {
+        (Some(r), None) => {
             let period = Duration::from_secs_f64(1.0 / r.max(1e-3));
             let limit = Arc::new(tokio::sync::Semaphore::new(64 * concurrency.max(1)));
             let mut k: u32 = 0;
@@ -342,7 +474,13 @@ async fn measure(
         eprintln!();
     }
     let records = std::mem::take(&mut *records.lock().expect("records"));
-    (records, wall)
+    let robots = args.robots.map(|robots| RobotsReport {
+        robots,
+        rate_hz: args.rate_hz,
+        streams_opened: tally.streams_opened.load(Ordering::Relaxed),
+        missed_slots: tally.missed_slots.load(Ordering::Relaxed),
+    });
+    (records, wall, robots)
 }
 
 fn print_row(r: &BenchReport) {
@@ -375,6 +513,19 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             bail!("--rate must be a positive number of requests per second");
         }
     }
+    if args.robots == Some(0) {
+        bail!("--robots must be at least 1");
+    }
+    if let Some(r) = args.rate_hz {
+        if !(r > 0.0 && r.is_finite()) {
+            bail!("--rate-hz must be a positive number of frames per second");
+        }
+    }
+    if args.robots.is_some() && args.sweep.is_some() {
+        bail!(
+            "--sweep varies --concurrency of single calls; with --robots give one number of robots"
+        );
+    }
     let loaded = load_frames(args)?;
     let frames = Arc::new(loaded.iter().map(|(r, _)| r.clone()).collect::<Vec<_>>());
     let rt = tokio::runtime::Builder::new_multi_thread()
@@ -382,6 +533,23 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         .enable_all()
         .build()?;
     let c = client(rt.block_on(channel(&args.connect))?);
+    if args.soak.soak {
+        let load = crate::soak::SoakLoad {
+            connect: &args.connect,
+            frames,
+            concurrency: args.concurrency,
+            robots: Robots {
+                robots: args.robots.unwrap_or(4),
+                rate_hz: args.rate_hz,
+                churn_frames: args.churn_frames.unwrap_or(10),
+            },
+            warmup_s: args.warmup,
+            duration_s: args.duration,
+            plot: args.plot.clone(),
+            json: args.json.clone(),
+        };
+        return crate::soak::run(&args.soak, load, &rt, c);
+    }
     let levels = args.sweep.clone().unwrap_or_else(|| vec![args.concurrency]);
     let mut reports = Vec::new();
     println!(
@@ -400,7 +568,7 @@ pub fn run(args: &BenchArgs) -> Result<()> {
                 false,
             ));
         }
-        let (records, wall) = rt.block_on(measure(
+        let (records, wall, robots) = rt.block_on(measure(
             args,
             frames.clone(),
             c.clone(),
@@ -409,7 +577,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
             args.duration,
             true,
         ));
-        let r = report(&records, wall, level, args.rate, frames.len());
+        let mut r = report(&records, wall, level, args.rate, frames.len());
+        r.robots = robots;
         print_row(&r);
         reports.push(r);
     }

@@ -19,12 +19,14 @@ mod synth_cmd;
 
 // Shared by the subcommands.
 mod evaluation;
+mod load;
 mod loading;
 mod output;
 mod own_calibration;
 mod plot;
 mod recordings;
 mod remote;
+mod soak;
 
 use std::path::PathBuf;
 

@@ -1155,6 +1155,73 @@ pub fn bench_plot(points: &[SweepPoint], dir: &Path, title: &str) -> Result<Vec<
     save(dir, &sweep_figure(points, title))
 }
 
+/// One memory reading of a soak: minutes since the start, the load phase it fell in, and the
+/// server's resident memory and live heap, MB.
+#[derive(Debug, Clone)]
+pub struct SoakPoint {
+    /// Minutes since the soak started.
+    pub minutes: f64,
+    /// The phase's name (`single`, `streams`, `churn`, `replace`).
+    pub phase: String,
+    /// Resident memory, MB.
+    pub rss_mb: f64,
+    /// Live heap (glibc's allocated bytes), MB; NaN when the server does not export it.
+    pub heap_mb: f64,
+}
+
+/// `soak_memory`: resident memory (left) and live heap (right) against time, one colour a phase.
+fn soak_figure(points: &[SoakPoint], title: &str) -> Figure {
+    let t_max = points
+        .iter()
+        .map(|p| p.minutes)
+        .fold(0.0, f64::max)
+        .max(1.0);
+    let x = || Axis::linear("minutes", 0.0, t_max * 1.02);
+    let colours = [
+        BLUE,
+        RGBColor(230, 120, 0),
+        RGBColor(0, 140, 60),
+        RED,
+        MAGENTA,
+    ];
+    let mut phases: Vec<&str> = Vec::new();
+    for p in points {
+        if !phases.contains(&p.phase.as_str()) {
+            phases.push(&p.phase);
+        }
+    }
+    let panel = |desc: &str, f: fn(&SoakPoint) -> f64| {
+        let finite: Vec<f64> = points.iter().map(f).filter(|v| v.is_finite()).collect();
+        let hi = finite.iter().copied().fold(0.0, f64::max).max(1.0) * 1.1;
+        let series = phases
+            .iter()
+            .enumerate()
+            .map(|(i, phase)| {
+                let along = points
+                    .iter()
+                    .filter(|p| p.phase == *phase && f(p).is_finite())
+                    .map(|p| (p.minutes, f(p)))
+                    .collect();
+                Series::labelled(*phase, colours[i % colours.len()], Mark::Line(2), along)
+            })
+            .collect();
+        Panel::chart(x(), Axis::linear(desc, 0.0, hi), series)
+    };
+    Figure::charts(
+        "soak_memory",
+        title,
+        vec![
+            panel("resident memory (MB)", |p| p.rss_mb),
+            panel("live heap (MB)", |p| p.heap_mb),
+        ],
+    )
+}
+
+/// Write `soak_memory.png` / `.svg` (the server's memory against time through a soak) into `dir`.
+pub fn soak_plot(points: &[SoakPoint], dir: &Path, title: &str) -> Result<Vec<PathBuf>> {
+    save(dir, &soak_figure(points, title))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

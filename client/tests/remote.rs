@@ -1,6 +1,6 @@
 //! The client commands against a real `pntr-server` started in this process on 127.0.0.1 (ephemeral
 //! port) with a map built by `pntr build-db` from a scene generated here: `pntr localize`, `pntr bench`
-//! (closed loop, open loop, sweep), `pntr eval --remote`, and the token check.
+//! (closed loop, open loop, sweep, robots, the soak), `pntr eval --remote`, and the token check.
 
 mod support;
 
@@ -267,4 +267,139 @@ fn localize_bench_and_remote_eval_against_a_live_server() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("cannot reach pntr-server"));
 
     stop(&rt, [a, b, c, t]);
+}
+
+/// `pntr bench --robots`: LocalizeStreams that leave and come back; `pntr bench --soak`: its phases
+/// one after another against a live server whose memory it reads from /metrics, a map replaced in
+/// the `replace` phase, every reading in the JSON and the picture drawn; and what it refuses.
+#[test]
+fn robots_and_a_soak_against_a_live_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().to_str().unwrap();
+    synth(dir.path(), "3", "3", &["--seed", "14"]);
+    let map = dir.path().join("m.pntrmap");
+    build_db(&map, &["--dataset", root, "--scene", "synth000"]);
+    let rebuilt = dir.path().join("m-rebuilt.pntrmap");
+    std::fs::copy(&map, &rebuilt).unwrap();
+
+    let rt = runtime();
+    let mut settings = Settings::local(vec![map.clone()], MODELS.into());
+    settings.workers = 2;
+    settings.admin_token = Some("soak-admin".into());
+    let [server] = serve(&rt, [settings]);
+    let (addr, metrics) = (server.addr.to_string(), server.metrics_addr.to_string());
+    let bench = |extra: &[&str]| {
+        pntr(&[&["bench", "--addr", &addr, "--dataset", root][..], extra].concat())
+    };
+
+    // Two robots, each leaving after 3 frames and coming back on a new stream.
+    let report = dir.path().join("robots.json");
+    ok(&bench(&[
+        "--robots",
+        "2",
+        "--churn-frames",
+        "3",
+        "--warmup",
+        "0.5",
+        "--duration",
+        "3",
+        "--json",
+        report.to_str().unwrap(),
+    ]));
+    let r = read_json(&report);
+    assert!(r["requests"].as_u64().unwrap() >= 6, "{r}");
+    assert_eq!(r["errors"], 0, "{r}");
+    assert_eq!(r["robots"]["robots"], 2, "{r}");
+    let opened = r["robots"]["streams_opened"].as_u64().unwrap();
+    let answered = r["requests"].as_u64().unwrap();
+    assert!(
+        opened * 3 + 2 >= answered && opened >= 2,
+        "each stream carries at most 3 frames: {r}"
+    );
+
+    // The soak: three phases, memory read as they go, the map replaced twice or more.
+    let soak = dir.path().join("soak.json");
+    let plot = dir.path().join("soak");
+    let out = bench(&[
+        "--soak",
+        "--metrics-addr",
+        &metrics,
+        "--phases",
+        "single,churn,replace",
+        "--concurrency",
+        "2",
+        "--robots",
+        "2",
+        "--churn-frames",
+        "3",
+        "--warmup",
+        "0.5",
+        "--duration",
+        "3",
+        "--sample-s",
+        "0.5",
+        "--replace-file",
+        rebuilt.to_str().unwrap(),
+        "--replace-every-s",
+        "1",
+        "--admin-token",
+        "soak-admin",
+        "--json",
+        soak.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+    ]);
+    let text = ok(&out);
+    let s = read_json(&soak);
+    let phases: Vec<&str> = s["soak"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["phase"].as_str().unwrap())
+        .collect();
+    assert_eq!(phases, ["single", "churn", "replace"], "{s}");
+    for p in s["soak"].as_array().unwrap() {
+        assert!(p["requests"].as_u64().unwrap() > 0, "{p}");
+        assert_eq!(p["errors"], 0, "{p}");
+        for side in ["start", "end"] {
+            assert!(p[side]["rss_bytes"].as_f64().unwrap() > 1e6, "{p}");
+            assert!(p[side]["heap_bytes"].as_f64().unwrap() > 1e6, "{p}");
+        }
+        assert!(p["heap_bytes_per_request"].as_f64().is_some(), "{p}");
+        assert!(text.contains(p["phase"].as_str().unwrap()), "{text}");
+    }
+    assert!(s["soak"][1]["streams_opened"].as_u64().unwrap() >= 2, "{s}");
+    let replace = &s["soak"][2];
+    assert!(replace["replaces"].as_u64().unwrap() >= 2, "{replace}");
+    assert_eq!(replace["replaces_failed"], 0, "{replace}");
+    let samples = s["samples"].as_array().unwrap();
+    assert!(samples.len() >= 6, "{} readings", samples.len());
+    assert!(samples.iter().all(|x| x["phase"] != ""), "{s}");
+    support::assert_picture(
+        &plot,
+        "soak_memory",
+        (1200, 560),
+        &[
+            "resident memory (MB)",
+            "live heap (MB)",
+            "single",
+            "churn",
+            "replace",
+        ],
+    );
+
+    // Refused before any load, each saying what to give.
+    let e = support::fails_cleanly(&bench(&["--soak"]));
+    assert!(e.contains("--metrics-addr"), "{e}");
+    let e = support::fails_cleanly(&bench(&[
+        "--soak",
+        "--metrics-addr",
+        &metrics,
+        "--phases",
+        "replace",
+    ]));
+    assert!(e.contains("--replace-file"), "{e}");
+    let e = support::fails_cleanly(&bench(&["--soak", "--metrics-addr", &addr]));
+    assert!(e.contains("--metrics-addr"), "{e}");
+    stop(&rt, [server]);
 }

@@ -1,7 +1,6 @@
 //! The global-descriptor index: faiss with inner product on L2-normalised vectors.
 
 use faiss::index::IndexImpl;
-use faiss::index::SearchWithParamsMut;
 use faiss::{Index, MetricType};
 
 use crate::RetrievalError;
@@ -113,7 +112,15 @@ pub struct GlobalIndex {
     index: IndexImpl,
     dim: usize,
     len: usize,
+    /// Whether the index holds the vectors as they are searched (flat, HNSW over flat storage), so
+    /// that [`GlobalIndex::search_among`] scores the allowed ids exactly from them.
+    exact_among: bool,
 }
+
+/// The faiss file tags (`fourcc` in faiss's `index_write.cpp`) of the index types that store the
+/// vectors unchanged and reconstruct them exactly: flat with inner product, L2 or another metric,
+/// and HNSW over flat storage.
+const EXACT_AMONG_TAGS: [&[u8; 4]; 4] = [b"IxFI", b"IxF2", b"IxFl", b"IHNf"];
 
 impl std::fmt::Debug for GlobalIndex {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -188,6 +195,7 @@ impl GlobalIndex {
             index,
             dim,
             len: vectors.len() / dim,
+            exact_among: matches!(kind, IndexKind::Flat | IndexKind::Hnsw { .. }),
         })
     }
 
@@ -230,7 +238,13 @@ impl GlobalIndex {
                 index.d()
             )));
         }
-        Ok(Self { index, dim, len })
+        let exact_among = EXACT_AMONG_TAGS.iter().any(|tag| bytes.starts_with(*tag));
+        Ok(Self {
+            index,
+            dim,
+            len,
+            exact_among,
+        })
     }
 
     /// Vector length.
@@ -275,8 +289,10 @@ impl GlobalIndex {
 impl GlobalIndex {
     /// The `k` most similar vectors among the ids `among` (a prior's region), best first.
     ///
-    /// A flat index searches with faiss's id selector (exact ranking of the subset). Index types that
-    /// refuse a plain selector (IVF, HNSW, PCA) rank what an ordinary search of depth
+    /// A flat or HNSW index scores each allowed id from its stored vector (exact ranking of the
+    /// subset, nothing kept after the call: faiss's id selector, which this used before, is never
+    /// freed by the `faiss` crate's `SearchParameters` and leaked about 2.5 KB a search). Index types
+    /// that transform or bucket the vectors (IVF, PCA) rank what an ordinary search of depth
     /// max(8k, 1024) finds among the allowed ids. Allowed ids an approximate search misses follow
     /// the found ones in the order of `among` (the caller's, nearest first) with a score of
     /// `f32::MIN`, so a small region always yields all of its images. Ids outside the index are
@@ -300,32 +316,17 @@ impl GlobalIndex {
         if k == 0 {
             return Ok(Vec::new());
         }
-        let ids: Vec<faiss::Idx> = allowed.iter().map(|&i| faiss::Idx::new(i as u64)).collect();
-        let params =
-            faiss::search_params::SearchParameters::new(faiss::selector::IdSelector::batch(&ids)?)?;
-        let mut hits: Vec<Hit> = match self.index.search_with_params(query, k, &params) {
-            Ok(r) => r
-                .labels
-                .iter()
-                .zip(&r.distances)
-                .filter_map(|(l, &score)| {
-                    l.get().map(|id| Hit {
-                        id: id as usize,
-                        score,
-                    })
-                })
-                .collect(),
-            // Index types whose search takes their own parameter type (IVF, HNSW, PCA) refuse a
-            // plain selector: rank what an ordinary, deeper search finds of the allowed ids.
-            Err(_) => {
-                let deep = (k * 8).max(SEARCH_AMONG_DEPTH).min(self.len);
-                let allowed_set: std::collections::HashSet<usize> =
-                    allowed.iter().copied().collect();
-                let mut found = self.search(query, deep)?;
-                found.retain(|h| allowed_set.contains(&h.id));
-                found.truncate(k);
-                found
-            }
+        let mut hits: Vec<Hit> = if self.exact_among {
+            self.score_among(query, k, &allowed)?
+        } else {
+            // Index types that do not keep the vectors as they are searched (IVF cells, PCA):
+            // rank what an ordinary, deeper search finds of the allowed ids.
+            let deep = (k * 8).max(SEARCH_AMONG_DEPTH).min(self.len);
+            let allowed_set: std::collections::HashSet<usize> = allowed.iter().copied().collect();
+            let mut found = self.search(query, deep)?;
+            found.retain(|h| allowed_set.contains(&h.id));
+            found.truncate(k);
+            found
         };
         for &id in &allowed {
             if hits.len() >= k {
@@ -338,6 +339,33 @@ impl GlobalIndex {
                 });
             }
         }
+        Ok(hits)
+    }
+}
+
+impl GlobalIndex {
+    /// The `k` best of `allowed` (ids inside the index) by inner product with their stored vectors,
+    /// best first, ties by id. One `dim`-float buffer, reused for every id; nothing outlives the call.
+    fn score_among(
+        &self,
+        query: &[f32],
+        k: usize,
+        allowed: &[usize],
+    ) -> Result<Vec<Hit>, RetrievalError> {
+        let mut vector = vec![0.0f32; self.dim];
+        let mut hits = Vec::with_capacity(allowed.len());
+        let mut seen = std::collections::HashSet::with_capacity(allowed.len());
+        for &id in allowed {
+            if !seen.insert(id) {
+                continue;
+            }
+            self.index
+                .reconstruct(faiss::Idx::new(id as u64), &mut vector)?;
+            let score = vector.iter().zip(query).map(|(a, b)| a * b).sum();
+            hits.push(Hit { id, score });
+        }
+        hits.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.id.cmp(&b.id)));
+        hits.truncate(k);
         Ok(hits)
     }
 }

@@ -35,6 +35,10 @@ pub const DEFAULT_MAX_MESSAGE_BYTES: usize = 16 << 20;
 /// needs one; a load balancer multiplexing many robots needs more. The request queue bounds the work
 /// either way; this bounds what one connection can hold open.
 pub const DEFAULT_MAX_STREAMS_PER_CONNECTION: u32 = 64;
+/// Default most LocalizeStreams open at once on one server, all connections together. Each holds its
+/// tracking state (about 1 MB at 640x480: [`crate::service`]'s `Track`) until it ends, so this bounds
+/// the memory streams take; a robot needs one, and a 2-core server answers about 9 robots at 5 Hz.
+pub const DEFAULT_MAX_STREAMS: usize = 1024;
 /// Default largest accepted image side.
 pub const DEFAULT_MAX_IMAGE_SIDE: u32 = 4096;
 /// Default time in-flight requests get to finish after SIGTERM/SIGINT.
@@ -85,6 +89,10 @@ pub struct Args {
     /// in the client until one ends [default: 64].
     #[arg(long, env = "PNTR_MAX_STREAMS_PER_CONNECTION")]
     pub max_streams_per_connection: Option<u32>,
+    /// Most LocalizeStreams open at once, all connections together; one more is refused with
+    /// RESOURCE_EXHAUSTED. Each holds its tracking state (about 1 MB) until it ends [default: 1024].
+    #[arg(long, env = "PNTR_MAX_STREAMS")]
+    pub max_streams: Option<usize>,
     /// Largest accepted image width [default: 4096].
     #[arg(long, env = "PNTR_MAX_IMAGE_WIDTH")]
     pub max_image_width: Option<u32>,
@@ -224,6 +232,7 @@ struct FileSettings {
     queue: Option<usize>,
     max_message_bytes: Option<usize>,
     max_streams_per_connection: Option<u32>,
+    max_streams: Option<usize>,
     max_image_width: Option<u32>,
     max_image_height: Option<u32>,
     ort_threads: Option<usize>,
@@ -299,6 +308,8 @@ pub struct Settings {
     pub max_message_bytes: usize,
     /// Most concurrent HTTP/2 streams per client connection.
     pub max_streams_per_connection: u32,
+    /// Most LocalizeStreams open at once, all connections together.
+    pub max_streams: usize,
     /// Largest image width.
     pub max_image_width: u32,
     /// Largest image height.
@@ -347,6 +358,7 @@ impl std::fmt::Debug for Settings {
                 "max_streams_per_connection",
                 &self.max_streams_per_connection,
             )
+            .field("max_streams", &self.max_streams)
             .field("max_image_width", &self.max_image_width)
             .field("max_image_height", &self.max_image_height)
             .field("ort_threads", &self.ort_threads)
@@ -427,6 +439,7 @@ impl Settings {
             queue: 4 * workers,
             max_message_bytes: DEFAULT_MAX_MESSAGE_BYTES,
             max_streams_per_connection: DEFAULT_MAX_STREAMS_PER_CONNECTION,
+            max_streams: DEFAULT_MAX_STREAMS,
             max_image_width: DEFAULT_MAX_IMAGE_SIDE,
             max_image_height: DEFAULT_MAX_IMAGE_SIDE,
             ort_threads: 1,
@@ -512,6 +525,10 @@ impl Settings {
                 .max_streams_per_connection
                 .or(file.max_streams_per_connection)
                 .unwrap_or(DEFAULT_MAX_STREAMS_PER_CONNECTION),
+            max_streams: args
+                .max_streams
+                .or(file.max_streams)
+                .unwrap_or(DEFAULT_MAX_STREAMS),
             max_image_width: args
                 .max_image_width
                 .or(file.max_image_width)
@@ -613,6 +630,12 @@ impl Settings {
             return bad(format!(
                 "--max-message-bytes must be between 1024 and 1073741824, not {}",
                 self.max_message_bytes
+            ));
+        }
+        if !(1..=100_000).contains(&self.max_streams) {
+            return bad(format!(
+                "--max-streams must be 1 to 100000, not {}",
+                self.max_streams
             ));
         }
         if !(1..=10_000).contains(&self.max_streams_per_connection) {
@@ -830,6 +853,17 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("--max-streams-per-connection"), "{e}");
+        assert_eq!(
+            Settings::from_args(base.clone()).unwrap().max_streams,
+            DEFAULT_MAX_STREAMS
+        );
+        let e = Settings::from_args(Args {
+            max_streams: Some(0),
+            ..base.clone()
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("--max-streams must be"), "{e}");
         let e = Settings::from_args(Args {
             addr: Some("nonsense".into()),
             ..base.clone()

@@ -178,6 +178,7 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
             max_height: settings.max_image_height,
         },
         settings.workers.max(2),
+        settings.max_streams,
         shutdown_rx.clone(),
     ));
     let foxglove_addr = match settings.foxglove {
@@ -258,6 +259,7 @@ pub async fn start(settings: Settings) -> Result<Running, ServerError> {
                         version: m.version.label.clone(),
                         images: m.map.images.len(),
                         calibration_stale: m.calibration_stale,
+                        heap_bytes: m.map.heap_bytes(),
                     })
                     .collect()
             })

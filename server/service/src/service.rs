@@ -35,6 +35,10 @@ pub struct State {
     engine: OnceLock<Arc<Engine>>,
     limits: Limits,
     decoders: Arc<tokio::sync::Semaphore>,
+    /// One permit per LocalizeStream open (`--max-streams`): the bound on the tracking states the
+    /// server holds at once.
+    streams: Arc<tokio::sync::Semaphore>,
+    max_streams: usize,
     /// Turns true when the server begins to shut down (open streams then end with UNAVAILABLE).
     stop: tokio::sync::watch::Receiver<bool>,
     /// Held by each map change (MapAdmin, SIGHUP), so changes apply one at a time.
@@ -48,12 +52,20 @@ impl State {
     /// At most `decoders` frames are decoded at once (PNG/JPEG decoding runs on blocking threads, so a
     /// large frame never stalls the async threads that answer health checks and other calls, and the
     /// permits bound the memory that decoded frames can take before the queue admits them).
-    /// `stop` turns true when the server begins to shut down.
-    pub fn new(limits: Limits, decoders: usize, stop: tokio::sync::watch::Receiver<bool>) -> Self {
+    /// At most `max_streams` LocalizeStreams are open at once (one more is refused with
+    /// RESOURCE_EXHAUSTED). `stop` turns true when the server begins to shut down.
+    pub fn new(
+        limits: Limits,
+        decoders: usize,
+        max_streams: usize,
+        stop: tokio::sync::watch::Receiver<bool>,
+    ) -> Self {
         Self {
             engine: OnceLock::new(),
             limits,
             decoders: Arc::new(tokio::sync::Semaphore::new(decoders.max(1))),
+            streams: Arc::new(tokio::sync::Semaphore::new(max_streams.max(1))),
+            max_streams: max_streams.max(1),
             stop,
             admin: tokio::sync::Mutex::new(()),
             live: OnceLock::new(),
@@ -1186,6 +1198,14 @@ impl proto::localizer_server::Localizer for LocalizerService {
         let stream_id = request_id("", &meta)?;
         let span = tracing::info_span!("localize_stream", stream_id = %stream_id);
         let reply_id = stream_id.clone();
+        // The stream's slot, held until its task ends (with its tracking state).
+        let Ok(slot) = self.state.streams.clone().try_acquire_owned() else {
+            count("ERROR", Code::ResourceExhausted, "");
+            return Err(Status::resource_exhausted(format!(
+                "server busy: {} LocalizeStreams are open, the most this server holds (--max-streams): retry after a back-off, or on another replica",
+                self.state.max_streams
+            )));
+        };
         let mut input = request.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(2);
         let this = self.clone();
@@ -1193,6 +1213,9 @@ impl proto::localizer_server::Localizer for LocalizerService {
         tokio::spawn(
             async move {
                 let _open = StreamGauge::new();
+                // Dropped before the gauge (reverse order): once the gauge says a stream ended, its
+                // slot is free.
+                let _slot = slot;
                 let mut n = 0u64;
                 // Tracking state, the whole of what a stream keeps: the last verified position and
                 // the keyframe.

@@ -53,6 +53,22 @@ pub const MAP_CALIBRATION_STALE: &str = "pntr_map_calibration_stale";
 /// earlier ones (a slow viewer, or images larger than it can encode at the frame rate).
 pub const LIVE_VIEW_DROPPED: &str = "pntr_live_view_frames_dropped_total";
 
+/// Gauge: bytes the process's C allocator (glibc malloc) holds for live allocations, Rust's and
+/// faiss's, ONNX Runtime's and OpenVINO's alike (`mallinfo2`: `uordblks` + `hblkhd`), read at each
+/// scrape. Flat under steady load when nothing leaks; the soak mode of `pntr bench` and the leak
+/// test read it.
+pub const HEAP_ALLOCATED: &str = "pntr_heap_allocated_bytes";
+/// Gauge: bytes glibc malloc holds freed but not returned to the system (`mallinfo2.fordblks`):
+/// resident memory above [`HEAP_ALLOCATED`] that later allocations reuse.
+pub const HEAP_RETAINED: &str = "pntr_heap_retained_bytes";
+/// Gauge of the approximate heap of each loaded map's images and retrieval vectors (`map_id`),
+/// rendered from the loaded maps at each scrape: what a map replace adds until the old one drains.
+pub const MAP_HEAP: &str = "pntr_map_heap_bytes";
+
+/// Longest a connection to `/metrics` stays open, seconds (Prometheus reconnects; a peer that went
+/// quiet does not hold a task for ever).
+const METRICS_CONNECTION_S: u64 = 60;
+
 /// Bucket bounds of the confidence histogram.
 const CONFIDENCE_BUCKETS: [f64; 13] = [
     0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99, 0.999, 1.0,
@@ -145,6 +161,8 @@ pub struct MapSeries {
     pub images: usize,
     /// Whether its own calibration is stale.
     pub calibration_stale: bool,
+    /// Approximate heap of its images and retrieval vectors, bytes.
+    pub heap_bytes: usize,
 }
 
 /// The per-map series, in Prometheus text: [`MAP_INFO`], [`MAP_IMAGES`] and
@@ -177,11 +195,63 @@ pub fn render_maps(maps: &[MapSeries]) -> String {
         (id(m), m.images.to_string())
     });
     family(
+        MAP_HEAP,
+        "Approximate heap of each loaded map's images and retrieval vectors, bytes",
+        &|m| (id(m), m.heap_bytes.to_string()),
+    );
+    family(
         MAP_CALIBRATION_STALE,
         "1 when a loaded map's own confidence calibration is stale (the map changed since it was fitted)",
         &|m| (id(m), u8::from(m.calibration_stale).to_string()),
     );
     out
+}
+
+/// The glibc allocator's view of the heap: (bytes in live allocations, bytes freed but retained).
+/// `None` off glibc.
+pub fn heap_bytes() -> Option<(u64, u64)> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: mallinfo2 (glibc >= 2.33) takes no arguments, only reads the allocator's arenas
+        // under their locks and returns a plain struct by value.
+        #[allow(unsafe_code)]
+        let m = unsafe { libc::mallinfo2() };
+        Some(((m.uordblks + m.hblkhd) as u64, m.fordblks as u64))
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        None
+    }
+}
+
+/// The process collector (Prometheus' `process_*` names: resident and virtual memory, open and
+/// maximum file descriptors, start time, CPU seconds, threads), described once.
+fn process_collector() -> &'static metrics_process::Collector {
+    static COLLECTOR: OnceLock<metrics_process::Collector> = OnceLock::new();
+    COLLECTOR.get_or_init(|| {
+        let c = metrics_process::Collector::default();
+        c.describe();
+        metrics::describe_gauge!(
+            HEAP_ALLOCATED,
+            metrics::Unit::Bytes,
+            "Bytes the C allocator holds for live allocations (glibc mallinfo2: uordblks + hblkhd)"
+        );
+        metrics::describe_gauge!(
+            HEAP_RETAINED,
+            metrics::Unit::Bytes,
+            "Bytes the C allocator holds freed, not returned to the system (mallinfo2: fordblks)"
+        );
+        c
+    })
+}
+
+/// Read the process figures and the heap into the recorder (at each scrape, before rendering).
+pub fn collect_process() {
+    process_collector().collect();
+    if let Some((allocated, retained)) = heap_bytes() {
+        metrics::gauge!(HEAP_ALLOCATED).set(allocated as f64);
+        metrics::gauge!(HEAP_RETAINED).set(retained as f64);
+    }
 }
 
 /// Serve `GET /metrics` (any path, in fact) on `listener` until `stop` resolves; also runs the
@@ -216,6 +286,7 @@ pub async fn serve_metrics(
                     let maps = maps.clone();
                     async move {
                         let resp = if req.uri().path() == "/metrics" {
+                            collect_process();
                             let mut text = handle.render();
                             text += &render_maps(&maps());
                             hyper::Response::builder()
@@ -230,11 +301,15 @@ pub async fn serve_metrics(
                     }
                 });
             let io = hyper_util::rt::TokioIo::new(stream);
-            if let Err(e) = hyper::server::conn::http1::Builder::new()
-                .serve_connection(io, svc)
-                .await
-            {
-                tracing::debug!(error = %e, "metrics connection");
+            // A scraper that connects and goes quiet holds a task and its buffers: each connection
+            // gets METRICS_CONNECTION_S seconds, however many scrapes it carries.
+            let served = hyper::server::conn::http1::Builder::new().serve_connection(io, svc);
+            match tokio::time::timeout(Duration::from_secs(METRICS_CONNECTION_S), served).await {
+                Ok(Err(e)) => tracing::debug!(error = %e, "metrics connection"),
+                Ok(Ok(())) => {}
+                Err(_) => {
+                    tracing::debug!("metrics connection closed after {METRICS_CONNECTION_S} s")
+                }
             }
         });
     }
