@@ -94,7 +94,8 @@ pub struct BenchArgs {
     #[arg(long)]
     pub json: Option<PathBuf>,
     /// With --sweep: also draw frames per second and latency against concurrency into this folder
-    /// (bench_sweep.png and .svg).
+    /// (bench_sweep.png and .svg); with --soak: the server's memory against time
+    /// (soak_memory.png and .svg).
     #[arg(long, value_name = "DIR")]
     pub plot: Option<PathBuf>,
     /// Also measure the service's overhead: load this map in this process and time every frame
@@ -484,10 +485,14 @@ async fn measure(
 }
 
 fn print_row(r: &BenchReport) {
+    let load = match (&r.robots, r.rate) {
+        (Some(robots), _) => format!("robots={}", robots.robots),
+        (None, Some(x)) => format!("{x}/s"),
+        (None, None) => format!("c={}", r.concurrency),
+    };
     println!(
         "{:>11} {:>8} {:>8.2} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>7} {:>9.3}",
-        r.rate
-            .map_or(format!("c={}", r.concurrency), |x| format!("{x}/s")),
+        load,
         r.requests,
         r.fps,
         r.latency_ms.p50,
@@ -580,6 +585,9 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         let mut r = report(&records, wall, level, args.rate, frames.len());
         r.robots = robots;
         print_row(&r);
+        for (code, n) in &r.errors_by_code {
+            eprintln!("{n} requests failed with {code}");
+        }
         reports.push(r);
     }
     if reports.len() > 1 {

@@ -89,7 +89,8 @@ pub(crate) struct Robots {
 pub(crate) struct RobotTally {
     /// Camera slots that fell due while the robot's previous frame was unanswered.
     pub missed_slots: AtomicU64,
-    /// Streams opened (a robot's first and each one after churn or a failure).
+    /// Streams the server accepted (a robot's first and each one after churn or a failure; a
+    /// refused one is an error, not a stream).
     pub streams_opened: AtomicU64,
 }
 
@@ -166,9 +167,11 @@ async fn robot(
             Ok(r) => c.localize_stream(r).await,
             Err(e) => Err(pntr_service::tonic::Status::internal(e.to_string())),
         };
-        tally.streams_opened.fetch_add(1, Ordering::Relaxed);
         let mut answers = match call {
-            Ok(a) => a.into_inner(),
+            Ok(a) => {
+                tally.streams_opened.fetch_add(1, Ordering::Relaxed);
+                a.into_inner()
+            }
             Err(s) => {
                 sink(Record::of(Err(s), 0.0));
                 tokio::time::sleep(Duration::from_millis(100)).await;

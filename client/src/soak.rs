@@ -453,7 +453,7 @@ pub(crate) fn run(
         _ => None,
     };
     println!(
-        "{:>8} {:>9} {:>7} {:>8} {:>21} {:>9} {:>9} {:>21} {:>9} {:>9} {:>9}",
+        "{:>8} {:>9} {:>7} {:>8} {:>21} {:>9} {:>9} {:>21} {:>9} {:>11} {:>9} {:>8}",
         "phase",
         "requests",
         "errors",
@@ -463,11 +463,24 @@ pub(crate) fn run(
         "MB/hour",
         "heap MB",
         "B/req",
-        "slope",
-        "MB/hour"
+        "slope B/req",
+        "MB/hour",
+        "replaces"
     );
+    if load.duration_s < 600.0 {
+        eprintln!(
+            "note: growth per hour is extrapolated from {:.0} s a phase; the allocator settles for minutes, so judge it over phases of 10 minutes or more",
+            load.duration_s
+        );
+    }
     let mut reports = Vec::new();
     for phase in list {
+        eprintln!(
+            "{}: {:.0} s of warm-up, then {:.0} s measured",
+            phase.name(),
+            load.warmup_s,
+            load.duration_s
+        );
         *current.lock().expect("phase") = (phase.name(), false);
         let tally = Arc::new(RobotTally::default());
         let end = Instant::now() + Duration::from_secs_f64(load.warmup_s + load.duration_s);
@@ -593,6 +606,16 @@ pub(crate) fn run(
             replaces_failed: replace_failed,
         };
         print_row(&report);
+        if phase == Phase::Replace && (report.replaces_failed > 0 || report.replaces == 0) {
+            eprintln!(
+                "warning: {} of {} map replaces were refused (--replace-file must be a map file on the server holding the served map's id), and a phase shorter than --replace-every-s replaces nothing",
+                report.replaces_failed,
+                report.replaces + report.replaces_failed
+            );
+        }
+        for (code, n) in &report.errors_by_code {
+            eprintln!("{}: {n} requests failed with {code}", report.phase);
+        }
         reports.push(report);
     }
     sampler.abort();
@@ -625,7 +648,7 @@ pub(crate) fn run(
 fn print_row(r: &PhaseReport) {
     let mb = |b: f64| b / 1e6;
     println!(
-        "{:>8} {:>9} {:>7} {:>8.1} {:>9.1} -> {:>8.1} {:>9.0} {:>9.1} {:>9.1} -> {:>8.1} {:>9.0} {:>9.0} {:>9.1}",
+        "{:>8} {:>9} {:>7} {:>8.1} {:>9.1} -> {:>8.1} {:>9.0} {:>9.1} {:>9.1} -> {:>8.1} {:>9.0} {:>11.0} {:>9.1} {:>8}",
         r.phase,
         r.requests,
         r.errors,
@@ -638,7 +661,8 @@ fn print_row(r: &PhaseReport) {
         mb(r.end.heap_bytes),
         r.heap_bytes_per_request,
         r.heap_slope_bytes_per_request,
-        r.heap_mb_per_hour
+        r.heap_mb_per_hour,
+        r.replaces
     );
 }
 

@@ -855,7 +855,11 @@ impl LocalizerService {
         match &result {
             // A stream's answer is counted once its state has settled it (`count_answer`).
             Ok(_) if stream => in_flight.counted = true,
-            Ok((r, _)) => count_answer(r, &in_flight.map_id),
+            Ok((r, _)) => {
+                count_answer(r, &in_flight.map_id);
+                // Counted: the guard must not count it again as a caller that went away.
+                in_flight.counted = true;
+            }
             Err(e) => {
                 in_flight.count("ERROR", e.code());
                 if e.code() == Code::Internal {

@@ -212,6 +212,11 @@ fn the_live_heap_stays_flat_under_requests_streams_and_map_replaces() {
             localized * 2 >= answered,
             "the load must reach the paths that answer ({localized} of {answered} LOCALIZED)"
         );
+        // Every answer is counted once, by its status: none as an error (a unary call's answer was
+        // also counted as a caller that went away, ERROR/CANCELLED, until this issue).
+        let text = scrape(metrics);
+        let errors = common::sum_series(&text, "pntr_requests_total{status=\"ERROR\"");
+        assert_eq!(errors, 0.0, "requests counted as errors:\n{text}");
         assert!(
             growth < HEAP_GROWTH_BOUND,
             "the server's live heap grew by {growth:.0} B over {answered} answers and {ROUNDS} map replaces (bound {HEAP_GROWTH_BOUND:.0} B)"
