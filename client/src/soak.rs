@@ -327,18 +327,14 @@ async fn single_calls(
 /// The map a replace swaps: --map-id, else the server's only map.
 async fn served_map(
     admin: &mut MapAdminClient<Channel>,
-    connect: &ConnectArgs,
-    token: &str,
+    admin_connect: &ConnectArgs,
+    map_id: &str,
 ) -> Result<String> {
-    if !connect.map_id.is_empty() {
-        return Ok(connect.map_id.clone());
+    if !map_id.is_empty() {
+        return Ok(map_id.to_string());
     }
-    let admin_connect = ConnectArgs {
-        token: Some(token.to_string()),
-        ..connect.clone()
-    };
     let maps = admin
-        .list_maps(authorized(&admin_connect, proto::ListMapsRequest {})?)
+        .list_maps(authorized(admin_connect, proto::ListMapsRequest {})?)
         .await
         .map_err(|s| anyhow::anyhow!("ListMaps: {}", s.message()))?
         .into_inner()
@@ -446,11 +442,13 @@ pub(crate) fn run(
         map_id: String::new(),
         ..load.connect.clone()
     };
-    let map_id = match (&admin, &args.admin_token) {
-        (Some(a), Some(token)) => {
-            Some(rt.block_on(served_map(&mut a.clone(), load.connect, token))?)
-        }
-        _ => None,
+    let map_id = match &admin {
+        Some(a) => Some(rt.block_on(served_map(
+            &mut a.clone(),
+            &admin_connect,
+            &load.connect.map_id,
+        ))?),
+        None => None,
     };
     println!(
         "{:>8} {:>9} {:>7} {:>8} {:>21} {:>9} {:>9} {:>21} {:>9} {:>11} {:>9} {:>8}",
