@@ -620,7 +620,7 @@ def summary(a):
     r = {"status": a.status, "mode": a.mode, "confidence": a.confidence, "inliers": a.inliers,
          "min_confidence": a.min_confidence, "request_id": a.request_id, "map_id": a.map_id,
          "map_version": a.map_version, "reason": a.reason, "stage_ms": a.stage_ms,
-         "matched_image_id": a.matched_image_id}
+         "matched_image_id": a.matched_image_id, "track_state": a.track_state}
     if a.localized:
         assert a.cause == "", a.cause
         assert isinstance(a.pose, np.ndarray) and a.pose.shape == (4, 4) and a.pose.dtype == np.float64
@@ -733,7 +733,11 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     assert not pc.make_request(rgb, depth).HasField("stamp_s")
     expect_value_error("stamp in milliseconds", lambda: pc.make_request(rgb, depth, stamp_s=1.767e12), "milliseconds")
     expect_value_error("stamp not a number", lambda: pc.make_request(rgb, depth, stamp_s="12.5"), "stamp_s")
-    close = [{"rgb": rgb, "depth": depth, "stamp_s": 50.0 + 0.1 * j} for j in range(4)]
+    # The robot's odometry of the camera goes with a frame as a 4x4 pose, checked before sending.
+    assert pc.make_request(rgb, depth, odometry=np.eye(4)).HasField("odometry")
+    assert not pc.make_request(rgb, depth).HasField("odometry")
+    expect_value_error("odometry not a pose", lambda: pc.make_request(rgb, depth, odometry=np.ones((3, 3))), "odometry")
+    close = [{"rgb": rgb, "depth": depth, "stamp_s": 50.0 + 0.1 * j, "odometry": np.eye(4)} for j in range(4)]
     apart = [pc.Frame(rgb, depth, stamp_s=50.0 + 10.0 * j) for j in range(4)]
     report["stamps"] = {"close": [summary(a) for a in c.localize_stream(close)],
                         "apart": [summary(a) for a in c.localize_stream(apart)]}
@@ -989,6 +993,10 @@ fn typed_api_against_a_real_server() {
     assert_eq!(with, ["GLOBAL"; 4], "{reloc}");
     let stamps = &r["stamps"];
     assert_eq!(modes_of(stamps, "close")[2..], ["TRACKING"; 2], "{stamps}");
+    // The stream says its track is established once it answers from it.
+    for a in &stamps["close"].as_array().unwrap()[2..] {
+        assert_eq!(a["track_state"], "TRACK_STATE_ESTABLISHED", "{a}");
+    }
     assert_eq!(modes_of(stamps, "apart"), ["GLOBAL"; 4], "{stamps}");
     let ids: Vec<&str> = reloc["with"]
         .as_array()

@@ -1356,6 +1356,67 @@ fn priors_fall_back_and_streams_track() {
         let (code, msg) = code_of(&mut c3, stamped(&[1.767e18]).remove(0)).await;
         assert_eq!(code, Code::InvalidArgument);
         assert!(msg.contains("nanoseconds"), "{msg}");
+        // A stream that continues an earlier one's track (a client that re-opened it) holds its
+        // first map fix to where the camera can have moved since: 5 m off the continued pose
+        // 0.2 s later, the fix is a look-alike; at the continued pose, it is answered.
+        let continued = |at: nalgebra::Vector3<f64>| proto::LocalizeRequest {
+            stamp_s: Some(200.2),
+            continuation: Some(proto::TrackContinuation {
+                pose: Some(wire::to_proto_pose(&nalgebra::Isometry3::from_parts(
+                    at.into(),
+                    still.world_from_camera.rotation,
+                ))),
+                stamp_s: Some(200.0),
+                sigma_m: 0.05,
+            }),
+            ..request(still, "")
+        };
+        let here = still.world_from_camera.translation.vector;
+        let away = stream_answers(
+            &mut c3,
+            vec![continued(here + nalgebra::Vector3::new(5.0, 0.0, 0.0))],
+        )
+        .await
+        .unwrap();
+        assert_eq!(away[0].status, proto::Status::NotLocalized as i32);
+        assert_eq!(
+            away[0].cause,
+            proto::NotLocalizedCause::LookAlike as i32,
+            "{}",
+            away[0].reason
+        );
+        assert!(
+            away[0].reason.contains("motion puts the camera")
+                || away[0].reason.contains("camera's motion"),
+            "{}",
+            away[0].reason
+        );
+        let at_home = stream_answers(&mut c3, vec![continued(here)])
+            .await
+            .unwrap();
+        assert_eq!(
+            at_home[0].status,
+            proto::Status::Localized as i32,
+            "{}",
+            at_home[0].reason
+        );
+        // The robot's odometry pose must be a pose: refused by name otherwise.
+        let bad_odometry = proto::LocalizeRequest {
+            odometry: Some(proto::Pose {
+                translation: Some(proto::Vector3 {
+                    x: f64::NAN,
+                    y: 0.0,
+                    z: 0.0,
+                }),
+                rotation: None,
+            }),
+            ..request(still, "")
+        };
+        let e = stream_answers(&mut c3, vec![bad_odometry])
+            .await
+            .unwrap_err();
+        assert_eq!(e.code(), Code::InvalidArgument);
+        assert!(e.message().contains("odometry"), "{}", e.message());
         // The client goes away without closing its stream: the server frees the stream's state.
         drop(out);
         drop(tx);

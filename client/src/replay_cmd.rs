@@ -73,6 +73,17 @@ pub struct ReplayArgs {
     /// Replay at most this many frames (0 = all).
     #[arg(long, default_value_t = 0)]
     pub frames: usize,
+    /// Send only every Nth frame of the recording (with its recorded stamp): a sparse stream, as a
+    /// camera at a lower rate sends it (`--every 6` of a 30 Hz recording: 5 Hz; `--every 30`: 1
+    /// Hz). `--frames` counts the recording's frames, before this.
+    #[arg(long, value_name = "N", default_value_t = 1)]
+    pub every: usize,
+    /// The robot's odometry as a TUM trajectory file (`timestamp tx ty tz qx qy qz qw`,
+    /// odom_from_camera with optical axes, on the recording's clock): each frame sends its pose at
+    /// the frame's stamp (`LocalizeRequest.odometry`), so the stream carries its pose by it where the
+    /// map gives no fix. Frames outside the trajectory send none.
+    #[arg(long, value_name = "TRAJECTORY.txt")]
+    pub odometry: Option<PathBuf>,
     /// Write the estimated trajectory in TUM format (`timestamp tx ty tz qx qy qz qw`), LOCALIZED
     /// frames only, to this file.
     #[arg(long)]
@@ -337,7 +348,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .enable_all()
         .build()?;
     let mut c = client(rt.block_on(channel(&args.connect))?);
-    let bar = ProgressBar::new(n as u64);
+    let bar = ProgressBar::new(n.div_ceil(args.every.max(1)) as u64);
     bar.set_style(
         ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} frames ({per_sec}, eta {eta})")
             .expect("valid template")
@@ -390,6 +401,16 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .block_on(c.localize_stream(request))
         .context("opening LocalizeStream")?
         .into_inner();
+    if args.every == 0 {
+        bail!("--every must be at least 1 (every frame)");
+    }
+    let odometry = match &args.odometry {
+        Some(path) => Some(
+            pntr_dataset::tum::Trajectory::read(path)
+                .map_err(|e| anyhow::anyhow!("--odometry {e}"))?,
+        ),
+        None => None,
+    };
     let t0 = seq.timestamp(0);
     if !args.no_stamps && !(0.0..pntr_service::decode::MAX_STAMP_S).contains(&t0) {
         bail!(
@@ -403,13 +424,13 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let mut out: Vec<Answered> = Vec::with_capacity(n);
     let mut last: Option<Isometry3<f64>> = None;
     let mut localized = 0usize;
-    for i in 0..n {
+    for (sent_k, i) in (0..n).step_by(args.every).enumerate() {
         let timestamp = seq.timestamp(i);
         // A stamp jump (a clock correction, stamps in another unit) is not slept through, nor
         // sent as a gap: the timeline moves on from the frame after it.
         if i > 0 {
-            let gap = timestamp - seq.timestamp(i - 1);
-            if gap > MAX_FRAME_GAP_S {
+            let gap = timestamp - seq.timestamp(i - args.every);
+            if gap > MAX_FRAME_GAP_S * args.every as f64 {
                 skew += gap;
                 jumps += 1;
                 if jumps == 1 && args.rate.is_none() {
@@ -421,7 +442,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             }
         }
         let due = match args.rate {
-            Some(r) => i as f64 / r,
+            Some(r) => sent_k as f64 / r,
             None => timestamp - t0 - skew,
         };
         let wait = due - start.elapsed().as_secs_f64();
@@ -468,6 +489,15 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         req.request_id = format!("{:.6}", timestamp);
         req.relocalize = args.no_prior;
         req.stamp_s = (!args.no_stamps).then_some(timestamp - skew);
+        // Optical axes, as TUM trajectories hold them: converted to the map's camera axes, the
+        // convention this request uses.
+        req.odometry = odometry.as_ref().and_then(|o| o.at(timestamp)).map(|p| {
+            wire::to_proto_pose(&pntr_core::convert_axes(
+                &p,
+                pntr_core::CameraAxes::OpenCv,
+                map_axes,
+            ))
+        });
         // The recording's ground truth and the prior below are in the map's frame.
         req.frame_convention = proto::FrameConvention::Map as i32;
         // Only the prior's position is sent, which the camera axes do not change.
@@ -552,7 +582,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         });
         bar.set_message(format!(
             "{:.1}% localized",
-            100.0 * localized as f64 / (i + 1) as f64
+            100.0 * localized as f64 / (sent_k + 1) as f64
         ));
         bar.inc(1);
     }
@@ -613,6 +643,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         "frames_unreadable": unreadable,
         "stamp_jumps": jumps,
         "stamps_sent": !args.no_stamps,
+        "every": args.every,
+        "odometry_sent": args.odometry.is_some(),
         "localized_share": localized as f64 / frames,
         "tracking_share": tracked as f64 / frames,
         "ate_rmse_m": errors.ate_rmse_m,

@@ -48,6 +48,8 @@ struct Stats {
     refused: bool,
     last_status: String,
     last_reason: String,
+    /// The server's word on the stream's track after the last answer (`TRACK_STATE_...`).
+    last_track: String,
     last_latency_ms: f64,
     map_id: String,
     map_version: String,
@@ -248,25 +250,29 @@ impl InitialPose {
 
     /// The prior of the camera mounted at `base_from_camera`.
     fn prior(&self, base_from_camera: &Isometry3<f64>) -> proto::Prior {
-        let p = self.map_from_base * base_from_camera;
-        let q = p.rotation.quaternion();
         proto::Prior {
-            pose: Some(proto::Pose {
-                translation: Some(proto::Vector3 {
-                    x: p.translation.x,
-                    y: p.translation.y,
-                    z: p.translation.z,
-                }),
-                rotation: Some(proto::Quaternion {
-                    w: q.w,
-                    x: q.i,
-                    y: q.j,
-                    z: q.k,
-                }),
-            }),
+            pose: Some(pose_message(&(self.map_from_base * base_from_camera))),
             covariance: Vec::new(),
             radius_m: self.radius_m,
         }
+    }
+}
+
+/// A pose as the wire carries it.
+fn pose_message(p: &Isometry3<f64>) -> proto::Pose {
+    let q = p.rotation.quaternion();
+    proto::Pose {
+        translation: Some(proto::Vector3 {
+            x: p.translation.x,
+            y: p.translation.y,
+            z: p.translation.z,
+        }),
+        rotation: Some(proto::Quaternion {
+            w: q.w,
+            x: q.i,
+            y: q.j,
+            z: q.k,
+        }),
     }
 }
 
@@ -318,6 +324,10 @@ async fn request_of(
                     frame_convention: proto::FrameConvention::Ros as i32,
                     // The camera's time: the server judges motion by it, not by arrival.
                     stamp_s: Some(stamp as f64 * 1e-9),
+                    // The robot's odometry of the camera: the stream carries its pose by it
+                    // where the map gives no fix.
+                    odometry: Some(pose_message(&(odom_from_base * base_from_camera))),
+                    continuation: None,
                 };
                 return Ok((request, base_from_camera, odom_from_base));
             }
@@ -665,6 +675,9 @@ pub async fn run(ros: RosArgs, target: Target, map_id: String) -> Result<()> {
                     s.stats.map_id = r.map_id.clone();
                     s.stats.map_version = r.map_version.clone();
                     s.stats.last_reason = r.reason.clone();
+                    s.stats.last_track = proto::TrackState::try_from(r.track_state)
+                        .map_or("UNKNOWN", |t| t.as_str_name())
+                        .to_string();
                     r
                 }
             }
@@ -790,6 +803,7 @@ fn diagnostics(s: &Stats, ros: &RosArgs, addr: &str, up: Duration) -> msgs::Diag
             values: vec![
                 kv("status", s.last_status.clone()),
                 kv("last_reason", s.last_reason.clone()),
+                kv("track", s.last_track.clone()),
                 kv("frames_paired", s.pairs.to_string()),
                 kv("frames_sent", s.sent.to_string()),
                 kv("frames_localized", s.localized.to_string()),

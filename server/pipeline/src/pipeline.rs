@@ -83,9 +83,13 @@ pub fn fusion_gate_m(track_covariance: Option<&[f64; 36]>) -> f64 {
     })
 }
 
-/// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or it
-/// turned more than it can have (`pose`: `world_from_camera`, map frame, map axes).
-fn off_track(pose: &Isometry3<f64>, opts: &LocalizeOptions) -> Option<String> {
+/// Why a pose cannot be a tracked camera's: it lies outside the region it can have reached, or,
+/// with `turn` (an odometry hop, whose registration a turn beyond it would make suspect), it turned
+/// more than it can have (`pose`: `world_from_camera`, map frame, map axes). A map answer is never
+/// refused for its turn alone (issue 73: a sparse stream's frames 60 deg apart, each localized when
+/// sent alone, were refused as "turned"); the stream judges its position against the camera's
+/// motion.
+fn off_track(pose: &Isometry3<f64>, opts: &LocalizeOptions, turn: bool) -> Option<String> {
     if opts.region_mode != Mode::Tracking {
         return None;
     }
@@ -93,13 +97,13 @@ fn off_track(pose: &Isometry3<f64>, opts: &LocalizeOptions) -> Option<String> {
         let at = pose.translation.vector;
         if !region.contains(&at) {
             return Some(format!(
-                "the pose is {:.1} m from the stream's last pose, outside the {:.1} m it can have moved",
+                "the pose is {:.1} m from where the stream's motion puts the camera, outside the {:.1} m it can have moved",
                 (at - region.center_m).norm(),
                 region.radius_m
             ));
         }
     }
-    let heading = opts.heading?;
+    let heading = opts.heading.filter(|_| turn)?;
     let deg = heading.exceeded_by(&pose.rotation)?;
     Some(format!(
         "the pose is turned {deg:.0} deg from the stream's last pose, more than the {:.0} deg it can have turned",
@@ -842,7 +846,9 @@ impl Pipeline {
             };
             let loc =
                 self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, &seen, times, t0)?;
-            let on_track = loc.pose.is_some_and(|p| off_track(&p, opts).is_none());
+            let on_track = loc
+                .pose
+                .is_some_and(|p| off_track(&p, opts, false).is_none());
             if loc.status == Status::Localized && on_track {
                 let loc = Localization {
                     mode: opts.region_mode,
@@ -867,7 +873,7 @@ impl Pipeline {
         let loc = self.answer_from_candidates(&fq, &q_pts, &q_bounds, q, hits, &seen, times, t0)?;
         // A tracked camera cannot jump: a global answer outside the tracking region (where the
         // camera can be, given its last verified pose) is a look-alike, not the robot's position.
-        let loc = match loc.pose.and_then(|p| off_track(&p, opts)) {
+        let loc = match loc.pose.and_then(|p| off_track(&p, opts, false)) {
             Some(why) => Localization {
                 status: Status::NotLocalized,
                 reason: Some(format!(
@@ -1041,7 +1047,7 @@ impl Pipeline {
             return Ok(Err(why.clone()));
         }
         let pose = convert_axes(&hop.world_from_query, CameraAxes::OpenCv, self.axes);
-        if let Some(why) = off_track(&pose, opts) {
+        if let Some(why) = off_track(&pose, opts, true) {
             return Ok(Err(why));
         }
         Ok(Ok(Tracked {

@@ -130,6 +130,31 @@ pub fn prior(req: &proto::LocalizeRequest) -> Result<Option<Region>, Status> {
     region.map(Some).map_err(status_of)
 }
 
+/// A pose a stream's frame carries besides the image (`LocalizeRequest.odometry`,
+/// `TrackContinuation.pose`): `None` when absent; INVALID_ARGUMENT naming `field` when its
+/// translation or rotation is missing, non-finite, or the rotation has no length.
+pub fn stream_pose(
+    field: &str,
+    p: Option<&proto::Pose>,
+) -> Result<Option<nalgebra::Isometry3<f64>>, Status> {
+    let Some(p) = p else {
+        return Ok(None);
+    };
+    let (Some(t), Some(q)) = (p.translation.as_ref(), p.rotation.as_ref()) else {
+        return invalid(format!(
+            "{field}: give both translation (metres) and rotation (a unit quaternion)"
+        ));
+    };
+    let values = [t.x, t.y, t.z, q.x, q.y, q.z, q.w];
+    let norm = (q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w).sqrt();
+    if values.iter().any(|v| !v.is_finite()) || norm < 1e-6 {
+        return invalid(format!(
+            "{field}: the translation and rotation must be finite and the quaternion non-zero"
+        ));
+    }
+    Ok(crate::wire::pose(Some(p)))
+}
+
 /// The gRPC status of a pipeline error: the one mapping, exhaustive so that a new kind of error must
 /// choose its code. A query the pipeline cannot use is the caller's (INVALID_ARGUMENT); everything
 /// else is the server's (INTERNAL, the message logged by the caller).

@@ -39,6 +39,7 @@ pub mod ros_bag;
 pub mod server;
 pub mod service;
 pub mod telemetry;
+pub mod track;
 pub mod visual;
 pub mod wire;
 

@@ -9,14 +9,14 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pntr_client._geometry import matrix_to_quaternion, pose_matrix, quaternion_to_matrix, ros_from_map_world
+from pntr_client._geometry import check_pose, matrix_to_quaternion, pose_matrix, quaternion_to_matrix, ros_from_map_world
 from pntr_client._proto import localizer_pb2 as pb2
 from pntr_client._values import Answer, Frame, MapInfo, Prior
 
 # The camera the server assumes when a request has no intrinsics (HPointLoc), and the only size it
 # accepts then.
 HPOINTLOC_SIZE = (256, 256)
-_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id", "relocalize", "stamp_s")
+_FRAME_KEYS = ("rgb", "depth", "intrinsics", "prior", "request_id", "relocalize", "stamp_s", "odometry")
 # Stamps at or above this many seconds are another unit (the server refuses them the same way): 1e11 s
 # is the year 5138; Unix time in milliseconds or nanoseconds lies above it.
 MAX_STAMP_S = 1e11
@@ -181,17 +181,18 @@ def check_intrinsics(
     return pb2.Intrinsics(fx=v[0], fy=v[1], cx=v[2], cy=v[3], distortion=v[4:])
 
 
+def pose_message(pose: npt.NDArray[np.float64]) -> pb2.Pose:
+    """The Pose message of a checked 4x4 rigid transform."""
+    w, x, y, z = matrix_to_quaternion(pose[:3, :3])
+    return pb2.Pose(
+        translation=pb2.Vector3(x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3])),
+        rotation=pb2.Quaternion(w=w, x=x, y=y, z=z),
+    )
+
+
 def prior_message(prior: Prior) -> pb2.Prior:
     """The Prior message of a `Prior` (already validated by its constructor)."""
-    pose = prior.pose
-    w, x, y, z = matrix_to_quaternion(pose[:3, :3])
-    msg = pb2.Prior(
-        pose=pb2.Pose(
-            translation=pb2.Vector3(x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3])),
-            rotation=pb2.Quaternion(w=w, x=x, y=y, z=z),
-        ),
-        radius_m=prior.radius_m or 0.0,
-    )
+    msg = pb2.Prior(pose=pose_message(prior.pose), radius_m=prior.radius_m or 0.0)
     if prior.covariance is not None:
         msg.covariance.extend(float(c) for c in prior.covariance.ravel())
     return msg
@@ -208,6 +209,7 @@ def make_request(
     frame_convention: str | None = None,
     relocalize: bool = False,
     stamp_s: float | None = None,
+    odometry: npt.ArrayLike | None = None,
     where: str = "",
 ) -> pb2.LocalizeRequest:
     """A LocalizeRequest (RAW_RGB8 colour; FLOAT32_METERS or UINT16_MILLIMETERS depth) after checking
@@ -228,6 +230,10 @@ def make_request(
         stamp_s: when the frame was captured, seconds on the sensor's clock (any epoch; a ROS
             header.stamp is sec + nanosec * 1e-9); None = not given. A stream judges the camera's
             motion by these stamps when its frames carry them, else by when they arrive.
+        odometry: LocalizeStream only: 4x4 odom_from_camera, the camera's pose in the robot's own
+            odometry frame at capture (camera axes of the frame convention: optical under "ros");
+            the stream carries its pose by the motion between frames' odometry where the map gives
+            no fix. None = not given.
         where: prefix of error messages (e.g. "frame 3: ").
 
     Raises ValueError naming the first mistake found.
@@ -245,6 +251,7 @@ def make_request(
     if not isinstance(relocalize, (bool, np.bool_)):
         raise ValueError(f"{where}relocalize must be True or False, got {relocalize!r}")
     stamp = check_stamp(stamp_s, where)
+    odom = None if odometry is None else check_pose(odometry, f"{where}odometry")
     h, w = rgb_a.shape[:2]
     depth_encoding = pb2.UINT16_MILLIMETERS if depth_a.dtype == np.dtype("<u2") else pb2.FLOAT32_METERS
     req = pb2.LocalizeRequest(
@@ -262,6 +269,8 @@ def make_request(
         req.intrinsics.CopyFrom(k)
     if prior is not None:
         req.prior.CopyFrom(prior_message(prior))
+    if odom is not None:
+        req.odometry.CopyFrom(pose_message(odom))
     return req
 
 
@@ -350,6 +359,7 @@ def answer_from_response(resp: pb2.LocalizeResponse) -> Answer:
         retrieved_image_ids=tuple(resp.retrieved_image_ids),
         frame_convention=frame_convention_name(resp.frame_convention),
         cause="" if resp.cause == 0 else _enum_name(pb2.NotLocalizedCause, resp.cause),
+        track_state="" if resp.track_state == 0 else _enum_name(pb2.TrackState, resp.track_state),
     )
 
 

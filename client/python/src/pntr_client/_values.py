@@ -120,6 +120,11 @@ class Frame:
             frames do not reach the server at the pace they were taken (a recording sent faster,
             frames buffered on the way). A stamp earlier than the previous frame's starts the
             stream's tracking afresh.
+        odometry: optional 4x4 odom_from_camera: the camera's pose in the robot's own odometry frame
+            when the frame was captured (wheel or visual-inertial odometry composed with the camera's
+            mounting; camera axes of the stream's frame convention, optical under "ros"). Where the
+            map gives the stream no fix, it carries its pose by the motion between two frames'
+            odometry, and a later fix must agree with it. Send it on every frame or on none.
     """
 
     rgb: npt.NDArray[np.uint8]
@@ -129,6 +134,7 @@ class Frame:
     request_id: str = ""
     relocalize: bool = False
     stamp_s: float | None = None
+    odometry: npt.NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +173,10 @@ class Answer:
             "OUTSIDE_MAP" (the camera is where the map does not reach; `reason` then begins with
             "outside the mapped area:") and "BAD_INPUT"; empty when LOCALIZED or from a server that
             does not report it.
+        track_state: LocalizeStream only: what the stream knows of where the camera is after this
+            frame: "TRACK_STATE_ESTABLISHED", "TRACK_STATE_CARRIED" (no map fix this frame: the pose
+            carried by the camera's motion), "TRACK_STATE_RE_ACQUIRING", "TRACK_STATE_NONE"; empty in
+            unary answers or from a server that does not report it.
     """
 
     status: str
@@ -186,6 +196,7 @@ class Answer:
     frame_convention: str = "map"
     cause: str = ""
     map_version: str = ""
+    track_state: str = ""
 
     def __post_init__(self) -> None:
         if self.pose is not None:

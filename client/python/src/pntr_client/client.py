@@ -178,7 +178,7 @@ class Client:
 
         Args:
             frames: `Frame`s, or dicts with the same keys (rgb, depth, intrinsics, prior,
-                request_id, relocalize, stamp_s), consumed lazily as the server takes them: a generator
+                request_id, relocalize, stamp_s, odometry), consumed lazily as the server takes them: a generator
                 reading a camera works. A frame with `relocalize=True` is searched over the whole
                 map whatever the stream's state (after the robot was carried elsewhere).
             map_id: the map to localize every frame in; "" means the server's only map.
@@ -211,6 +211,7 @@ class Client:
                         frame_convention=convention,
                         relocalize=f.relocalize,
                         stamp_s=f.stamp_s,
+                        odometry=f.odometry,
                         where=f"frame {i}: ",
                     )
             except Exception as e:  # noqa: BLE001 - re-raised in the caller's thread below

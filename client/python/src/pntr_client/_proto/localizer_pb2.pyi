@@ -48,6 +48,14 @@ class NotLocalizedCause(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     LOOK_ALIKE: _ClassVar[NotLocalizedCause]
     OUTSIDE_MAP: _ClassVar[NotLocalizedCause]
     BAD_INPUT: _ClassVar[NotLocalizedCause]
+
+class TrackState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    TRACK_STATE_UNSPECIFIED: _ClassVar[TrackState]
+    TRACK_STATE_NONE: _ClassVar[TrackState]
+    TRACK_STATE_RE_ACQUIRING: _ClassVar[TrackState]
+    TRACK_STATE_ESTABLISHED: _ClassVar[TrackState]
+    TRACK_STATE_CARRIED: _ClassVar[TrackState]
 FRAME_CONVENTION_UNSPECIFIED: FrameConvention
 FRAME_CONVENTION_MAP: FrameConvention
 FRAME_CONVENTION_ROS: FrameConvention
@@ -72,9 +80,14 @@ UNVERIFIED: NotLocalizedCause
 LOOK_ALIKE: NotLocalizedCause
 OUTSIDE_MAP: NotLocalizedCause
 BAD_INPUT: NotLocalizedCause
+TRACK_STATE_UNSPECIFIED: TrackState
+TRACK_STATE_NONE: TrackState
+TRACK_STATE_RE_ACQUIRING: TrackState
+TRACK_STATE_ESTABLISHED: TrackState
+TRACK_STATE_CARRIED: TrackState
 
 class LocalizeRequest(_message.Message):
-    __slots__ = ("map_id", "rgb", "depth", "intrinsics", "request_id", "prior", "relocalize", "frame_convention", "stamp_s")
+    __slots__ = ("map_id", "rgb", "depth", "intrinsics", "request_id", "prior", "relocalize", "frame_convention", "stamp_s", "odometry", "continuation")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     RGB_FIELD_NUMBER: _ClassVar[int]
     DEPTH_FIELD_NUMBER: _ClassVar[int]
@@ -84,6 +97,8 @@ class LocalizeRequest(_message.Message):
     RELOCALIZE_FIELD_NUMBER: _ClassVar[int]
     FRAME_CONVENTION_FIELD_NUMBER: _ClassVar[int]
     STAMP_S_FIELD_NUMBER: _ClassVar[int]
+    ODOMETRY_FIELD_NUMBER: _ClassVar[int]
+    CONTINUATION_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     rgb: Image
     depth: Depth
@@ -93,7 +108,19 @@ class LocalizeRequest(_message.Message):
     relocalize: bool
     frame_convention: FrameConvention
     stamp_s: float
-    def __init__(self, map_id: _Optional[str] = ..., rgb: _Optional[_Union[Image, _Mapping]] = ..., depth: _Optional[_Union[Depth, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., request_id: _Optional[str] = ..., prior: _Optional[_Union[Prior, _Mapping]] = ..., relocalize: _Optional[bool] = ..., frame_convention: _Optional[_Union[FrameConvention, str]] = ..., stamp_s: _Optional[float] = ...) -> None: ...
+    odometry: Pose
+    continuation: TrackContinuation
+    def __init__(self, map_id: _Optional[str] = ..., rgb: _Optional[_Union[Image, _Mapping]] = ..., depth: _Optional[_Union[Depth, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., request_id: _Optional[str] = ..., prior: _Optional[_Union[Prior, _Mapping]] = ..., relocalize: _Optional[bool] = ..., frame_convention: _Optional[_Union[FrameConvention, str]] = ..., stamp_s: _Optional[float] = ..., odometry: _Optional[_Union[Pose, _Mapping]] = ..., continuation: _Optional[_Union[TrackContinuation, _Mapping]] = ...) -> None: ...
+
+class TrackContinuation(_message.Message):
+    __slots__ = ("pose", "stamp_s", "sigma_m")
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    STAMP_S_FIELD_NUMBER: _ClassVar[int]
+    SIGMA_M_FIELD_NUMBER: _ClassVar[int]
+    pose: Pose
+    stamp_s: float
+    sigma_m: float
+    def __init__(self, pose: _Optional[_Union[Pose, _Mapping]] = ..., stamp_s: _Optional[float] = ..., sigma_m: _Optional[float] = ...) -> None: ...
 
 class Prior(_message.Message):
     __slots__ = ("pose", "covariance", "radius_m")
@@ -182,7 +209,7 @@ class StageTiming(_message.Message):
     def __init__(self, stage: _Optional[str] = ..., seconds: _Optional[float] = ...) -> None: ...
 
 class LocalizeResponse(_message.Message):
-    __slots__ = ("status", "pose", "confidence", "inliers", "matched_image_id", "timings", "map_id", "reason", "retrieved_image_ids", "matched_point", "request_id", "map_version", "covariance", "min_confidence", "mode", "frame_convention", "cause")
+    __slots__ = ("status", "pose", "confidence", "inliers", "matched_image_id", "timings", "map_id", "reason", "retrieved_image_ids", "matched_point", "request_id", "map_version", "covariance", "min_confidence", "mode", "frame_convention", "cause", "track_state")
     STATUS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
@@ -200,6 +227,7 @@ class LocalizeResponse(_message.Message):
     MODE_FIELD_NUMBER: _ClassVar[int]
     FRAME_CONVENTION_FIELD_NUMBER: _ClassVar[int]
     CAUSE_FIELD_NUMBER: _ClassVar[int]
+    TRACK_STATE_FIELD_NUMBER: _ClassVar[int]
     status: Status
     pose: Pose
     confidence: float
@@ -217,7 +245,8 @@ class LocalizeResponse(_message.Message):
     mode: Mode
     frame_convention: FrameConvention
     cause: NotLocalizedCause
-    def __init__(self, status: _Optional[_Union[Status, str]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., confidence: _Optional[float] = ..., inliers: _Optional[int] = ..., matched_image_id: _Optional[str] = ..., timings: _Optional[_Iterable[_Union[StageTiming, _Mapping]]] = ..., map_id: _Optional[str] = ..., reason: _Optional[str] = ..., retrieved_image_ids: _Optional[_Iterable[str]] = ..., matched_point: _Optional[int] = ..., request_id: _Optional[str] = ..., map_version: _Optional[str] = ..., covariance: _Optional[_Iterable[float]] = ..., min_confidence: _Optional[float] = ..., mode: _Optional[_Union[Mode, str]] = ..., frame_convention: _Optional[_Union[FrameConvention, str]] = ..., cause: _Optional[_Union[NotLocalizedCause, str]] = ...) -> None: ...
+    track_state: TrackState
+    def __init__(self, status: _Optional[_Union[Status, str]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., confidence: _Optional[float] = ..., inliers: _Optional[int] = ..., matched_image_id: _Optional[str] = ..., timings: _Optional[_Iterable[_Union[StageTiming, _Mapping]]] = ..., map_id: _Optional[str] = ..., reason: _Optional[str] = ..., retrieved_image_ids: _Optional[_Iterable[str]] = ..., matched_point: _Optional[int] = ..., request_id: _Optional[str] = ..., map_version: _Optional[str] = ..., covariance: _Optional[_Iterable[float]] = ..., min_confidence: _Optional[float] = ..., mode: _Optional[_Union[Mode, str]] = ..., frame_convention: _Optional[_Union[FrameConvention, str]] = ..., cause: _Optional[_Union[NotLocalizedCause, str]] = ..., track_state: _Optional[_Union[TrackState, str]] = ...) -> None: ...
 
 class GetMapInfoRequest(_message.Message):
     __slots__ = ("map_id",)
