@@ -170,23 +170,45 @@ impl Buffer {
         Ok((e.parent.clone(), pose))
     }
 
-    /// The chain from `frame` up to its root: (root, root_from_frame).
-    fn to_root(&self, frame: &str, stamp: i64) -> Result<(String, Isometry3<f64>), LookupError> {
-        let mut at = frame.to_string();
-        let mut root_from_frame = Isometry3::identity();
+    /// `frame` and its ancestors up to its root, nearest first (the tree's structure only: no
+    /// transform is evaluated).
+    fn ancestors(&self, frame: &str) -> Vec<String> {
+        let mut chain = vec![frame.to_string()];
         // A tree deeper than the number of edges has a cycle: stop there.
         for _ in 0..=self.edges.len() {
-            if !self.edges.contains_key(&at) {
-                return Ok((at, root_from_frame));
-            }
-            let (parent, parent_from_child) = self.hop(&at, stamp)?;
-            root_from_frame = parent_from_child * root_from_frame;
-            at = parent;
+            let Some(e) = self.edges.get(chain.last().expect("not empty")) else {
+                break;
+            };
+            chain.push(e.parent.clone());
         }
-        Ok((at, root_from_frame))
+        chain
     }
 
-    /// `target_from_source` at `stamp` (ns): maps points of `source` into `target`.
+    /// `ancestor_from_frame` at `stamp`, hopping from `frame` up to `ancestor` (one of its
+    /// [`Buffer::ancestors`]); only the edges on that path are evaluated.
+    fn up_to(
+        &self,
+        frame: &str,
+        ancestor: &str,
+        stamp: i64,
+    ) -> Result<Isometry3<f64>, LookupError> {
+        let mut at = frame.to_string();
+        let mut ancestor_from_frame = Isometry3::identity();
+        for _ in 0..=self.edges.len() {
+            if at == ancestor || !self.edges.contains_key(&at) {
+                break;
+            }
+            let (parent, parent_from_child) = self.hop(&at, stamp)?;
+            ancestor_from_frame = parent_from_child * ancestor_from_frame;
+            at = parent;
+        }
+        Ok(ancestor_from_frame)
+    }
+
+    /// `target_from_source` at `stamp` (ns): maps points of `source` into `target`. As tf2 does,
+    /// the chain goes up from both frames only to their nearest common ancestor: `odom ->
+    /// base_link` needs no `map -> odom` (beside robot_localization, whose `map -> odom` may
+    /// pause, a lookup through the root would fail while odometry itself is fine).
     pub fn lookup(
         &self,
         target: &str,
@@ -206,17 +228,18 @@ impl Buffer {
                 });
             }
         }
-        let (root_t, root_from_target) = self.to_root(target, stamp)?;
-        let (root_s, root_from_source) = self.to_root(source, stamp)?;
-        if root_t != root_s {
+        let (up_t, up_s) = (self.ancestors(target), self.ancestors(source));
+        let Some(common) = up_s.iter().find(|f| up_t.contains(f)) else {
             return Err(LookupError::NotConnected {
                 from: source.to_string(),
                 to: target.to_string(),
-                from_root: root_s,
-                to_root: root_t,
+                from_root: up_s.last().cloned().unwrap_or_default(),
+                to_root: up_t.last().cloned().unwrap_or_default(),
             });
-        }
-        Ok(root_from_target.inverse() * root_from_source)
+        };
+        let common_from_target = self.up_to(target, common, stamp)?;
+        let common_from_source = self.up_to(source, common, stamp)?;
+        Ok(common_from_target.inverse() * common_from_source)
     }
 }
 
@@ -269,6 +292,45 @@ mod tests {
         assert!(matches!(
             b.lookup("map", "camera", 1_500_000_000),
             Err(LookupError::UnknownFrame { .. })
+        ));
+    }
+
+    #[test]
+    fn a_lookup_goes_up_only_to_the_common_ancestor() {
+        // robot_localization's map -> odom known only until 1 s (it paused); odometry goes on.
+        let mut b = Buffer::default();
+        let moving = |x: f64| Isometry3::new(Vector3::new(x, 0.0, 0.0), Vector3::zeros());
+        for (ns, x) in [(0, 0.0), (1_000_000_000, 0.1)] {
+            b.add(
+                &msgs::TfMessage {
+                    transforms: vec![stamped("map", "odom", ns, moving(x))],
+                },
+                false,
+            );
+        }
+        for (ns, x) in [(4_000_000_000, 2.0), (6_000_000_000, 3.0)] {
+            b.add(
+                &msgs::TfMessage {
+                    transforms: vec![stamped("odom", "base_link", ns, moving(x))],
+                },
+                false,
+            );
+        }
+        let odom_from_base = b.lookup("odom", "base_link", 5_000_000_000).unwrap();
+        assert!((odom_from_base.translation.vector.x - 2.5).abs() < 1e-9);
+        // Through the paused edge, the lookup still fails, naming it.
+        let e = b.lookup("map", "base_link", 5_000_000_000).unwrap_err();
+        assert!(e.to_string().contains("map -> odom"), "{e}");
+        // Two trees are not connected.
+        b.add(
+            &msgs::TfMessage {
+                transforms: vec![stamped("elsewhere", "thing", 0, moving(0.0))],
+            },
+            true,
+        );
+        assert!(matches!(
+            b.lookup("odom", "thing", 5_000_000_000),
+            Err(LookupError::NotConnected { .. })
         ));
     }
 }

@@ -394,9 +394,10 @@ pub struct Localization {
     pub odometry: bool,
     /// A map answer that verified but lay outside the tracking region or turn bound, so it was
     /// refused, or a re-anchoring map answer that disagreed with the stream's odometry: its pose (map
-    /// frame, the map's axes) and calibrated confidence. The frame is then NOT_LOCALIZED, or answered
-    /// by odometry. A stream weighs such answers against its track (the service's challenge rule).
-    pub off_track: Option<(Isometry3<f64>, f64)>,
+    /// frame, the map's axes), calibrated confidence and registration inliers. The frame is then
+    /// NOT_LOCALIZED, or answered by odometry. A stream weighs such answers against its track (the
+    /// service's challenge rule).
+    pub off_track: Option<(Isometry3<f64>, f64, usize)>,
     /// The keyframe the stream's next frame tracks from, when asked for
     /// ([`LocalizeOptions::want_keyframe`]) and LOCALIZED.
     pub keyframe: Option<Arc<Keyframe>>,
@@ -884,7 +885,7 @@ impl Pipeline {
                 off_track: loc
                     .pose
                     .filter(|_| loc.status == Status::Localized)
-                    .map(|p| (p, loc.confidence)),
+                    .map(|p| (p, loc.confidence, loc.inliers)),
                 ..loc
             },
             None => loc,
@@ -1116,7 +1117,7 @@ impl Pipeline {
             // wrong pose is moved when confident map answers keep agreeing with each other
             // against it (the service's challenge rule).
             return Localization {
-                off_track: Some((pose, loc.confidence)),
+                off_track: Some((pose, loc.confidence, loc.inliers)),
                 times: loc.times,
                 track_gap: loc.track_gap,
                 ..hop

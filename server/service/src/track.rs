@@ -335,7 +335,8 @@ pub(crate) struct Followup {
     pub(crate) keyframe: Option<Arc<Keyframe>>,
     pub(crate) odometry: bool,
     /// The map's answer refused for lying outside the track's bounds: pose (map frame) and confidence.
-    pub(crate) off_track: Option<(Isometry3<f64>, f64)>,
+    /// ... and its inliers.
+    pub(crate) off_track: Option<(Isometry3<f64>, f64, usize)>,
     /// Where odometry put the camera when that was outside the mapped area (NOT_LOCALIZED, cause
     /// OUTSIDE_MAP): the track follows it (map frame), so a look-alike room elsewhere stays off
     /// track and the stream answers again when the camera is back in the map.
@@ -393,12 +394,17 @@ impl Track {
         let global = r.mode == proto::Mode::Global as i32;
         let same_map = previous.is_some_and(|p| p.map_id == r.map_id);
         let now = Moment::now(f.stamp_s);
-        // Where two fixes can both be: by position alone (a camera turns 60 deg between two
-        // frames of a sparse stream; issue 73).
+        // Two fixes confirm each other where the camera can have moved and turned between them.
+        // A sparse stream whose frames turn further is not confirmed: its frames are answered as
+        // each would be alone, never refused for having turned (issue 73).
         let agrees = same_map
             && previous.is_some_and(|p| {
-                tracking_region(p.position_m, now.since(&p.at))
+                let elapsed_s = now.since(&p.at);
+                tracking_region(p.position_m, elapsed_s)
                     .is_some_and(|region| region.contains(&position_m))
+                    && tracking_heading(p.rotation, elapsed_s)
+                        .exceeded_by(&rotation)
+                        .is_none()
             });
         let recent = same_map && previous.is_some_and(|p| now.since(&p.at) <= RECONFIRM_AFTER_S);
         // A map fix where an established track's motion puts the camera (the stream refused those
@@ -409,6 +415,7 @@ impl Track {
             && same_map
             && previous.is_some_and(|p| {
                 p.established
+                    && p.confirmed
                     && match f.track_gap {
                         Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
                         None => p
@@ -588,12 +595,19 @@ impl Track {
         &mut self,
         pose: &Isometry3<f64>,
         confidence: f64,
+        inliers: u32,
         stamp_s: Option<f64>,
     ) -> Option<Track> {
+        // A track still re-acquiring on a weak fix gives way to a strong one elsewhere as well
+        // (issue 73: a weak look-alike fix at confidence 0.97 kept strong right fixes of 140
+        // inliers out for 1.5 s).
+        let stronger = !self.established
+            && self.fix_inliers < STRONG_FIX_INLIERS
+            && inliers >= STRONG_FIX_INLIERS;
         // Where the frames' own motion carried the camera beyond the map's surfaces, a map answer
         // elsewhere is a look-alike however often it repeats (issue 73): the track leaves that
         // state by a fix where the motion puts the camera, or once its chain ends.
-        if confidence <= self.confidence || (self.established && self.outside) {
+        if (confidence <= self.confidence && !stronger) || (self.established && self.outside) {
             return None;
         }
         let now = Moment::now(stamp_s);
@@ -613,7 +627,7 @@ impl Track {
                 map_tried_at: None,
                 confidence,
                 challenger: None,
-                fix_inliers: 0,
+                fix_inliers: inliers,
                 sigma_m: FIX_SIGMA_M,
                 outside: false,
                 odometry: None,
@@ -878,7 +892,11 @@ impl StreamMemory {
             let beyond = self
                 .track
                 .as_ref()
-                .filter(|t| t.established && t.map_id == r.map_id && t.serial == f.serial)
+                // A track resting on one fix not yet confirmed by a second (a look-alike's, maybe)
+                // refuses nothing: a fix elsewhere starts the track anew, as it always did.
+                .filter(|t| {
+                    t.established && t.confirmed && t.map_id == r.map_id && t.serial == f.serial
+                })
                 .and_then(|t| {
                     let gate = t.gate_m(&now)?;
                     let pose = wire::pose(r.pose.as_ref())?;
@@ -888,7 +906,7 @@ impl StreamMemory {
                     (off_m > gate).then_some((pose, off_m, gate))
                 });
             if let Some((pose, off_m, gate)) = beyond {
-                f.off_track = Some((pose, r.confidence));
+                f.off_track = Some((pose, r.confidence, r.inliers as usize));
                 f.keyframe = None;
                 beyond_motion(r, off_m, gate);
             }
@@ -900,8 +918,8 @@ impl StreamMemory {
         if let Some(t) = Track::after(self.track.as_ref(), r, f, self.doubt) {
             self.track = Some(t);
         }
-        if let (Some(t), Some((pose, confidence))) = (self.track.as_mut(), off_track) {
-            if let Some(moved) = t.challenged(&pose, confidence, stamp_s) {
+        if let (Some(t), Some((pose, confidence, inliers))) = (self.track.as_mut(), off_track) {
+            if let Some(moved) = t.challenged(&pose, confidence, inliers as u32, stamp_s) {
                 tracing::info!(
                     from = ?t.position_m.as_slice(),
                     to = ?moved.position_m.as_slice(),
@@ -920,7 +938,7 @@ impl StreamMemory {
             confidence = r.confidence,
             odometry = odometry,
             gap = ?gap,
-            off_track = ?off_track.map(|(p, c)| (p.translation.vector.as_slice().to_vec(), c)),
+            off_track = ?off_track.map(|(p, c, n)| (p.translation.vector.as_slice().to_vec(), c, n)),
             track = ?track.as_ref().map(|t| (t.position_m.as_slice().to_vec(), t.confirmed, t.established, t.confidence, t.challenger.is_some(), t.sigma_m, t.outside)),
             "stream state"
         );
@@ -1084,8 +1102,7 @@ mod tests {
         let renewed = renewed.unwrap();
         assert!(renewed.anchored_at.at > t.anchored_at.at);
         assert!(renewed.map_tried_at.is_none(), "a map fix starts afresh");
-        // Fixes confirm each other by position: a camera turns far between two frames of a
-        // sparse stream (issue 73), and verification judges a room turned round.
+        // A fix turned round (a symmetric room) does not confirm a track, even in the same place.
         let mut turned = answer(0.3, proto::Mode::Global);
         turned.pose.as_mut().unwrap().rotation = Some(proto::Quaternion {
             w: 0.0,
@@ -1094,7 +1111,7 @@ mod tests {
             z: 0.0,
         });
         assert!(
-            after(Some(&first), &turned, odometry(false))
+            !after(Some(&first), &turned, odometry(false))
                 .unwrap()
                 .confirmed
         );
@@ -1190,13 +1207,13 @@ mod tests {
         let mut unstamped = sure.clone();
         let far = Isometry3::translation(-6.0, 0.0, 0.0);
         let nearby = Isometry3::translation(-5.9, 0.0, 0.0);
-        assert!(sure.challenged(&far, 0.95, Some(20.0)).is_none());
+        assert!(sure.challenged(&far, 0.95, 100, Some(20.0)).is_none());
         sure.challenger.as_mut().unwrap().at.at -= Duration::from_secs(3);
-        let moved = sure.challenged(&nearby, 0.97, Some(20.2));
+        let moved = sure.challenged(&nearby, 0.97, 100, Some(20.2));
         assert_eq!(moved.expect("two agree").position_m.x, -5.9);
-        assert!(unstamped.challenged(&far, 0.95, None).is_none());
+        assert!(unstamped.challenged(&far, 0.95, 100, None).is_none());
         unstamped.challenger.as_mut().unwrap().at.at -= Duration::from_secs(3);
-        assert!(unstamped.challenged(&nearby, 0.97, None).is_none());
+        assert!(unstamped.challenged(&nearby, 0.97, 100, None).is_none());
     }
 
     #[test]
@@ -1332,13 +1349,13 @@ mod tests {
         let mut t = after(Some(&first), &fix(0.3), Followup::default()).unwrap();
         assert!(t.confirmed && t.established);
         let far = |x: f64| Isometry3::translation(x, 0.0, 0.0);
-        assert!(t.challenged(&far(3.0), 0.7, None).is_none());
+        assert!(t.challenged(&far(3.0), 0.7, 100, None).is_none());
         assert!(
             t.challenger.is_none(),
             "an answer less confident than the track's fix is a look-alike"
         );
         assert!(
-            t.challenged(&far(3.0), 0.95, None).is_none(),
+            t.challenged(&far(3.0), 0.95, 100, None).is_none(),
             "one answer is not enough"
         );
         // The track's odometry answers in between keep the challenger.
@@ -1356,10 +1373,12 @@ mod tests {
         .unwrap();
         assert!(t.challenger.is_some());
         assert!(
-            t.challenged(&far(-6.0), 0.95, None).is_none(),
+            t.challenged(&far(-6.0), 0.95, 100, None).is_none(),
             "two challengers that disagree move nothing"
         );
-        let moved = t.challenged(&far(-5.9), 0.99, None).expect("two agree");
+        let moved = t
+            .challenged(&far(-5.9), 0.99, 100, None)
+            .expect("two agree");
         assert!(moved.confirmed && moved.keyframe.is_none());
         assert_eq!(moved.position_m.x, -5.9);
         assert_eq!(moved.confidence, 0.95);
@@ -1382,11 +1401,17 @@ mod tests {
         .unwrap();
         assert!(!weak.established);
         assert!(
-            weak.challenged(&far(-6.0), 0.7, None).is_none(),
-            "less confident"
+            weak.challenged(&far(-6.0), 0.7, 30, None).is_none(),
+            "less confident, and weak too"
+        );
+        assert!(
+            weak.clone()
+                .challenged(&far(-6.0), 0.7, 100, None)
+                .is_some(),
+            "less confident but strong: a strong fix outweighs a weak one"
         );
         let restarted = weak
-            .challenged(&far(-6.0), 0.95, None)
+            .challenged(&far(-6.0), 0.95, 100, None)
             .expect("one is enough");
         assert!(!restarted.confirmed && !restarted.established);
         assert_eq!(restarted.position_m.x, -6.0);
@@ -1572,6 +1597,22 @@ mod tests {
         r.status == proto::Status::Localized as i32
     }
 
+    /// A stream that has two agreeing strong fixes at x = 0 (the second at 0 s): established and
+    /// confirmed; `odometry`: the robot's odometry x then.
+    fn started(m: &mut StreamMemory, odometry: Option<f64>) -> proto::LocalizeResponse {
+        through(
+            m,
+            fix_at(0.0, 120, 0.9),
+            Followup::default(),
+            -0.1,
+            odometry,
+        );
+        let r = through(m, fix_at(0.0, 120, 0.9), Followup::default(), 0.0, odometry);
+        let t = m.track.as_ref().unwrap();
+        assert!(t.established && t.confirmed);
+        r
+    }
+
     /// Send answer `r` of a frame captured at `stamp` through the stream's memory (`f` what the
     /// worker left), as the stream does; returns the answer the client gets.
     fn through(
@@ -1590,13 +1631,7 @@ mod tests {
     #[test]
     fn a_fix_away_from_where_the_motion_puts_the_camera_is_a_look_alike_however_strong() {
         let mut m = StreamMemory::default();
-        let r = through(
-            &mut m,
-            fix_at(0.0, 120, 0.9),
-            Followup::default(),
-            0.0,
-            None,
-        );
+        let r = started(&mut m, None);
         assert!(
             localized(&r),
             "a fresh stream's strong fix is answered at once"
@@ -1653,13 +1688,7 @@ mod tests {
         let run = |with_odometry: bool| {
             let mut m = StreamMemory::default();
             let odo = |x: f64| with_odometry.then_some(x);
-            through(
-                &mut m,
-                fix_at(0.0, 120, 0.9),
-                Followup::default(),
-                0.0,
-                odo(0.0),
-            );
+            started(&mut m, odo(0.0));
             for k in 1..=4 {
                 let t = 0.5 * k as f64;
                 through(&mut m, missed(), Followup::default(), t, odo(t));
@@ -1683,13 +1712,7 @@ mod tests {
         );
         // Odometry that says the robot went the other way refuses the same fix.
         let mut m = StreamMemory::default();
-        through(
-            &mut m,
-            fix_at(0.0, 120, 0.9),
-            Followup::default(),
-            0.0,
-            Some(0.0),
-        );
+        started(&mut m, Some(0.0));
         for k in 1..=4 {
             let t = 0.5 * k as f64;
             through(&mut m, missed(), Followup::default(), t, Some(-t));
@@ -1707,13 +1730,7 @@ mod tests {
     #[test]
     fn map_fixes_that_agree_overrule_wrong_odometry() {
         let mut m = StreamMemory::default();
-        through(
-            &mut m,
-            fix_at(0.0, 120, 0.9),
-            Followup::default(),
-            0.0,
-            Some(0.0),
-        );
+        started(&mut m, Some(0.0));
         // Odometry (slipping wheels) says 3 m; the robot stood still.
         through(&mut m, missed(), Followup::default(), 0.5, Some(3.0));
         let answers: Vec<_> = (0..4)
@@ -1743,13 +1760,7 @@ mod tests {
         // Carried 8 m with the camera off: 10 s later a strong fix there is answered as a single
         // frame would be (nothing in the stream speaks against it) ...
         let mut m = StreamMemory::default();
-        through(
-            &mut m,
-            fix_at(0.0, 120, 0.9),
-            Followup::default(),
-            0.0,
-            None,
-        );
+        started(&mut m, None);
         let r = through(
             &mut m,
             fix_at(8.0, 150, 0.95),
@@ -1761,13 +1772,7 @@ mod tests {
         // ... but a stream that had left the map before it was carried waits for a second fix
         // along the camera's motion: the motion cannot tell, and the stream has reason to doubt.
         let mut m = StreamMemory::default();
-        through(
-            &mut m,
-            fix_at(0.0, 120, 0.9),
-            Followup::default(),
-            0.0,
-            None,
-        );
+        started(&mut m, None);
         for k in 1..=5 {
             let r = through(&mut m, missed(), Followup::default(), 0.3 * k as f64, None);
             assert!(!localized(&r));
@@ -1803,13 +1808,7 @@ mod tests {
     #[test]
     fn a_sparse_stream_is_not_refused_for_turning() {
         let mut m = StreamMemory::default();
-        through(
-            &mut m,
-            fix_at(0.0, 120, 0.9),
-            Followup::default(),
-            0.0,
-            None,
-        );
+        started(&mut m, None);
         // 0.3 s later, turned 60 deg, a weak fix (no hop: the frames share too little).
         let mut turned = fix_at(0.2, 22, 0.85);
         let q = UnitQuaternion::from_euler_angles(0.0, 60f64.to_radians(), 0.0);
