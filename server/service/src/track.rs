@@ -69,6 +69,10 @@ pub const UNMEASURED_SPEED_MPS: f64 = pntr_pipeline::prior::TRACKING_SPEED_MPS;
 /// camera's motion measured between them (the place confirmed over time), however strong the
 /// fix. With [`GATE_BASE_M`] and [`UNMEASURED_SPEED_MPS`]: 1.3 s of unmeasured motion.
 pub const TELL_MAX_M: f64 = 2.5;
+/// A weak map fix (fewer than [`STRONG_FIX_INLIERS`]) is answered by the gate alone only when the
+/// gate is at most this wide, metres: the camera's motion measured, not guessed from the time
+/// since: 0.35 s at most (a 1 Hz stream's 2.2 m gate once took a weak fix 0.96 m off).
+pub const WEAK_FIX_GATE_M: f64 = 1.2;
 /// Position uncertainty of a map fix, metres (one standard deviation), where its covariance is not
 /// known.
 pub const FIX_SIGMA_M: f64 = 0.05;
@@ -411,6 +415,9 @@ impl Track {
         // that lie well away before this, `StreamMemory::after`): within a few centimetres of the
         // frame's own odometry pose when the keyframe gave one (issue 49), else within the gate
         // of the pose the motion carried ([`Track::gate_m`]).
+        // A weak fix needs a tight gate (the motion measured, not guessed from the time since),
+        // a strong one any gate that tells.
+        let strong = r.inliers >= STRONG_FIX_INLIERS;
         let within_gate = !f.odometry
             && same_map
             && previous.is_some_and(|p| {
@@ -418,9 +425,10 @@ impl Track {
                     && p.confirmed
                     && match f.track_gap {
                         Some((m, deg)) => m <= ESTABLISH_GAP_M && deg <= ESTABLISH_GAP_DEG,
-                        None => p
-                            .gate_m(&now)
-                            .is_some_and(|gate| (position_m - p.position_m).norm() <= gate),
+                        None => p.gate_m(&now).is_some_and(|gate| {
+                            (strong || gate <= WEAK_FIX_GATE_M)
+                                && (position_m - p.position_m).norm() <= gate
+                        }),
                     }
             });
         Some(Self {
@@ -471,7 +479,18 @@ impl Track {
                 // prefer to the track's own pose (the track slipped) keeps an established track
                 // established, where it now lies.
                 within_gate
-                    || (r.inliers >= STRONG_FIX_INLIERS && !doubt)
+                    || (strong && !doubt)
+                    // With doubt, where the motion cannot tell: a second strong fix of the same
+                    // place, half a second or more after the first, along a plausible motion.
+                    || (strong
+                        && recent
+                        && agrees
+                        && follows
+                        && previous.is_some_and(|p| {
+                            !p.established
+                                && p.fix_inliers >= STRONG_FIX_INLIERS
+                                && now.since(&p.acquired_at) >= REANCHOR_AFTER_S
+                        }))
                     || (recent
                         && agrees
                         && follows
