@@ -1417,6 +1417,37 @@ fn priors_fall_back_and_streams_track() {
             .unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument);
         assert!(e.message().contains("odometry"), "{}", e.message());
+        // A rotation that is not a unit quaternion is a mistake, named.
+        let long_quaternion = proto::LocalizeRequest {
+            odometry: Some(proto::Pose {
+                translation: Some(proto::Vector3 {
+                    x: 0.0,
+                    y: 0.0,
+                    z: 0.0,
+                }),
+                rotation: Some(proto::Quaternion {
+                    x: 0.0,
+                    y: 0.0,
+                    z: 0.0,
+                    w: 2.0,
+                }),
+            }),
+            ..request(still, "")
+        };
+        let e = stream_answers(&mut c3, vec![long_quaternion])
+            .await
+            .unwrap_err();
+        assert!(e.message().contains("unit quaternion"), "{}", e.message());
+        // A continuation without a pose, or from after the frame, continues nothing: refused.
+        let mut no_pose = continued(here);
+        no_pose.continuation.as_mut().unwrap().pose = None;
+        let mut later = continued(here);
+        later.continuation.as_mut().unwrap().stamp_s = Some(300.0);
+        for (bad, want) in [(no_pose, "continuation.pose"), (later, "later than")] {
+            let e = stream_answers(&mut c3, vec![bad]).await.unwrap_err();
+            assert_eq!(e.code(), Code::InvalidArgument);
+            assert!(e.message().contains(want), "{}", e.message());
+        }
         // The client goes away without closing its stream: the server frees the stream's state.
         drop(out);
         drop(tx);

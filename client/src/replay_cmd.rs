@@ -298,6 +298,9 @@ fn map_positions(sequence: &Path) -> Vec<[f64; 3]> {
 
 /// `pntr replay`.
 pub fn run(args: &ReplayArgs) -> Result<()> {
+    if args.every == 0 {
+        bail!("--every must be at least 1 (every frame)");
+    }
     if let Some(r) = args.rate {
         if !(r.is_finite() && r > 0.0) {
             bail!("--rate must be a positive number of frames per second, not {r}");
@@ -401,9 +404,6 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         .block_on(c.localize_stream(request))
         .context("opening LocalizeStream")?
         .into_inner();
-    if args.every == 0 {
-        bail!("--every must be at least 1 (every frame)");
-    }
     let odometry = match &args.odometry {
         Some(path) => Some(
             pntr_dataset::tum::Trajectory::read(path)
@@ -411,6 +411,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         ),
         None => None,
     };
+    let mut odometry_frames = 0usize;
     let t0 = seq.timestamp(0);
     if !args.no_stamps && !(0.0..pntr_service::decode::MAX_STAMP_S).contains(&t0) {
         bail!(
@@ -491,7 +492,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         req.stamp_s = (!args.no_stamps).then_some(timestamp - skew);
         // Optical axes, as TUM trajectories hold them: converted to the map's camera axes, the
         // convention this request uses.
-        req.odometry = odometry.as_ref().and_then(|o| o.at(timestamp)).map(|p| {
+        let odometry_pose = odometry.as_ref().and_then(|o| o.at(timestamp));
+        odometry_frames += odometry_pose.is_some() as usize;
+        req.odometry = odometry_pose.map(|p| {
             wire::to_proto_pose(&pntr_core::convert_axes(
                 &p,
                 pntr_core::CameraAxes::OpenCv,
@@ -588,6 +591,17 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     }
     drop(tx);
     let wall = start.elapsed().as_secs_f64();
+    if let Some(path) = args
+        .odometry
+        .as_ref()
+        .filter(|_| odometry_frames < out.len())
+    {
+        eprintln!(
+            "warning: --odometry {}: {odometry_frames} of {} frames had an odometry pose at their stamp (the trajectory must cover the recording's stamps, in seconds on its clock)",
+            path.display(),
+            out.len()
+        );
+    }
     bar.finish_and_clear();
 
     let mut traj = String::from("# estimated trajectory (world_from_camera, optical camera axes), LOCALIZED frames\n# timestamp tx ty tz qx qy qz qw\n");
@@ -645,6 +659,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         "stamps_sent": !args.no_stamps,
         "every": args.every,
         "odometry_sent": args.odometry.is_some(),
+        "odometry_frames": odometry_frames,
         "localized_share": localized as f64 / frames,
         "tracking_share": tracked as f64 / frames,
         "ate_rmse_m": errors.ate_rmse_m,

@@ -132,7 +132,8 @@ pub fn prior(req: &proto::LocalizeRequest) -> Result<Option<Region>, Status> {
 
 /// A pose a stream's frame carries besides the image (`LocalizeRequest.odometry`,
 /// `TrackContinuation.pose`): `None` when absent; INVALID_ARGUMENT naming `field` when its
-/// translation or rotation is missing, non-finite, or the rotation has no length.
+/// translation or rotation is missing or non-finite, or the rotation is not a unit quaternion
+/// (within 1e-3).
 pub fn stream_pose(
     field: &str,
     p: Option<&proto::Pose>,
@@ -147,9 +148,16 @@ pub fn stream_pose(
     };
     let values = [t.x, t.y, t.z, q.x, q.y, q.z, q.w];
     let norm = (q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w).sqrt();
-    if values.iter().any(|v| !v.is_finite()) || norm < 1e-6 {
+    if values.iter().any(|v| !v.is_finite()) {
         return invalid(format!(
-            "{field}: the translation and rotation must be finite and the quaternion non-zero"
+            "{field}: the translation and rotation must be finite"
+        ));
+    }
+    // A unit quaternion, as ROS messages carry it (a little rounding allowed): another length is
+    // a mistake (a rotation vector, Euler angles or a matrix row put in its place).
+    if (norm - 1.0).abs() > 1e-3 {
+        return invalid(format!(
+            "{field}: the rotation must be a unit quaternion (x, y, z, w), its length is {norm:.4}"
         ));
     }
     Ok(crate::wire::pose(Some(p)))

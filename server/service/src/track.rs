@@ -742,7 +742,7 @@ fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
     let why = if t.fix_inliers >= STRONG_FIX_INLIERS {
         "the stream left the mapped area, lost its track or refused a look-alike since its last answer, and the camera's motion since cannot tell this map fix from a look-alike".to_string()
     } else {
-        format!("the stream's map fix had fewer than {STRONG_FIX_INLIERS} inliers")
+        format!("the map fix this track rests on had fewer than {STRONG_FIX_INLIERS} inliers")
     };
     r.reason = format!(
         "re-acquiring: {why}, so it is followed but not answered until a later map fix along the camera's motion agrees with it (a look-alike room often does not); {}",
@@ -821,13 +821,29 @@ impl StreamMemory {
         self.odometry = decode::stream_pose("odometry", msg.odometry.as_ref())?
             .map(|p| convert_axes(&p, client_axes, frames.camera));
         self.frames += 1;
-        if let Some(c) = msg.continuation.as_ref().filter(|_| self.frames == 1) {
-            if let Some(pose) = decode::stream_pose("continuation.pose", c.pose.as_ref())? {
+        if let Some(c) = msg
+            .continuation
+            .as_ref()
+            .filter(|_| self.frames == 1 && !msg.relocalize)
+        {
+            let Some(pose) = decode::stream_pose("continuation.pose", c.pose.as_ref())? else {
+                return Err(tonic::Status::invalid_argument(
+                    "continuation.pose: give the earlier stream's last LOCALIZED pose (a continuation without one continues nothing)",
+                ));
+            };
+            {
                 let pose = match convention {
                     proto::FrameConvention::Ros => ros_to_map(&pose, frames.up, frames.camera),
                     _ => pose,
                 };
                 let since = decode::stamp(c.stamp_s)?;
+                if let (Some(then), Some(now)) = (since, stamp_s) {
+                    if then > now {
+                        return Err(tonic::Status::invalid_argument(format!(
+                            "continuation.stamp_s {then} is later than this frame's stamp_s {now}: give the capture stamp of the earlier stream's last LOCALIZED frame, on the same clock"
+                        )));
+                    }
+                }
                 if !(c.sigma_m.is_finite() && c.sigma_m >= 0.0) {
                     return Err(tonic::Status::invalid_argument(
                         "continuation.sigma_m: give the position uncertainty in metres (>= 0)",
@@ -936,6 +952,13 @@ impl StreamMemory {
         let (convention, frames) = (f.convention, f.frames);
         if let Some(t) = Track::after(self.track.as_ref(), r, f, self.doubt) {
             self.track = Some(t);
+        }
+        // A relocalizing frame asked to be judged alone: its LOCALIZED answer is the stream's
+        // new state, answered and established, as the caller vouched for the jump.
+        if relocalize && r.status == proto::Status::Localized as i32 {
+            if let Some(t) = self.track.as_mut() {
+                t.established = true;
+            }
         }
         if let (Some(t), Some((pose, confidence, inliers))) = (self.track.as_mut(), off_track) {
             if let Some(moved) = t.challenged(&pose, confidence, inliers as u32, stamp_s) {

@@ -251,7 +251,12 @@ def make_request(
     if not isinstance(relocalize, (bool, np.bool_)):
         raise ValueError(f"{where}relocalize must be True or False, got {relocalize!r}")
     stamp = check_stamp(stamp_s, where)
-    odom = None if odometry is None else check_pose(odometry, f"{where}odometry")
+    odom = None
+    if odometry is not None:
+        shape = np.shape(odometry)
+        if shape != (4, 4):
+            raise ValueError(f"{where}odometry must be a 4x4 odom_from_camera matrix, got shape {shape}")
+        odom = check_pose(odometry, f"{where}odometry")
     h, w = rgb_a.shape[:2]
     depth_encoding = pb2.UINT16_MILLIMETERS if depth_a.dtype == np.dtype("<u2") else pb2.FLOAT32_METERS
     req = pb2.LocalizeRequest(
