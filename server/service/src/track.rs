@@ -495,7 +495,11 @@ impl Track {
                         && agrees
                         && follows
                         && previous.is_some_and(|p| {
-                            p.confirmed && now.since(&p.acquired_at) >= REANCHOR_AFTER_S
+                            // Half a second after the first fix of a track being re-acquired;
+                            // an established track's fixes follow each other frame by frame.
+                            p.confirmed
+                                && (p.established
+                                    || now.since(&p.acquired_at) >= REANCHOR_AFTER_S)
                         }))
                     || (recent && f.track_slipped && previous.is_some_and(|p| p.established))
             },
@@ -1906,5 +1910,23 @@ mod tests {
         );
         let r = through(&mut m, fix_at(0.02, 60, 0.9), follows(), 0.2, None);
         assert!(localized(&r), "{r:?}");
+    }
+
+    #[test]
+    fn an_established_track_takes_weak_fixes_that_follow_it_frame_by_frame() {
+        let mut m = StreamMemory::default();
+        started(&mut m, None);
+        // Weak fixes 0.1 s apart along the camera's way, each found on the map alone (no keyframe
+        // hop) and loosely held (0.25 m), so the gate is too wide to take them by itself: each
+        // follows the last, answered frame by frame as before issue 73.
+        for k in 1..6 {
+            let t = 0.1 * k as f64;
+            let f = Followup {
+                sigma_m: Some(0.25),
+                ..Followup::default()
+            };
+            let r = through(&mut m, fix_at(0.04 * k as f64, 20, 0.9), f, t, None);
+            assert!(localized(&r), "{t} s: {r:?}");
+        }
     }
 }
