@@ -735,6 +735,15 @@ impl Track {
     }
 }
 
+/// Drop what only a LOCALIZED answer carries (pose, covariance, matched image) from an answer
+/// the stream withholds.
+fn without_pose(r: &mut proto::LocalizeResponse) {
+    r.pose = None;
+    r.covariance.clear();
+    r.matched_image_id.clear();
+    r.matched_point = 0;
+}
+
 /// Turn a LOCALIZED stream answer of a track that is not established ([`Track::established`]) into
 /// NOT_LOCALIZED (cause UNVERIFIED), saying what it waits for.
 fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
@@ -756,10 +765,7 @@ fn provisional(r: &mut proto::LocalizeResponse, t: &Track) {
             "waiting for a second fix"
         }
     );
-    r.pose = None;
-    r.covariance.clear();
-    r.matched_image_id.clear();
-    r.matched_point = 0;
+    without_pose(r);
 }
 
 /// Turn the answer of a frame whose map answer moved the stream's track ([`Track::challenged`])
@@ -777,10 +783,7 @@ fn superseded(r: &mut proto::LocalizeResponse, established: bool) {
         "re-acquiring: a map answer more confident than the track's weak fix lies elsewhere, so the track starts again from it"
     }
     .into();
-    r.pose = None;
-    r.covariance.clear();
-    r.matched_image_id.clear();
-    r.matched_point = 0;
+    without_pose(r);
 }
 
 /// Everything a LocalizeStream remembers between its frames: the track, the stamp of its last
@@ -1036,10 +1039,7 @@ fn beyond_motion(r: &mut proto::LocalizeResponse, off_m: f64, gate_m: f64) {
     r.reason = format!(
         "tracking: the map's fix lies {off_m:.1} m from where the camera's motion since the stream's last pose puts it, more than the {gate_m:.1} m that motion leaves open, so it is taken for a look-alike (send relocalize to accept a jump)"
     );
-    r.pose = None;
-    r.covariance.clear();
-    r.matched_image_id.clear();
-    r.matched_point = 0;
+    without_pose(r);
 }
 
 #[cfg(test)]
