@@ -84,6 +84,13 @@ pub struct SynthArgs {
     /// dropouts, lost edges). Deterministic per seed.
     #[arg(long, default_value = "none", value_name = "robot|none|GROUP,...")]
     pub realism: String,
+    /// Put each apartment beside an exact copy of itself, joined by one door through the wall they
+    /// share: every room has a look-alike one apartment-width away (`twin_offset_m` in the JSON).
+    /// Database views, queries and `--mapping-run` cover the original half only; other drives go
+    /// to both halves. A map of the original and a drive into the copy test what a stream answers
+    /// in rooms that look exactly like mapped ones.
+    #[arg(long)]
+    pub twin: bool,
 }
 
 /// Parse a camera size `WxH` (`--camera`, `--query-camera`).
@@ -176,6 +183,7 @@ fn config(args: &SynthArgs) -> Result<SynthConfig> {
         trajectory_seconds: args.trajectory_seconds,
         mapping_run: args.mapping_run,
         route_seed: args.route_seed,
+        twin: args.twin,
         realism: pntr_synth::effects::Realism::parse(&args.realism)
             .map_err(|e| anyhow::anyhow!("--realism: {e}"))?,
         tilt_sigma_deg: args.tilt_sigma_deg,
@@ -219,6 +227,7 @@ fn summary_json(s: &Summary) -> serde_json::Value {
             "size_m": [sc.size_m.0, sc.size_m.1],
             "sequence_frames": sc.sequence_frames,
             "mapping_run_seconds": sc.mapping_run_seconds,
+            "twin_offset_m": sc.twin_offset_m,
             "unreachable_points": sc.unreachable_points.len(),
             "unreachable_point_ids": point_ids(&sc.unreachable_points),
         })).collect::<Vec<_>>(),

@@ -68,6 +68,11 @@ pub struct SynthConfig {
     /// A robot's captures instead of clean renders for queries and drives (`synth --realism`):
     /// other lighting and camera effects; database views stay clean.
     pub realism: Option<effects::Realism>,
+    /// Each apartment beside an exact copy of itself, joined by a door ([`scene::twin`]): the
+    /// database views, queries and mapping runs cover the original half only, other drives go to
+    /// the Points of both halves, so a map of the original and a drive into the copy make a stream
+    /// that leaves its map into look-alike rooms.
+    pub twin: bool,
 }
 
 impl Default for SynthConfig {
@@ -87,6 +92,7 @@ impl Default for SynthConfig {
             mapping_run: false,
             route_seed: None,
             realism: None,
+            twin: false,
         }
     }
 }
@@ -118,6 +124,9 @@ pub struct SceneSummary {
     /// Indices of the Points no drive reaches, ascending ([`trajectory::unreachable_points`]: rooms
     /// the furniture closes off at the robot's clearance); a drive or mapping run leaves them out.
     pub unreachable_points: Vec<usize>,
+    /// With [`SynthConfig::twin`]: how far along +x the copy lies from the original (the original's
+    /// width, metres): a pose in the copy minus this is its look-alike in the original.
+    pub twin_offset_m: Option<f32>,
 }
 
 /// What a synthesis run produced.
@@ -163,6 +172,9 @@ pub struct PlannedScene {
     pub scene: Scene,
     /// The Points, in file order.
     pub points: Vec<PointPlan>,
+    /// With [`SynthConfig::twin`]: the Points of the copy (the original's moved by the door's
+    /// `at_x`, with no views planned), which drives visit and nothing renders, and the door.
+    pub twin: Option<(Vec<PointPlan>, scene::TwinDoor)>,
 }
 
 /// Generate scene `index` of `cfg` and plan its Points. Grows the apartment until the 2 m grid holds
@@ -194,7 +206,29 @@ pub fn plan_scene(cfg: &SynthConfig, index: usize) -> PlannedScene {
                     )
                 })
                 .collect();
-            return PlannedScene { scene, points };
+            if !cfg.twin {
+                return PlannedScene {
+                    scene,
+                    points,
+                    twin: None,
+                };
+            }
+            if let Some((doubled, door)) = scene::twin(&scene) {
+                let copies = points
+                    .iter()
+                    .map(|p: &PointPlan| PointPlan {
+                        key_xz: (p.key_xz.0 + door.at_x as f64, p.key_xz.1),
+                        db: Vec::new(),
+                        queries: Vec::new(),
+                        discarded: 0,
+                    })
+                    .collect();
+                return PlannedScene {
+                    scene: doubled,
+                    points,
+                    twin: Some((copies, door)),
+                };
+            }
         }
         area *= 1.15;
     }
@@ -386,6 +420,7 @@ pub fn synthesize(
             sequence_frames,
             mapping_run_seconds,
             unreachable_points: trajectory::unreachable_points(&ps.scene, &ps.points),
+            twin_offset_m: ps.twin.as_ref().map(|(_, door)| door.at_x),
         });
     }
     Ok(Summary {
@@ -436,9 +471,14 @@ fn render_drive(
         );
         whole.len() as f64 / trajectory::DEFAULT_RATE_HZ
     });
+    // A drive (not a mapping run) of a twin apartment visits the copy's Points too.
+    let driven: Vec<PointPlan> = match (&ps.twin, cfg.mapping_run) {
+        (Some((copies, _)), false) => ps.points.iter().chain(copies).cloned().collect(),
+        _ => ps.points.clone(),
+    };
     let drive = plan(
         &ps.scene,
-        &ps.points,
+        &driven,
         seconds,
         trajectory::DEFAULT_RATE_HZ,
         trajectory::DEFAULT_SPEED_MPS,

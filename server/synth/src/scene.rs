@@ -578,6 +578,128 @@ pub fn generate(name: &str, rng: &mut ChaCha8Rng, area_m2: f32, opts: &SceneOpti
     }
 }
 
+/// Where [`twin`] joined the apartment to its copy: a door through the shared wall at x = `at_x`
+/// (the original's width), spanning z in `z0..z1`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TwinDoor {
+    /// The seam between the original and its copy, metres along x (the original's width).
+    pub at_x: f32,
+    /// Start of the opening along z, metres.
+    pub z0: f32,
+    /// End of the opening along z, metres.
+    pub z1: f32,
+}
+
+/// The apartment and an exact copy of it beside it (translated by its width along +x), joined by one
+/// door through the wall they share: every room has a look-alike `scene.width_m` metres away,
+/// the same walls, furniture and textures, as rooms of a hotel corridor or an office floor repeat.
+/// A map of one half and a drive into the other is the case of a stream that leaves its map into
+/// a look-alike (issue 73) made on demand.
+///
+/// How: the door goes where an east room of the original and a west room of the copy share the
+/// longest stretch of the seam; furniture within 1 m of the door on either side is removed, and
+/// removed at the same place in the other half too, so the two halves differ only by the door's
+/// opening. Instance ids of the copy follow the original's. `None` when no two rooms share 0.9 m of
+/// the seam (the caller grows the apartment).
+pub fn twin(scene: &Scene) -> Option<(Scene, TwinDoor)> {
+    let w = scene.width_m;
+    const EPS: f32 = 1e-3;
+    let east = scene.rooms.iter().filter(|r| (r.x1 - w).abs() < EPS);
+    let (z0, z1) = east
+        .flat_map(|e| {
+            scene
+                .rooms
+                .iter()
+                .filter(|r| r.x0.abs() < EPS)
+                .map(move |west| (e.z0.max(west.z0), e.z1.min(west.z1)))
+        })
+        .max_by(|a, b| (a.1 - a.0).total_cmp(&(b.1 - b.0)))?;
+    // The opening, clear of both rooms' corners by 0.15 m.
+    let width = DOOR_WIDTH_M.min(z1 - z0 - 0.3);
+    if width < 0.9 - EPS {
+        return None;
+    }
+    let mid = 0.5 * (z0 + z1);
+    let door = TwinDoor {
+        at_x: w,
+        z0: mid - 0.5 * width,
+        z1: mid + 0.5 * width,
+    };
+    let structural = ["wall", "floor", "ceiling", "door"].map(|c| category_id(c).expect("known"));
+    let is_structural =
+        |b: &SceneBox| structural.contains(&scene.instance_categories[b.instance as usize]);
+    // Furniture near the door, in original coordinates: the original's side (x < w) and, moved
+    // back by w, the copy's side (x > w).
+    let clear = |b: &SceneBox| {
+        let (za, zb) = (door.z0 - 0.3, door.z1 + 0.3);
+        let near_z = b.min.z < zb && b.max.z > za;
+        let near_original = b.max.x > w - 1.0;
+        let near_copy = b.min.x < 1.0;
+        near_z && (near_original || near_copy)
+    };
+    let kept: Vec<&SceneBox> = scene
+        .boxes
+        .iter()
+        .filter(|b| is_structural(b) || !clear(b))
+        .collect();
+    let instances = scene.instance_categories.len() as u32 - 1;
+    let shift = Vector3::new(w, 0.0, 0.0);
+    let mut boxes: Vec<SceneBox> = kept.iter().map(|b| (*b).clone()).collect();
+    boxes.extend(kept.iter().map(|b| SceneBox {
+        min: b.min + shift,
+        max: b.max + shift,
+        faces: b.faces,
+        instance: b.instance + instances,
+    }));
+    let mut instance_categories = scene.instance_categories.clone();
+    instance_categories.extend_from_slice(&scene.instance_categories[1..]);
+    // Cut the opening through both half-walls at the seam; a header stays above it.
+    let wall = category_id("wall").expect("known");
+    let mut cut = Vec::with_capacity(boxes.len() + 8);
+    for b in boxes {
+        let at_seam = b.min.x > w - WALL_HALF_M - EPS && b.max.x < w + WALL_HALF_M + EPS;
+        let in_opening = b.min.z < door.z1 && b.max.z > door.z0 && b.min.y < EPS;
+        let is_wall = instance_categories[b.instance as usize] == wall;
+        if !(at_seam && in_opening && is_wall) {
+            cut.push(b);
+            continue;
+        }
+        for (z0, z1) in solid_pieces(b.min.z, b.max.z, &[(door.z0, door.z1)]) {
+            let mut piece = b.clone();
+            piece.min.z = z0;
+            piece.max.z = z1;
+            cut.push(piece);
+        }
+        let mut header = b.clone();
+        header.min.z = door.z0.max(b.min.z);
+        header.max.z = door.z1.min(b.max.z);
+        header.min.y = DOOR_HEIGHT_M;
+        if header.max.y > header.min.y && header.max.z > header.min.z {
+            cut.push(header);
+        }
+    }
+    let mut rooms = scene.rooms.clone();
+    rooms.extend(scene.rooms.iter().map(|r| Rect {
+        x0: r.x0 + w,
+        x1: r.x1 + w,
+        ..*r
+    }));
+    Some((
+        Scene {
+            name: scene.name.clone(),
+            boxes: cut,
+            materials: scene.materials.clone(),
+            instance_categories,
+            rooms,
+            ceiling_m: scene.ceiling_m,
+            width_m: 2.0 * w,
+            depth_m: scene.depth_m,
+            lights: scene.lights,
+        },
+        door,
+    ))
+}
+
 /// The four walls of a room as anchors on the inner wall face, looking into the room.
 fn wall_anchors(room: &Rect) -> [(Anchor, f32); 4] {
     let h = WALL_HALF_M;
@@ -1114,6 +1236,57 @@ mod tests {
                 assert!(!s.rooms.is_empty());
             }
         }
+    }
+
+    #[test]
+    fn a_twin_is_the_same_rooms_one_width_along_joined_by_an_open_door() {
+        let mut joined = 0;
+        for seed in 0..12 {
+            let one = generate(
+                "s",
+                &mut ChaCha8Rng::seed_from_u64(seed),
+                60.0,
+                &Default::default(),
+            );
+            let Some((two, door)) = twin(&one) else {
+                continue;
+            };
+            joined += 1;
+            let w = one.width_m;
+            assert_eq!(door.at_x, w);
+            assert!((two.width_m - 2.0 * w).abs() < 1e-4 && two.depth_m == one.depth_m);
+            assert_eq!(two.rooms.len(), 2 * one.rooms.len());
+            // The robot passes the door and the metre either side of it.
+            let obstacles = two.obstacles();
+            let mid = 0.5 * (door.z0 + door.z1);
+            for x in [w - 0.6, w, w + 0.6] {
+                let clear = Scene::clearance(&obstacles, two.width_m, two.depth_m, x, mid);
+                assert!(clear >= 0.3, "seed {seed}: clearance {clear} at x {x}");
+            }
+            // Away from the seam, every box of one half is a box of the other, moved by w.
+            let key = |b: &SceneBox, dx: f32| {
+                let r = |v: f32| (v * 1000.0).round() as i64;
+                (
+                    [r(b.min.x - dx), r(b.min.y), r(b.min.z)],
+                    [r(b.max.x - dx), r(b.max.y), r(b.max.z)],
+                    b.faces,
+                )
+            };
+            let inside = |b: &&SceneBox, dx: f32| b.min.x - dx > 0.1 && b.max.x - dx < w - 0.1;
+            let mut left: Vec<_> = (two.boxes.iter())
+                .filter(|b| inside(b, 0.0))
+                .map(|b| key(b, 0.0))
+                .collect();
+            let mut right: Vec<_> = (two.boxes.iter())
+                .filter(|b| inside(b, w))
+                .map(|b| key(b, w))
+                .collect();
+            left.sort();
+            right.sort();
+            assert!(!left.is_empty());
+            assert_eq!(left, right, "seed {seed}: the halves differ");
+        }
+        assert!(joined >= 9, "only {joined} of 12 apartments joined");
     }
 
     #[test]
