@@ -973,6 +973,7 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
         }
         let a = answers.iter().find(|a| a["status"] == "LOCALIZED").unwrap();
         assert_eq!(a["map_id"], "all");
+        assert_eq!(a["track_state"], "", "a single frame has no track");
         // ROS conventions: the y-up scene's camera height is the pose's z.
         let z = a["pose"]["position"][2].as_f64().unwrap();
         assert!((0.5..2.0).contains(&z), "{a}");
@@ -1012,6 +1013,60 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
             c.localize(late(i)).await.unwrap();
             i += 1;
         }
+        // A stream's answers are shown as the stream gives them (after its track took them),
+        // with the track's state.
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        let mut replies = c
+            .localize_stream(ReceiverStream::new(rx))
+            .await
+            .unwrap()
+            .into_inner();
+        let mut given = std::collections::HashMap::new();
+        let deadline = Instant::now() + Duration::from_secs(60);
+        let mut k = 0;
+        'streamed: loop {
+            assert!(
+                Instant::now() < deadline,
+                "no stream answer reached the viewer"
+            );
+            let frame = proto::LocalizeRequest {
+                request_id: format!("streamed-{k}"),
+                ..request(&f.queries[k % f.queries.len()], "")
+            };
+            tx.send(frame).await.unwrap();
+            let r = replies.message().await.unwrap().unwrap();
+            given.insert(r.request_id.clone(), r);
+            k += 1;
+            while let Ok(Some(Ok(m))) =
+                tokio::time::timeout(Duration::from_millis(300), ws.next()).await
+            {
+                let Message::Binary(b) = m else { continue };
+                if u32::from_le_bytes(b[1..5].try_into().unwrap()) != 1 {
+                    continue;
+                }
+                let a: serde_json::Value = serde_json::from_slice(&b[13..]).unwrap();
+                let Some(r) = a["request_id"].as_str().and_then(|id| given.get(id)) else {
+                    continue;
+                };
+                let state = wire::track_state_label(r.track_state);
+                assert!(!state.is_empty(), "{r:?}");
+                assert_eq!(a["track_state"], state, "{a}");
+                let localized = r.status == proto::Status::Localized as i32;
+                assert_eq!(
+                    a["status"],
+                    if localized {
+                        "LOCALIZED"
+                    } else {
+                        "NOT_LOCALIZED"
+                    },
+                    "{a}"
+                );
+                assert_eq!(a["reason"], r.reason.as_str(), "{a}");
+                assert_eq!(a["pose"].is_null(), !localized, "{a}");
+                break 'streamed;
+            }
+        }
+        drop(tx);
         assert_eq!(
             running.state.live().map(|l| l.clients()),
             Some(2),

@@ -79,6 +79,7 @@ fn record_query(
         confidence: a.confidence,
         inliers: 0,
         mode: a.mode.map_or("UNKNOWN", |m| m.name()),
+        track_state: "",
         matched_image_id: a.matched.as_deref().unwrap_or(""),
         pose: a.pose.as_ref().map(to_ros),
         covariance: &covariance,

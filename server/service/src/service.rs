@@ -24,6 +24,7 @@ use crate::telemetry::{
     ANSWERS_BY_MODE, ANSWER_CONFIDENCE, IN_FLIGHT, REQUESTS_TOTAL, STAGE_DURATION, STREAMS_ACTIVE,
 };
 use crate::track::{Followup, StreamMemory, Tracking};
+use crate::visual::Shown;
 use crate::wire;
 
 /// Shared state of the service: the engine once loaded, the frame limits, and the permits for
@@ -322,6 +323,14 @@ impl LocalizerService {
         Self { state }
     }
 
+    /// Hand an answer to the live view's thread, when someone watches; drawing never holds up
+    /// the answer.
+    fn show(&self, shown: Option<Shown>) {
+        if let (Some(live), Some(shown)) = (self.state.live(), shown) {
+            live.show(shown);
+        }
+    }
+
     /// Localize one frame end to end, recording metrics; never panics.
     /// `map`: the map the stream resolved for this frame (`None`: resolve the request's map_id).
     async fn one(
@@ -331,7 +340,7 @@ impl LocalizerService {
         request_id: String,
         deadline: Option<Instant>,
         tracking: Tracking,
-    ) -> Result<(proto::LocalizeResponse, Followup), Status> {
+    ) -> Result<(proto::LocalizeResponse, Followup, Option<Shown>), Status> {
         let mut in_flight = InFlight::new();
         let stream = tracking.stream;
         let span = tracing::info_span!("localize", request_id = %request_id, map_id = tracing::field::Empty);
@@ -343,7 +352,7 @@ impl LocalizerService {
         match &result {
             // A stream's answer is counted once its state has settled it (`count_answer`).
             Ok(_) if stream => in_flight.counted = true,
-            Ok((r, _)) => {
+            Ok((r, ..)) => {
                 count_answer(r, &in_flight.map_id);
                 // Counted: the guard must not count it again as a caller that went away.
                 in_flight.counted = true;
@@ -368,7 +377,7 @@ impl LocalizerService {
         tracking: Tracking,
         span: tracing::Span,
         in_flight: &mut InFlight,
-    ) -> Result<(proto::LocalizeResponse, Followup), Status> {
+    ) -> Result<(proto::LocalizeResponse, Followup, Option<Shown>), Status> {
         let engine = self.state.loaded()?.clone();
         // Resolved once: the whole request runs on this map, whatever MapAdmin swaps meanwhile.
         let lm = match map {
@@ -541,35 +550,35 @@ impl LocalizerService {
             // A stream's memory says (crate::track); unary answers have no track.
             track_state: proto::TrackState::Unspecified as i32,
         };
-        if let Some((live, rgb, k)) = watched {
-            // Handed to the live view's thread; drawing never holds up the answer.
-            live.show(crate::visual::Shown {
-                time_s: std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(0.0, |d| d.as_secs_f64()),
-                rgb,
-                intrinsics: k,
-                request_id: request_id.clone(),
-                map_id: response.map_id.clone(),
-                map_version: response.map_version.clone(),
-                status: if localized {
-                    "LOCALIZED"
-                } else {
-                    "NOT_LOCALIZED"
-                },
-                reason: response.reason.clone(),
-                confidence: response.confidence,
-                inliers: response.inliers,
-                mode: loc.mode.name(),
-                matched_image_id: response.matched_image_id.clone(),
-                pose: loc
-                    .pose
-                    .as_ref()
-                    .filter(|_| localized)
-                    .map(|p| frames.pose_to_ros(p)),
-                covariance: frames.covariance_to_ros(&response.covariance),
-            });
-        }
+        // What the live view shows of the answer, once it is final (a stream's after its state
+        // has taken it: `StreamMemory::after` may withhold the pose).
+        let shown = watched.map(|(_, rgb, k)| Shown {
+            time_s: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64()),
+            rgb,
+            intrinsics: k,
+            request_id: request_id.clone(),
+            map_id: response.map_id.clone(),
+            map_version: response.map_version.clone(),
+            status: if localized {
+                "LOCALIZED"
+            } else {
+                "NOT_LOCALIZED"
+            },
+            reason: response.reason.clone(),
+            confidence: response.confidence,
+            inliers: response.inliers,
+            mode: loc.mode.name(),
+            matched_image_id: response.matched_image_id.clone(),
+            pose: loc
+                .pose
+                .as_ref()
+                .filter(|_| localized)
+                .map(|p| frames.pose_to_ros(p)),
+            covariance: frames.covariance_to_ros(&response.covariance),
+            track_state: "",
+        });
         let outside_map = !localized
             && loc.odometry
             && loc.cause == Some(pntr_pipeline::pipeline::Cause::OutsideMap);
@@ -590,7 +599,7 @@ impl LocalizerService {
             robot_odometry: None,
         };
         release(lm);
-        Ok((response, followup))
+        Ok((response, followup, shown))
     }
 }
 
@@ -631,7 +640,8 @@ impl proto::localizer_server::Localizer for LocalizerService {
         let mut out = self
             .one(msg, None, id.clone(), deadline, Tracking::default())
             .await
-            .map(|(mut r, f)| {
+            .map(|(mut r, f, shown)| {
+                self.show(shown);
                 wire::answer_in(&mut r, f.convention, f.frames);
                 r
             })
@@ -743,9 +753,9 @@ impl proto::localizer_server::Localizer for LocalizerService {
                     let result =
                         match id {
                             Ok(id) => this.one(msg, Some(map), id.clone(), deadline, tracking).await.map(
-                                |(mut r, f)| {
+                                |(mut r, f, shown)| {
                                     r.request_id = id;
-                                    (r, f)
+                                    (r, f, shown)
                                 },
                             ),
                             Err(e) => {
@@ -753,9 +763,10 @@ impl proto::localizer_server::Localizer for LocalizerService {
                                 Err(e)
                             }
                         };
-                    let result = result.map(|(mut r, f)| {
+                    let result = result.map(|(mut r, f, shown)| {
                         memory.after(&mut r, f, stamp_s, relocalize, (&map_key.0, map_key.1), n);
                         count_answer(&r, &r.map_id);
+                        this.show(shown.map(|s| s.as_answered(&r)));
                         r
                     });
                     let result = result.map_err(|e| in_stream(e, n, &sent_id));

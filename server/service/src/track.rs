@@ -76,6 +76,10 @@ pub const WEAK_FIX_GATE_M: f64 = 1.2;
 /// Position uncertainty of a map fix, metres (one standard deviation), where its covariance is not
 /// known.
 pub const FIX_SIGMA_M: f64 = 0.05;
+/// How long a look-alike the stream refused because the camera cannot have reached it ([`Ghost`])
+/// is remembered without another map fix that continues it, seconds: a look-alike room gives such
+/// fixes on most frames.
+pub const GHOST_KEEP_S: f64 = 3.0;
 /// Uncertainty a robot's odometry (`LocalizeRequest.odometry`) adds to the stream's position: this
 /// share of the distance it says the camera moved (wheel odometry: 1-5%).
 pub const ROBOT_ODOMETRY_DRIFT: f64 = 0.05;
@@ -291,6 +295,9 @@ struct Track {
     confirmed: bool,
     keyframe: Option<Arc<Keyframe>>,
     anchored_at: Moment,
+    /// Where the map fix of `anchored_at` put the camera (map frame, metres): the camera is within
+    /// [`Track::reach_m`] of it whatever its motion since was measured to be.
+    anchor_m: Vector3<f64>,
     /// When the map fix a track that is not established rests on was first found (later fixes
     /// of the same place keep it): a weak fix is established by a later one along the camera's
     /// motion only [`REANCHOR_AFTER_S`] after it, from a view the camera has moved on to.
@@ -327,6 +334,37 @@ struct Challenger {
     rotation: UnitQuaternion<f64>,
     confidence: f64,
     at: Moment,
+}
+
+/// A look-alike the stream refused: a map fix farther from the track's last map fix than the camera
+/// can have moved since ([`Track::reach_m`]), and the map fixes that continued it since, each
+/// where the camera can have moved from the one before (a look-alike room gives a fix on most
+/// frames, each along the camera's motion). It never becomes the track, however many fixes agree
+/// (a room copied elsewhere agrees with itself on every frame); it ends [`GHOST_KEEP_S`] after
+/// its last fix.
+#[derive(Debug, Clone, Copy)]
+struct Ghost {
+    position_m: Vector3<f64>,
+    rotation: UnitQuaternion<f64>,
+    at: Moment,
+    /// How far its first fix lay from the track's last map fix, and how far the camera could
+    /// have moved then (metres).
+    born_off_m: f64,
+    born_reach_m: f64,
+}
+
+impl Ghost {
+    /// Whether a map fix `pose` of a frame captured `now` continues it: within the tracking
+    /// region and heading of its last fix.
+    fn continued_by(&self, pose: &Isometry3<f64>, now: &Moment) -> bool {
+        let elapsed_s = now.since(&self.at);
+        elapsed_s <= GHOST_KEEP_S
+            && tracking_region(self.position_m, elapsed_s)
+                .is_some_and(|region| region.contains(&pose.translation.vector))
+            && tracking_heading(self.rotation, elapsed_s)
+                .exceeded_by(&pose.rotation)
+                .is_none()
+    }
 }
 
 /// What the stream needs from an answer besides the response: the next keyframe, and whether the
@@ -508,6 +546,10 @@ impl Track {
                 Some(p) if f.odometry && same_map => p.anchored_at,
                 _ => now,
             },
+            anchor_m: match previous {
+                Some(p) if f.odometry && same_map => p.anchor_m,
+                _ => position_m,
+            },
             acquired_at: match previous {
                 Some(p) if same_map && !p.established && (f.odometry || agrees) => p.acquired_at,
                 _ => now,
@@ -550,6 +592,7 @@ impl Track {
             confirmed: true,
             keyframe: None,
             anchored_at: at,
+            anchor_m: pose.translation.vector,
             acquired_at: at,
             map_tried_at: None,
             confidence: 0.0,
@@ -569,6 +612,16 @@ impl Track {
         let gate =
             GATE_BASE_M + GATE_SIGMAS * self.sigma_m + UNMEASURED_SPEED_MPS * now.since(&self.at);
         (gate <= TELL_MAX_M).then_some(gate)
+    }
+
+    /// How far, metres, the camera of a frame captured `now` can be from the track's last map fix
+    /// ([`Track::anchor_m`]) whatever its motion since was measured to be: the fix's own uncertainty
+    /// and [`UNMEASURED_SPEED_MPS`] since. A robot's odometry or the frames' may be wrong (wheels
+    /// that slip), the time since the fix is not: a map fix farther away is a look-alike.
+    fn reach_m(&self, now: &Moment) -> f64 {
+        GATE_BASE_M
+            + GATE_SIGMAS * FIX_SIGMA_M
+            + UNMEASURED_SPEED_MPS * now.since(&self.anchored_at)
     }
 
     /// The track carried by the camera's motion through a frame the map gave no fix (answer `r`
@@ -646,6 +699,7 @@ impl Track {
                 established: false,
                 keyframe: None,
                 anchored_at: now,
+                anchor_m: pose.translation.vector,
                 acquired_at: now,
                 map_tried_at: None,
                 confidence,
@@ -687,6 +741,7 @@ impl Track {
             established: true,
             keyframe: None,
             anchored_at: now,
+            anchor_m: c.position_m,
             acquired_at: now,
             map_tried_at: None,
             confidence: confidence.min(earlier),
@@ -803,6 +858,8 @@ pub(crate) struct StreamMemory {
     frames: u64,
     /// The frame in flight's robot odometry, the map's camera axes.
     odometry: Option<Isometry3<f64>>,
+    /// The look-alike the stream is refusing, while its fixes go on.
+    ghost: Option<Ghost>,
 }
 
 impl StreamMemory {
@@ -877,6 +934,7 @@ impl StreamMemory {
             if now < then {
                 self.misses = Misses::default();
                 self.doubt = false;
+                self.ghost = None;
             }
             if now < then && self.track.is_some() {
                 tracing::info!(
@@ -905,6 +963,71 @@ impl StreamMemory {
         })
     }
 
+    /// A map fix of this frame (the answer's own, or the one the pipeline or the fusion refused
+    /// for lying off the track, `f.off_track`) that an established track's motion cannot explain
+    /// (beyond its gate, or where the gate cannot tell) and that the camera cannot have reached
+    /// since the track's last map fix ([`Track::reach_m`]), or that continues such a look-alike
+    /// ([`Ghost`]): it is not a challenger (it can never move the track) and, when it is the
+    /// answer, the answer is NOT_LOCALIZED, cause LOOK_ALIKE (issue 73: a look-alike room beside
+    /// the mapped one, entered where the frames' odometry broke, was tracked once two of its
+    /// fixes agreed).
+    fn screen_look_alike(&mut self, r: &mut proto::LocalizeResponse, f: &mut Followup) {
+        let now = Moment::now(f.stamp_s);
+        if self.ghost.is_some_and(|g| now.since(&g.at) > GHOST_KEEP_S) {
+            self.ghost = None;
+        }
+        let answered = !f.odometry && r.status == proto::Status::Localized as i32;
+        let fix = if answered {
+            wire::pose(r.pose.as_ref())
+        } else {
+            f.off_track.map(|(pose, ..)| pose)
+        };
+        let Some(track) = self.track.as_ref().filter(|t| {
+            t.established && t.confirmed && t.map_id == r.map_id && t.serial == f.serial
+        }) else {
+            return;
+        };
+        let Some(pose) = fix else {
+            return;
+        };
+        let off_m = (pose.translation.vector - track.position_m).norm();
+        if track.gate_m(&now).is_some_and(|gate| off_m <= gate) {
+            return;
+        }
+        let from_anchor_m = (pose.translation.vector - track.anchor_m).norm();
+        let reach_m = track.reach_m(&now);
+        let continues = self.ghost.filter(|g| g.continued_by(&pose, &now));
+        if continues.is_none() && from_anchor_m <= reach_m {
+            return;
+        }
+        let ghost = Ghost {
+            position_m: pose.translation.vector,
+            rotation: pose.rotation,
+            at: now,
+            born_off_m: continues.map_or(from_anchor_m, |g| g.born_off_m),
+            born_reach_m: continues.map_or(reach_m, |g| g.born_reach_m),
+        };
+        self.ghost = Some(ghost);
+        f.off_track = None;
+        if !answered {
+            return;
+        }
+        f.keyframe = None;
+        r.status = proto::Status::NotLocalized as i32;
+        r.cause = proto::NotLocalizedCause::LookAlike as i32;
+        r.reason = match continues {
+            None => format!(
+                "tracking: the map's fix lies {from_anchor_m:.1} m from the stream's last map fix {:.1} s earlier, farther than the camera can have moved since ({reach_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)",
+                now.since(&track.anchored_at)
+            ),
+            Some(g) => format!(
+                "tracking: the map's fix continues a look-alike the stream refused before (it began {:.1} m from the stream's last map fix, where the camera could be {:.1} m away at most), so it is taken for one again (send relocalize to accept a jump)",
+                g.born_off_m, g.born_reach_m
+            ),
+        };
+        without_pose(r);
+    }
+
     /// Take the answer `r` of frame `n` (with what the worker left for the stream, `f`) into the
     /// stream's memory and turn it into what the stream can stand behind: a map fix away from where
     /// the camera's motion puts it LOOK_ALIKE ([`beyond_motion`]), a track that is not established
@@ -926,6 +1049,11 @@ impl StreamMemory {
             tracing::info!("the map contradicted the stream's track; it is dropped");
             self.track = None;
             self.doubt = true;
+        }
+        if relocalize {
+            self.ghost = None;
+        } else {
+            self.screen_look_alike(r, &mut f);
         }
         // A map fix judged against where the stream's motion puts the camera (never a
         // relocalizing frame's, which asked to be judged alone).
@@ -1725,6 +1853,70 @@ mod tests {
         // Back where the motion puts the camera, a weak fix is answered.
         let r = through(&mut m, fix_at(1.2, 25, 0.8), Followup::default(), 5.0, None);
         assert!(localized(&r), "{r:?}");
+    }
+
+    #[test]
+    fn a_look_alike_the_camera_cannot_have_reached_never_becomes_the_track() {
+        // Issue 73 on a twin apartment: the frames' odometry broke in a doorway (1.5 s with no
+        // fix and no motion), then the copied room beyond it matched strongly, 9.2 m from the
+        // stream's last map fix, frame after frame, each fix along the camera's motion.
+        let mut m = StreamMemory::default();
+        started(&mut m, None);
+        for k in 1..=15 {
+            let r = through(&mut m, missed(), Followup::default(), 0.1 * k as f64, None);
+            assert!(!localized(&r));
+        }
+        let mut answers = Vec::new();
+        for k in 0..100 {
+            let t = 1.6 + 0.1 * k as f64;
+            let x = -9.2 + 0.05 * k as f64;
+            answers.push(through(
+                &mut m,
+                fix_at(x, 150, 0.99),
+                Followup::default(),
+                t,
+                None,
+            ));
+        }
+        for (k, r) in answers.iter().enumerate() {
+            assert!(!localized(r), "frame {k}: {r:?}");
+            assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
+            assert!(r.pose.is_none());
+        }
+        assert!(
+            answers[0]
+                .reason
+                .contains("9.2 m from the stream's last map fix 1.6 s earlier"),
+            "{}",
+            answers[0].reason
+        );
+        // Ten seconds on, the camera could have gone 9 m: the look-alike is still refused, as the
+        // same chain of fixes.
+        assert!(
+            answers[99].reason.contains("continues a look-alike"),
+            "{}",
+            answers[99].reason
+        );
+        assert!(m.track.as_ref().unwrap().position_m.x.abs() < 1e-9);
+        // The look-alike pauses for longer than GHOST_KEEP_S; two strong fixes near the last
+        // pose, half a second apart, re-acquire the track (the stream doubts, the gate cannot
+        // tell).
+        let first = through(
+            &mut m,
+            fix_at(0.8, 150, 0.95),
+            Followup::default(),
+            15.0,
+            None,
+        );
+        assert!(!localized(&first), "{first:?}");
+        let second = through(
+            &mut m,
+            fix_at(0.82, 150, 0.95),
+            Followup::default(),
+            15.6,
+            None,
+        );
+        assert!(localized(&second), "{second:?}");
     }
 
     #[test]

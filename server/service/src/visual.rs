@@ -76,6 +76,7 @@ const ANSWER_SCHEMA: &str = r#"{
     "confidence": {"type": "number"},
     "inliers": {"type": "integer"},
     "mode": {"type": "string"},
+    "track_state": {"type": "string", "description": "a stream's track after this frame: NONE, RE_ACQUIRING, ESTABLISHED or CARRIED; empty for single frames"},
     "matched_image_id": {"type": "string"},
     "pose": {"type": ["object", "null"], "properties": {
       "position": {"type": "array", "items": {"type": "number"}},
@@ -125,6 +126,9 @@ pub struct Observation<'a> {
     pub inliers: u32,
     /// GLOBAL, PRIOR or TRACKING.
     pub mode: &'a str,
+    /// A stream's track after this frame ([`crate::wire::track_state_label`]); empty for single
+    /// frames.
+    pub track_state: &'a str,
     /// The map image the pose was registered against.
     pub matched_image_id: &'a str,
     /// `map_from_camera_optical` (z-up map frame), LOCALIZED only.
@@ -292,6 +296,7 @@ impl View {
                 "confidence": o.confidence,
                 "inliers": o.inliers,
                 "mode": o.mode,
+                "track_state": o.track_state,
                 "matched_image_id": o.matched_image_id,
                 "pose": o.pose.map(|p| serde_json::json!({
                     "position": [p.translation.x, p.translation.y, p.translation.z],
@@ -471,6 +476,9 @@ pub struct Shown {
     pub inliers: u32,
     /// GLOBAL, PRIOR or TRACKING.
     pub mode: &'static str,
+    /// A stream's track after this frame ([`crate::wire::track_state_label`]); empty for single
+    /// frames.
+    pub track_state: &'static str,
     /// The map image the pose was registered against.
     pub matched_image_id: String,
     /// `map_from_camera_optical` (z-up), LOCALIZED only.
@@ -480,6 +488,26 @@ pub struct Shown {
 }
 
 impl Shown {
+    /// The frame as a stream answered it (`r`, after the stream's state took it): its status,
+    /// reason, cause and track state; the pose only when still LOCALIZED.
+    pub fn as_answered(mut self, r: &crate::proto::LocalizeResponse) -> Self {
+        let localized = r.status == crate::proto::Status::Localized as i32;
+        self.status = if localized {
+            "LOCALIZED"
+        } else {
+            "NOT_LOCALIZED"
+        };
+        self.reason = r.reason.clone();
+        self.confidence = r.confidence;
+        self.track_state = crate::wire::track_state_label(r.track_state);
+        if !localized {
+            self.pose = None;
+            self.covariance.clear();
+            self.matched_image_id.clear();
+        }
+        self
+    }
+
     fn observation(&self) -> Observation<'_> {
         Observation {
             time_s: self.time_s,
@@ -495,6 +523,7 @@ impl Shown {
             confidence: self.confidence,
             inliers: self.inliers,
             mode: self.mode,
+            track_state: self.track_state,
             matched_image_id: &self.matched_image_id,
             pose: self.pose,
             covariance: &self.covariance,

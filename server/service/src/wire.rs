@@ -75,6 +75,18 @@ pub fn cause_label(wire: i32) -> &'static str {
     }
 }
 
+/// A stream answer's [`proto::TrackState`] without its prefix (`ESTABLISHED`, `CARRIED`, ...);
+/// empty for unary answers, which have no track.
+pub fn track_state_label(wire: i32) -> &'static str {
+    match proto::TrackState::try_from(wire) {
+        Ok(proto::TrackState::Unspecified) | Err(_) => "",
+        Ok(proto::TrackState::None) => "NONE",
+        Ok(proto::TrackState::ReAcquiring) => "RE_ACQUIRING",
+        Ok(proto::TrackState::Established) => "ESTABLISHED",
+        Ok(proto::TrackState::Carried) => "CARRIED",
+    }
+}
+
 /// The wire form of a camera (distortion sent only when there is some).
 pub fn intrinsics_message(k: &Intrinsics) -> proto::Intrinsics {
     proto::Intrinsics {
