@@ -80,6 +80,10 @@ pub const FIX_SIGMA_M: f64 = 0.05;
 /// is remembered without another map fix that continues it, seconds: a look-alike room gives such
 /// fixes on most frames.
 pub const GHOST_KEEP_S: f64 = 3.0;
+/// A stream that sent no frame for this long, seconds, did not see its camera move: where it went
+/// meanwhile (carried, or put elsewhere by a simulator's reset) is not bounded by the time since
+/// the last map fix ([`reach_m`] holds again from the next map fix).
+pub const BLIND_GAP_S: f64 = 2.0;
 /// Uncertainty a robot's odometry (`LocalizeRequest.odometry`) adds to the stream's position: this
 /// share of the distance it says the camera moved (wheel odometry: 1-5%).
 pub const ROBOT_ODOMETRY_DRIFT: f64 = 0.05;
@@ -296,7 +300,7 @@ struct Track {
     keyframe: Option<Arc<Keyframe>>,
     anchored_at: Moment,
     /// Where the map fix of `anchored_at` put the camera (map frame, metres): the camera is within
-    /// [`Track::reach_m`] of it whatever its motion since was measured to be.
+    /// [`reach_m`] of it whatever its motion since was measured to be.
     anchor_m: Vector3<f64>,
     /// When the map fix a track that is not established rests on was first found (later fixes
     /// of the same place keep it): a weak fix is established by a later one along the camera's
@@ -336,8 +340,28 @@ struct Challenger {
     at: Moment,
 }
 
-/// A look-alike the stream refused: a map fix farther from the track's last map fix than the camera
-/// can have moved since ([`Track::reach_m`]), and the map fixes that continued it since, each
+/// How far, metres, the camera can be `since_s` seconds after a map fix from where that fix put
+/// it, whatever its motion since was measured to be: the fix's own uncertainty
+/// ([`GATE_BASE_M`], [`GATE_SIGMAS`] of [`FIX_SIGMA_M`]) and [`UNMEASURED_SPEED_MPS`] since. A
+/// robot's odometry or the frames' may be wrong (wheels that slip), the time since the fix is not:
+/// a map fix farther away is a look-alike.
+fn reach_m(since_s: f64) -> f64 {
+    GATE_BASE_M + GATE_SIGMAS * FIX_SIGMA_M + UNMEASURED_SPEED_MPS * since_s
+}
+
+/// The last map fix of an established track: where it put the camera (map frame, metres), when,
+/// and on which map (id and [`LoadedMap::frame`]). Kept when the track is dropped (the map
+/// contradicted it) or re-acquired, since the camera is still within [`reach_m`] of it.
+#[derive(Debug, Clone)]
+struct LastFix {
+    map_id: String,
+    frame: u64,
+    position_m: Vector3<f64>,
+    at: Moment,
+}
+
+/// A look-alike the stream refused: a map fix farther from the last map fix of an established
+/// track than the camera can have moved since ([`reach_m`], [`LastFix`]), and the map fixes that continued it since, each
 /// where the camera can have moved from the one before (a look-alike room gives a fix on most
 /// frames, each along the camera's motion). It never becomes the track, however many fixes agree
 /// (a room copied elsewhere agrees with itself on every frame); it ends [`GHOST_KEEP_S`] after
@@ -614,16 +638,6 @@ impl Track {
         (gate <= TELL_MAX_M).then_some(gate)
     }
 
-    /// How far, metres, the camera of a frame captured `now` can be from the track's last map fix
-    /// ([`Track::anchor_m`]) whatever its motion since was measured to be: the fix's own uncertainty
-    /// and [`UNMEASURED_SPEED_MPS`] since. A robot's odometry or the frames' may be wrong (wheels
-    /// that slip), the time since the fix is not: a map fix farther away is a look-alike.
-    fn reach_m(&self, now: &Moment) -> f64 {
-        GATE_BASE_M
-            + GATE_SIGMAS * FIX_SIGMA_M
-            + UNMEASURED_SPEED_MPS * now.since(&self.anchored_at)
-    }
-
     /// The track carried by the camera's motion through a frame the map gave no fix (answer `r`
     /// NOT_LOCALIZED), keeping its confirmation, its anchoring time (the chain's age bounds how far
     /// it is followed) and the fix's confidence: to where the frames' own odometry put the camera
@@ -860,6 +874,11 @@ pub(crate) struct StreamMemory {
     odometry: Option<Isometry3<f64>>,
     /// The look-alike the stream is refusing, while its fixes go on.
     ghost: Option<Ghost>,
+    /// The last map fix of an established track ([`LastFix`]).
+    last_fix: Option<LastFix>,
+    /// When the last frame came, and the first frame after a gap of [`BLIND_GAP_S`] or more.
+    last_frame_at: Option<Moment>,
+    blind_gap_at: Option<Moment>,
 }
 
 impl StreamMemory {
@@ -935,6 +954,7 @@ impl StreamMemory {
                 self.misses = Misses::default();
                 self.doubt = false;
                 self.ghost = None;
+                self.last_fix = None;
             }
             if now < then && self.track.is_some() {
                 tracing::info!(
@@ -973,6 +993,14 @@ impl StreamMemory {
     /// fixes agreed).
     fn screen_look_alike(&mut self, r: &mut proto::LocalizeResponse, f: &mut Followup) {
         let now = Moment::now(f.stamp_s);
+        if self
+            .last_frame_at
+            .replace(now)
+            .is_some_and(|last| now.since(&last) >= BLIND_GAP_S)
+        {
+            self.blind_gap_at = Some(now);
+            self.ghost = None;
+        }
         if self.ghost.is_some_and(|g| now.since(&g.at) > GHOST_KEEP_S) {
             self.ghost = None;
         }
@@ -982,22 +1010,38 @@ impl StreamMemory {
         } else {
             f.off_track.map(|(pose, ..)| pose)
         };
-        let Some(track) = self.track.as_ref().filter(|t| {
-            t.established && t.confirmed && t.map_id == r.map_id && t.serial == f.serial
-        }) else {
-            return;
-        };
         let Some(pose) = fix else {
             return;
         };
-        let off_m = (pose.translation.vector - track.position_m).norm();
-        if track.gate_m(&now).is_some_and(|gate| off_m <= gate) {
+        // A fix where an established track's motion puts the camera is the track's.
+        let established = self.track.as_ref().filter(|t| {
+            t.established && t.confirmed && t.map_id == r.map_id && t.serial == f.serial
+        });
+        if established.is_some_and(|t| {
+            let off_m = (pose.translation.vector - t.position_m).norm();
+            t.gate_m(&now).is_some_and(|gate| off_m <= gate)
+        }) {
             return;
         }
-        let from_anchor_m = (pose.translation.vector - track.anchor_m).norm();
-        let reach_m = track.reach_m(&now);
+        // Otherwise it must lie where the camera can be since the last map fix of an established
+        // track (this one's, or the one the map contradicted or that is being re-acquired).
+        let Some(last) = self
+            .last_fix
+            .as_ref()
+            .filter(|l| l.map_id == r.map_id && l.frame == f.frame)
+        else {
+            return;
+        };
+        let since_fix_s = now.since(&last.at);
+        let from_anchor_m = (pose.translation.vector - last.position_m).norm();
+        let reach_m = reach_m(since_fix_s);
+        // After a gap with no frames since that fix, the time since says nothing of where the
+        // camera went.
+        let blind = self
+            .blind_gap_at
+            .is_some_and(|gap| gap.since(&last.at) > 0.0);
         let continues = self.ghost.filter(|g| g.continued_by(&pose, &now));
-        if continues.is_none() && from_anchor_m <= reach_m {
+        if continues.is_none() && (blind || from_anchor_m <= reach_m) {
             return;
         }
         let ghost = Ghost {
@@ -1017,8 +1061,7 @@ impl StreamMemory {
         r.cause = proto::NotLocalizedCause::LookAlike as i32;
         r.reason = match continues {
             None => format!(
-                "tracking: the map's fix lies {from_anchor_m:.1} m from the stream's last map fix {:.1} s earlier, farther than the camera can have moved since ({reach_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)",
-                now.since(&track.anchored_at)
+                "tracking: the map's fix lies {from_anchor_m:.1} m from the stream's last map fix {since_fix_s:.1} s earlier, farther than the camera can have moved since ({reach_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
             ),
             Some(g) => format!(
                 "tracking: the map's fix continues a look-alike the stream refused before (it began {:.1} m from the stream's last map fix, where the camera could be {:.1} m away at most), so it is taken for one again (send relocalize to accept a jump)",
@@ -1052,6 +1095,8 @@ impl StreamMemory {
         }
         if relocalize {
             self.ghost = None;
+            self.last_fix = None;
+            self.last_frame_at = Some(Moment::now(stamp_s));
         } else {
             self.screen_look_alike(r, &mut f);
         }
@@ -1104,6 +1149,20 @@ impl StreamMemory {
                 );
                 superseded(r, t.established);
                 self.track = Some(moved);
+            }
+        }
+        if let Some(t) = self.track.as_ref().filter(|t| t.established && t.confirmed) {
+            if self
+                .last_fix
+                .as_ref()
+                .is_none_or(|l| l.at != t.anchored_at || l.map_id != t.map_id || l.frame != t.frame)
+            {
+                self.last_fix = Some(LastFix {
+                    map_id: t.map_id.clone(),
+                    frame: t.frame,
+                    position_m: t.anchor_m,
+                    at: t.anchored_at,
+                });
             }
         }
         let track = &self.track;
@@ -1917,6 +1976,43 @@ mod tests {
             None,
         );
         assert!(localized(&second), "{second:?}");
+
+        // A robot put 8 m away while it sent no frames for 2.5 s (carried, a simulator's reset):
+        // the stream did not see it move, the time since bounds nothing, and the strong fix
+        // there is answered as alone.
+        let mut m = StreamMemory::default();
+        started(&mut m, None);
+        let r = through(
+            &mut m,
+            fix_at(8.0, 150, 0.95),
+            Followup::default(),
+            2.5,
+            None,
+        );
+        assert!(localized(&r), "{r:?}");
+
+        // The map contradicted the track in the doorway (it is dropped), and the copy beyond
+        // matches: still nowhere the camera can have gone since the last map fix.
+        let mut m = StreamMemory::default();
+        started(&mut m, None);
+        let lost = Followup {
+            track_lost: true,
+            ..Followup::default()
+        };
+        through(&mut m, missed(), lost, 0.1, None);
+        assert!(m.track.is_none());
+        for k in 0..10 {
+            let t = 1.5 + 0.1 * k as f64;
+            let r = through(
+                &mut m,
+                fix_at(-9.0, 150, 0.99),
+                Followup::default(),
+                t,
+                None,
+            );
+            assert!(!localized(&r), "{r:?}");
+            assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
+        }
     }
 
     #[test]
