@@ -329,6 +329,11 @@ struct Track {
     /// The robot's odometry pose (`LocalizeRequest.odometry`, the map's camera axes, the robot's
     /// odometry frame) of the frame `at` was taken from, when it carried one.
     odometry: Option<Isometry3<f64>>,
+    /// Since its last map fix the pose was carried by the frames' own odometry only (hops that
+    /// held, inside or outside the map), not by the robot's odometry (which resets and slips by
+    /// metres) nor by a continuation: a map fix far beyond what that chain can be off is a
+    /// look-alike however many agree ([`StreamMemory::screen_look_alike`]).
+    visual: bool,
 }
 
 /// A map answer refused because it lay outside a track's bounds (see [`Track::challenged`]).
@@ -371,10 +376,10 @@ struct Ghost {
     position_m: Vector3<f64>,
     rotation: UnitQuaternion<f64>,
     at: Moment,
-    /// How far its first fix lay from the track's last map fix, and how far the camera could
-    /// have moved then (metres).
+    /// How far its first fix lay from where the camera could be (the last map fix, or the
+    /// frames' odometry), and how far off it could have been then (metres).
     born_off_m: f64,
-    born_reach_m: f64,
+    born_bound_m: f64,
 }
 
 impl Ghost {
@@ -593,6 +598,7 @@ impl Track {
             sigma_m: f.sigma_m.unwrap_or(FIX_SIGMA_M),
             outside: false,
             odometry: f.robot_odometry,
+            visual: !f.odometry || previous.is_none_or(|p| p.visual),
         })
     }
 
@@ -626,6 +632,7 @@ impl Track {
             sigma_m: if sigma_m > 0.0 { sigma_m } else { FIX_SIGMA_M },
             outside: false,
             odometry: None,
+            visual: false,
         }
     }
 
@@ -669,6 +676,7 @@ impl Track {
             at: Moment::now(f.stamp_s),
             sigma_m: self.sigma_m + ROBOT_ODOMETRY_DRIFT * moved.translation.vector.norm(),
             odometry: Some(now),
+            visual: false,
             ..self.clone()
         })
     }
@@ -722,6 +730,7 @@ impl Track {
                 sigma_m: FIX_SIGMA_M,
                 outside: false,
                 odometry: None,
+                visual: true,
             });
         }
         let c = Challenger {
@@ -764,6 +773,7 @@ impl Track {
             sigma_m: FIX_SIGMA_M,
             outside: false,
             odometry: None,
+            visual: true,
         })
     }
 
@@ -1017,41 +1027,72 @@ impl StreamMemory {
         let established = self.track.as_ref().filter(|t| {
             t.established && t.confirmed && t.map_id == r.map_id && t.serial == f.serial
         });
-        if established.is_some_and(|t| {
+        let off_motion = established.and_then(|t| {
             let off_m = (pose.translation.vector - t.position_m).norm();
-            t.gate_m(&now).is_some_and(|gate| off_m <= gate)
-        }) {
+            let gate = t.gate_m(&now)?;
+            Some((off_m, gate, t))
+        });
+        if off_motion.is_some_and(|(off_m, gate, _)| off_m <= gate) {
             return;
         }
+        // A track the frames' own odometry carried since its last map fix, where that motion can
+        // tell: a fix farther off than the chain can be wrong is a look-alike (a chain that
+        // slipped less far is the challenger rule's to mend; a robot's odometry, which resets,
+        // always is).
+        let beyond_chain = off_motion
+            .filter(|(_, _, t)| t.visual)
+            .map(|(off_m, _, t)| (off_m, TELL_MAX_M + GATE_SIGMAS * t.sigma_m))
+            .filter(|&(off_m, bound_m)| off_m > bound_m);
         // Otherwise it must lie where the camera can be since the last map fix of an established
         // track (this one's, or the one the map contradicted or that is being re-acquired).
-        let Some(last) = self
+        let last = self
             .last_fix
             .as_ref()
-            .filter(|l| l.map_id == r.map_id && l.frame == f.frame)
-        else {
-            return;
-        };
-        let since_fix_s = now.since(&last.at);
-        let from_anchor_m = (pose.translation.vector - last.position_m).norm();
-        let reach_m = reach_m(since_fix_s);
-        // After a gap with no frames since that fix, the time since says nothing of where the
-        // camera went.
-        let blind = self
-            .blind_gap_at
-            .is_some_and(|gap| gap.since(&last.at) > 0.0);
+            .filter(|l| l.map_id == r.map_id && l.frame == f.frame);
         let continues = self.ghost.filter(|g| g.continued_by(&pose, &now));
-        if continues.is_none() && (blind || from_anchor_m <= reach_m) {
-            return;
-        }
-        let ghost = Ghost {
+        let unreachable = last.and_then(|last| {
+            let since_fix_s = now.since(&last.at);
+            let from_fix_m = (pose.translation.vector - last.position_m).norm();
+            let reach_m = reach_m(since_fix_s);
+            // After a gap with no frames since that fix, the time since says nothing of where
+            // the camera went.
+            let blind = self
+                .blind_gap_at
+                .is_some_and(|gap| gap.since(&last.at) > 0.0);
+            (!blind && from_fix_m > reach_m).then_some((from_fix_m, since_fix_s, reach_m))
+        });
+        let (reason, born_off_m, born_bound_m) = match (continues, unreachable, beyond_chain) {
+            (Some(g), ..) => (
+                format!(
+                    "tracking: the map's fix continues a look-alike the stream refused before (it began {:.1} m from where the camera could be, {:.1} m off at most), so it is taken for one again (send relocalize to accept a jump)",
+                    g.born_off_m, g.born_bound_m
+                ),
+                g.born_off_m,
+                g.born_bound_m,
+            ),
+            (None, Some((from_fix_m, since_fix_s, reach_m)), _) => (
+                format!(
+                    "tracking: the map's fix lies {from_fix_m:.1} m from the stream's last map fix {since_fix_s:.1} s earlier, farther than the camera can have moved since ({reach_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
+                ),
+                from_fix_m,
+                reach_m,
+            ),
+            (None, None, Some((off_m, bound_m))) => (
+                format!(
+                    "tracking: the map's fix lies {off_m:.1} m from where the frames' own odometry carried the camera since the last map fix, farther than that odometry can be off ({bound_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
+                ),
+                off_m,
+                bound_m,
+            ),
+            (None, None, None) => return,
+        };
+        self.ghost = Some(Ghost {
             position_m: pose.translation.vector,
             rotation: pose.rotation,
             at: now,
-            born_off_m: continues.map_or(from_anchor_m, |g| g.born_off_m),
-            born_reach_m: continues.map_or(reach_m, |g| g.born_reach_m),
-        };
-        self.ghost = Some(ghost);
+            born_off_m,
+            born_bound_m,
+        });
         f.off_track = None;
         if !answered {
             return;
@@ -1059,15 +1100,7 @@ impl StreamMemory {
         f.keyframe = None;
         r.status = proto::Status::NotLocalized as i32;
         r.cause = proto::NotLocalizedCause::LookAlike as i32;
-        r.reason = match continues {
-            None => format!(
-                "tracking: the map's fix lies {from_anchor_m:.1} m from the stream's last map fix {since_fix_s:.1} s earlier, farther than the camera can have moved since ({reach_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
-            ),
-            Some(g) => format!(
-                "tracking: the map's fix continues a look-alike the stream refused before (it began {:.1} m from the stream's last map fix, where the camera could be {:.1} m away at most), so it is taken for one again (send relocalize to accept a jump)",
-                g.born_off_m, g.born_reach_m
-            ),
-        };
+        r.reason = reason;
         without_pose(r);
     }
 
@@ -1901,7 +1934,7 @@ mod tests {
             assert!(!localized(&r), "frame {k}: {r:?}");
             assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
             assert!(
-                r.reason.contains("m from where the camera's motion"),
+                r.reason.starts_with("tracking:") && r.reason.contains("m from where the"),
                 "{}",
                 r.reason
             );
@@ -2013,6 +2046,62 @@ mod tests {
             assert!(!localized(&r), "{r:?}");
             assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32);
         }
+    }
+
+    #[test]
+    fn map_fixes_far_from_where_the_frames_odometry_carried_the_camera_never_move_the_track() {
+        // Issue 73 on a twin apartment: the frames' odometry carried the camera through the door
+        // into the copy, 4.5 m in 9 s with no map fix (the map's fixes there were the copy's
+        // look-alike, 7.8 m off); two of them agree within half a second.
+        let mut m = StreamMemory::default();
+        started(&mut m, None);
+        let far = |x: f64| Isometry3::translation(x - 7.8, 0.0, 0.0);
+        for k in 1..=100 {
+            let x = 0.05 * k as f64;
+            let f = Followup {
+                odometry: true,
+                sigma_m: Some(0.05 + 0.05 * x),
+                off_track: [90, 95].contains(&k).then(|| (far(x), 0.96, 70)),
+                ..Followup::default()
+            };
+            let r = through(
+                &mut m,
+                answer(x, proto::Mode::Tracking),
+                f,
+                0.1 * k as f64,
+                None,
+            );
+            assert!(localized(&r), "frame {k}: {r:?}");
+        }
+        let t = m.track.as_ref().unwrap();
+        assert!((t.position_m.x - 5.0).abs() < 1e-9, "{:?}", t.position_m);
+        assert!(m.ghost.is_some());
+        // Carried by the robot's odometry instead (which resets and slips), the same two fixes
+        // move it (the challenger rule).
+        let mut m = StreamMemory::default();
+        started(&mut m, Some(0.0));
+        for k in 1..=12 {
+            let t = 0.1 * k as f64;
+            let r = through(
+                &mut m,
+                missed(),
+                Followup::default(),
+                t,
+                Some(0.3 * k as f64),
+            );
+            assert!(!localized(&r));
+            if k >= 11 {
+                through(
+                    &mut m,
+                    fix_at(0.3, 150, 0.99),
+                    Followup::default(),
+                    t + 0.05,
+                    Some(0.3 * k as f64),
+                );
+            }
+        }
+        let t = m.track.as_ref().unwrap();
+        assert!((t.position_m.x - 0.3).abs() < 1e-9, "{:?}", t.position_m);
     }
 
     #[test]
