@@ -996,11 +996,7 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
             while let Ok(Some(Ok(m))) =
                 tokio::time::timeout(Duration::from_millis(300), ws.next()).await
             {
-                let Message::Binary(b) = m else { continue };
-                if u32::from_le_bytes(b[1..5].try_into().unwrap()) != 1 {
-                    continue;
-                }
-                let a: serde_json::Value = serde_json::from_slice(&b[13..]).unwrap();
+                let Some(a) = shown_answer(m) else { continue };
                 let n = a["request_id"]
                     .as_str()
                     .and_then(|r| r.strip_prefix("late-"));
@@ -1040,11 +1036,7 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
             while let Ok(Some(Ok(m))) =
                 tokio::time::timeout(Duration::from_millis(300), ws.next()).await
             {
-                let Message::Binary(b) = m else { continue };
-                if u32::from_le_bytes(b[1..5].try_into().unwrap()) != 1 {
-                    continue;
-                }
-                let a: serde_json::Value = serde_json::from_slice(&b[13..]).unwrap();
+                let Some(a) = shown_answer(m) else { continue };
                 let Some(r) = a["request_id"].as_str().and_then(|id| given.get(id)) else {
                     continue;
                 };
@@ -1075,6 +1067,15 @@ fn foxglove_live_view_streams_answers_to_a_websocket_client() {
         drop(stalled);
         stop(running).await;
     });
+}
+
+/// The `/pntr/answer` JSON a live-view message carries, when it is one (subscription 1; opcode,
+/// subscription id, log time, then the payload).
+fn shown_answer(m: tokio_tungstenite::tungstenite::Message) -> Option<serde_json::Value> {
+    use tokio_tungstenite::tungstenite::Message;
+    let Message::Binary(b) = m else { return None };
+    (u32::from_le_bytes(b[1..5].try_into().unwrap()) == 1)
+        .then(|| serde_json::from_slice(&b[13..]).unwrap())
 }
 
 #[test]

@@ -15,7 +15,7 @@
 //! off and matches as strongly as the mapped rooms do.
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 mod support;
 
@@ -73,24 +73,7 @@ fn a_drive_out_of_the_mapped_rooms_is_never_answered_far_off() {
         .collect();
     let truth = poses(&drive_seq.join("groundtruth.txt"));
     let replay = |name: &str, extra: &[&str]| {
-        let frames = dir.path().join(format!("{name}.jsonl"));
-        let report = dir.path().join(format!("{name}.json"));
-        let args = [
-            &[
-                "replay",
-                "--addr",
-                &addr,
-                "--sequence",
-                drive_seq.to_str().unwrap(),
-                "--json",
-                report.to_str().unwrap(),
-                "--frames-log",
-                frames.to_str().unwrap(),
-            ][..],
-            extra,
-        ]
-        .concat();
-        ok(&pntr(&args));
+        let frames = replay_drive(&addr, &drive_seq, dir.path(), name, extra);
         score(&frames, &mapping_poses, &truth)
     };
 
@@ -242,21 +225,7 @@ fn a_drive_into_a_copy_of_the_mapped_rooms_is_never_answered_there() {
     let [server] = serve(&rt, [Settings::local(vec![map], MODELS.into())]);
     let addr = server.addr.to_string();
     let replay = |name: &str, extra: &[&str]| {
-        let frames = dir.path().join(format!("{name}.jsonl"));
-        let args = [
-            &[
-                "replay",
-                "--addr",
-                &addr,
-                "--sequence",
-                drive_seq.to_str().unwrap(),
-                "--frames-log",
-                frames.to_str().unwrap(),
-            ][..],
-            extra,
-        ]
-        .concat();
-        ok(&pntr(&args));
+        let frames = replay_drive(&addr, &drive_seq, dir.path(), name, extra);
         let text = std::fs::read_to_string(&frames).unwrap();
         let answers: Vec<serde_json::Value> = text
             .lines()
@@ -321,6 +290,30 @@ fn a_drive_into_a_copy_of_the_mapped_rooms_is_never_answered_there() {
         );
     }
     stop(&rt, [server]);
+}
+
+/// `pntr replay` of the drive `drive_seq` against the server at `addr` with `extra` flags, its
+/// report and frames log written into `dir` as `name.json` and `name.jsonl`; the frames log's path.
+fn replay_drive(addr: &str, drive_seq: &Path, dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
+    let frames = dir.join(format!("{name}.jsonl"));
+    let report = dir.join(format!("{name}.json"));
+    let args = [
+        &[
+            "replay",
+            "--addr",
+            addr,
+            "--sequence",
+            drive_seq.to_str().unwrap(),
+            "--json",
+            report.to_str().unwrap(),
+            "--frames-log",
+            frames.to_str().unwrap(),
+        ][..],
+        extra,
+    ]
+    .concat();
+    ok(&pntr(&args));
+    frames
 }
 
 /// What a replay's frames log says against the truth.
