@@ -216,6 +216,35 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
             want_keyframe: true,
             ..LocalizeOptions::tracking(Region::new(at, 1.0).unwrap())
         };
+        // A chain past its length still follows the camera there (drift stops answers, not the
+        // motion): the same answer, from a keyframe MAX_PATH_M along its chain.
+        let worn_there = pipeline
+            .localize_with(
+                &query(&seq, ki),
+                &follow(
+                    Keyframe {
+                        path_m: odometry::MAX_PATH_M,
+                        ..moved.clone()
+                    },
+                    there,
+                ),
+            )
+            .unwrap();
+        assert_eq!(
+            worn_there.cause,
+            Some(Cause::OutsideMap),
+            "seed {seed}: {:?}",
+            worn_there.reason
+        );
+        assert!(
+            worn_there.odometry && worn_there.pose.is_none() && worn_there.keyframe.is_some(),
+            "seed {seed}"
+        );
+        let followed = worn_there.estimate.expect("the followed pose");
+        assert!(
+            (followed.translation.vector - there).norm() < 0.25,
+            "seed {seed}: {followed:?}"
+        );
         let loc = pipeline
             .localize_with(&query(&seq, ki), &follow(moved, there))
             .unwrap();

@@ -620,7 +620,7 @@ def summary(a):
     r = {"status": a.status, "mode": a.mode, "confidence": a.confidence, "inliers": a.inliers,
          "min_confidence": a.min_confidence, "request_id": a.request_id, "map_id": a.map_id,
          "map_version": a.map_version, "reason": a.reason, "stage_ms": a.stage_ms,
-         "matched_image_id": a.matched_image_id, "track_state": a.track_state}
+         "matched_image_id": a.matched_image_id, "track_state": a.track_state, "cause": a.cause}
     if a.localized:
         assert a.cause == "", a.cause
         assert isinstance(a.pose, np.ndarray) and a.pose.shape == (4, 4) and a.pose.dtype == np.float64
@@ -741,6 +741,21 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     apart = [pc.Frame(rgb, depth, stamp_s=50.0 + 10.0 * j) for j in range(4)]
     report["stamps"] = {"close": [summary(a) for a in c.localize_stream(close)],
                         "apart": [summary(a) for a in c.localize_stream(apart)]}
+    # A stream re-opened with where the last one left the camera continues its track: a first
+    # frame 10 m from that pose 0.1 s later is a look-alike, the same frame continuing from its
+    # own place is answered.
+    here = base.as_continuation(stamp_s=69.9)
+    moved = base.pose.copy()
+    moved[0, 3] += 10.0
+    away = pc.Continuation(moved, stamp_s=69.9, sigma_m=0.05)
+    expect_value_error("continuation not one", lambda: list(c.localize_stream(close, continuation=base)), "as_continuation")
+    expect_value_error("negative sigma", lambda: pc.Continuation(np.eye(4), sigma_m=-0.1), "sigma_m")
+    refused = pc.Answer("NOT_LOCALIZED", None, 0.0, None, 0, {}, "no candidate")
+    expect_value_error("continuation without pose", lambda: refused.as_continuation(), "no pose")
+    one = [pc.Frame(rgb, depth, stamp_s=70.0)]
+    report["continuation"] = {"here": [summary(a) for a in c.localize_stream(one, continuation=here)],
+                              "away": [summary(a) for a in c.localize_stream(one, continuation=away)],
+                              "none": [summary(a) for a in c.localize_stream(one)]}
 
     # ROS conventions, per call and per client: the same answer, re-expressed with the package's own
     # conversion; a ROS answer taken as the next prior is read in ROS conventions.
@@ -998,6 +1013,13 @@ fn typed_api_against_a_real_server() {
         assert_eq!(a["track_state"], "TRACK_STATE_ESTABLISHED", "{a}");
     }
     assert_eq!(modes_of(stamps, "apart"), ["GLOBAL"; 4], "{stamps}");
+    // The continuation reaches the server and decides the first frame's answer.
+    let cont = &r["continuation"];
+    for k in ["here", "none"] {
+        assert_eq!(cont[k][0]["status"], "LOCALIZED", "{k}: {cont}");
+    }
+    assert_eq!(cont["away"][0]["status"], "NOT_LOCALIZED", "{cont}");
+    assert_eq!(cont["away"][0]["cause"], "LOOK_ALIKE", "{cont}");
     let ids: Vec<&str> = reloc["with"]
         .as_array()
         .unwrap()

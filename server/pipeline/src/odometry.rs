@@ -15,7 +15,9 @@
 //!   map fix ([`Keyframe::hops`]). The keyframe also remembers the last frame tracked from it
 //!   ([`Keyframe::latest`]): when a frame no longer registers with the keyframe (a turn or a doorway
 //!   between two frames), it is registered against that one, which becomes the keyframe.
-//! - The chain is at most [`MAX_PATH_M`] long from its map fix (drift grows with the distance).
+//! - The chain answers for at most [`MAX_PATH_M`] from its map fix (drift grows with the
+//!   distance); where the map does not reach, it goes on beyond, not answered, so the stream keeps
+//!   the camera's motion, with an uncertainty that grows with it ([`with_drift`]).
 //! - An odometry pose is LOCALIZED only when the registration holds ([`MIN_INLIERS`],
 //!   [`MIN_INLIER_RATIO`]), the dense depth and grey levels of the two frames agree
 //!   ([`MIN_DEPTH_AGREE`], [`MIN_GRAY_CORRELATION`], at most [`MAX_FREE_SPACE_VIOLATION`] seen
@@ -151,6 +153,18 @@ impl Hop {
     pub fn refreshes(&self) -> bool {
         self.evidence.overlap < REFRESH_OVERLAP || self.inliers < REFRESH_INLIERS
     }
+
+    /// Why the chain is too long to answer from ([`MAX_PATH_M`], drift), `None` when it is not.
+    /// Such a hop still measures the camera's motion: where the map does not reach, a stream
+    /// follows it (not LOCALIZED) to judge map fixes by.
+    pub fn worn(&self) -> Option<String> {
+        (self.path_m > MAX_PATH_M).then(|| {
+            format!(
+                "{:.1} m driven since the last map fix, more than {MAX_PATH_M} m (drift)",
+                self.path_m
+            )
+        })
+    }
 }
 
 /// Match the frame (`features`, back-projected `points`, `thumb`) against `key` with `matcher`,
@@ -195,11 +209,7 @@ pub fn register(
     let inliers = r.inliers.len();
     let ratio = inliers as f64 / src.len().max(1) as f64;
     let path_m = key.path_m + key_from_query.translation.vector.norm();
-    let refused = if path_m > MAX_PATH_M {
-        Some(format!(
-            "{path_m:.1} m driven since the last map fix, more than {MAX_PATH_M} m (drift)"
-        ))
-    } else if inliers < MIN_INLIERS {
+    let refused = if inliers < MIN_INLIERS {
         Some(format!("{inliers} inliers, fewer than {MIN_INLIERS}"))
     } else if ratio < MIN_INLIER_RATIO {
         Some(format!("inlier ratio {ratio:.2} below {MIN_INLIER_RATIO}"))

@@ -941,6 +941,17 @@ impl Pipeline {
             Ok(found) => found,
             Err(why) => return Ok(Err(Refusal { why, lost: false })),
         };
+        // A chain past its length answers nothing where the map reaches (drift: the map must
+        // answer); beyond the map it goes on, not LOCALIZED, as the camera's motion (issue 73: a
+        // stream whose chain ended 10 m into unmapped rooms had only the time since to judge
+        // look-alikes by, and took a copy of the mapped rooms 7 m away once that time allowed).
+        let explained = self
+            .coverage()
+            .explained(thumb, &convert_axes(&pose, self.axes, CameraAxes::OpenCv));
+        let outside = explained.filter(|&share| share < MIN_EXPLAINED);
+        if let Some(why) = hop.worn().filter(|_| outside.is_none()) {
+            return Ok(Err(Refusal { why, lost: false }));
+        }
         // Where the map has views of what the frame sees, they must not contradict the pose: a
         // track that slipped (odometry that lost the camera's motion along a striped corridor, a
         // look-alike room it was carried into) puts the frame's surfaces where the map saw
@@ -966,13 +977,10 @@ impl Pipeline {
         let keyframe = opts.want_keyframe.then(|| {
             odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
         });
-        // Odometry can carry the pose where the map does not reach: there nothing confirms it and
-        // a look-alike room is the next map answer, so the frame is not LOCALIZED; the chain goes
-        // on (the keyframe) so the stream knows where the camera went and when it comes back.
-        let explained = self
-            .coverage()
-            .explained(thumb, &convert_axes(&pose, self.axes, CameraAxes::OpenCv));
-        let outside = explained.filter(|&share| share < MIN_EXPLAINED);
+        // Odometry can carry the pose where the map does not reach (`outside`): there nothing
+        // confirms it and a look-alike room is the next map answer, so the frame is not
+        // LOCALIZED; the chain goes on (the keyframe) so the stream knows where the camera went
+        // and when it comes back.
         // Odometry drifts where the map's images were never matched from, though their depth
         // still sees part of the frame's surfaces: the answer is held to them
         // ([`Self::polish_tracked`]). The chain goes on from odometry's own pose, so that a polish

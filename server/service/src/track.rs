@@ -88,6 +88,26 @@ pub const BLIND_GAP_S: f64 = 2.0;
 /// share of the distance it says the camera moved (wheel odometry: 1-5%).
 pub const ROBOT_ODOMETRY_DRIFT: f64 = 0.05;
 
+/// A step of the robot's odometry faster than this, metres per second (twice
+/// [`UNMEASURED_SPEED_MPS`]), or turning faster than [`ODOMETRY_MAX_TURN_DEG_PER_S`], plus
+/// [`ODOMETRY_STEP_SLACK_M`] and [`ODOMETRY_STEP_SLACK_DEG`], is a reset or a jump of the odometry
+/// (its frame restarted, a wheel spun free), not the robot's motion: it carries nothing, and the
+/// stream judges that step by the time it took, as when no odometry came.
+pub const ODOMETRY_MAX_SPEED_MPS: f64 = 2.0 * UNMEASURED_SPEED_MPS;
+/// See [`ODOMETRY_MAX_SPEED_MPS`].
+pub const ODOMETRY_MAX_TURN_DEG_PER_S: f64 = 360.0;
+/// See [`ODOMETRY_MAX_SPEED_MPS`].
+pub const ODOMETRY_STEP_SLACK_M: f64 = 0.1;
+/// See [`ODOMETRY_MAX_SPEED_MPS`].
+pub const ODOMETRY_STEP_SLACK_DEG: f64 = 10.0;
+/// The robot's odometry disagrees with what the camera sees when a look-alike's map fixes
+/// ([`Ghost`]) moved by more than this, metres, plus [`ODOMETRY_DISAGREE_SHARE`] of the larger of
+/// the two distances, from what the odometry says the robot moved over the same frames (wheels
+/// that spin while the robot stands): it is then no reason to refuse those fixes.
+pub const ODOMETRY_DISAGREE_M: f64 = 0.5;
+/// See [`ODOMETRY_DISAGREE_M`].
+pub const ODOMETRY_DISAGREE_SHARE: f64 = 0.25;
+
 /// A stream whose frames the map has not matched ([`Verdict::Missed`]) for this long, seconds
 /// (capture stamps when the frames carry them), in at least [`OUTSIDE_MAP_FRAMES`] frames, with no
 /// LOCALIZED answer between them, is outside the mapped area: its further misses answer
@@ -365,6 +385,54 @@ struct LastFix {
     at: Moment,
 }
 
+/// The robot's odometry motion from `then` to `now` (its poses, the map's camera axes; `dt_s`
+/// seconds apart), in the camera's frame at `then`: `None` for a reset or a jump
+/// ([`ODOMETRY_MAX_SPEED_MPS`]).
+fn odometry_step(then: &Isometry3<f64>, now: &Isometry3<f64>, dt_s: f64) -> Option<Isometry3<f64>> {
+    let moved = then.inverse() * now;
+    let dt_s = dt_s.max(0.0);
+    (moved.translation.vector.norm() <= ODOMETRY_STEP_SLACK_M + ODOMETRY_MAX_SPEED_MPS * dt_s
+        && moved.rotation.angle().to_degrees()
+            <= ODOMETRY_STEP_SLACK_DEG + ODOMETRY_MAX_TURN_DEG_PER_S * dt_s)
+        .then_some(moved)
+}
+
+/// Where the robot's odometry (`LocalizeRequest.odometry`) carried the camera since the stream's
+/// established track last stood (map frame): kept frame by frame while every frame carries
+/// odometry whose steps are motion ([`odometry_step`]), through frames the map refuses and
+/// after the map contradicted the track (issue 73: a stream whose track the map dropped in a
+/// copy of the mapped rooms re-acquired the look-alike once the time since its last fix allowed
+/// the distance, though its wheels said where it was). A map fix farther from it than
+/// [`TELL_MAX_M`] plus [`GATE_SIGMAS`] of its uncertainty is a look-alike.
+#[derive(Debug, Clone)]
+struct Carried {
+    map_id: String,
+    frame: u64,
+    pose: Isometry3<f64>,
+    /// One standard deviation, metres: the track's, plus [`ROBOT_ODOMETRY_DRIFT`] of the distance
+    /// carried.
+    sigma_m: f64,
+    /// The robot's odometry pose of the frame `pose` is for.
+    odometry: Isometry3<f64>,
+    at: Moment,
+}
+
+impl Carried {
+    /// Carried on to a frame captured `now` with robot odometry pose `odometry`; `None` when the
+    /// frame has none or its step is no motion ([`odometry_step`]).
+    fn carried(self, odometry: Option<&Isometry3<f64>>, now: Moment) -> Option<Self> {
+        let odometry = odometry?;
+        let moved = odometry_step(&self.odometry, odometry, now.since(&self.at))?;
+        Some(Self {
+            pose: self.pose * moved,
+            sigma_m: self.sigma_m + ROBOT_ODOMETRY_DRIFT * moved.translation.vector.norm(),
+            odometry: *odometry,
+            at: now,
+            ..self
+        })
+    }
+}
+
 /// A look-alike the stream refused: a map fix farther from the last map fix of an established
 /// track than the camera can have moved since ([`reach_m`], [`LastFix`]), and the map fixes that continued it since, each
 /// where the camera can have moved from the one before (a look-alike room gives a fix on most
@@ -380,6 +448,12 @@ struct Ghost {
     /// frames' odometry), and how far off it could have been then (metres).
     born_off_m: f64,
     born_bound_m: f64,
+    /// Where its first fix put the camera, and the robot's odometry pose of that frame.
+    born_m: Vector3<f64>,
+    born_odometry: Option<Isometry3<f64>>,
+    /// It was refused only because of where the robot's odometry carried the camera
+    /// ([`Carried`]): it ends when that odometry proves wrong ([`ODOMETRY_DISAGREE_M`]).
+    of_odometry: bool,
 }
 
 impl Ghost {
@@ -393,6 +467,19 @@ impl Ghost {
             && tracking_heading(self.rotation, elapsed_s)
                 .exceeded_by(&pose.rotation)
                 .is_none()
+    }
+
+    /// Whether the robot's odometry pose `odometry` of a frame whose map fix `pose` continues
+    /// this look-alike moved as far from the one of its first fix as the fixes did
+    /// ([`ODOMETRY_DISAGREE_M`]); `true` when there is nothing to compare.
+    fn moved_with(&self, pose: &Isometry3<f64>, odometry: Option<&Isometry3<f64>>) -> bool {
+        let (Some(then), Some(now)) = (self.born_odometry.as_ref(), odometry) else {
+            return true;
+        };
+        let seen_m = (pose.translation.vector - self.born_m).norm();
+        let odometry_m = (now.translation.vector - then.translation.vector).norm();
+        (seen_m - odometry_m).abs()
+            <= ODOMETRY_DISAGREE_M + ODOMETRY_DISAGREE_SHARE * seen_m.max(odometry_m)
     }
 }
 
@@ -668,12 +755,14 @@ impl Track {
             });
         }
         let (then, now) = (self.odometry?, f.robot_odometry?);
-        let moved = then.inverse() * now;
+        let at = Moment::now(f.stamp_s);
+        // A reset or a jump of the odometry carries nothing: the last pose stays.
+        let moved = odometry_step(&then, &now, at.since(&self.at))?;
         let pose = Isometry3::from_parts(self.position_m.into(), self.rotation) * moved;
         Some(Track {
             position_m: pose.translation.vector,
             rotation: pose.rotation,
-            at: Moment::now(f.stamp_s),
+            at,
             sigma_m: self.sigma_m + ROBOT_ODOMETRY_DRIFT * moved.translation.vector.norm(),
             odometry: Some(now),
             visual: false,
@@ -889,6 +978,8 @@ pub(crate) struct StreamMemory {
     /// When the last frame came, and the first frame after a gap of [`BLIND_GAP_S`] or more.
     last_frame_at: Option<Moment>,
     blind_gap_at: Option<Moment>,
+    /// Where the robot's odometry carried the camera since the established track last stood.
+    carried: Option<Carried>,
 }
 
 impl StreamMemory {
@@ -965,6 +1056,7 @@ impl StreamMemory {
                 self.doubt = false;
                 self.ghost = None;
                 self.last_fix = None;
+                self.carried = None;
             }
             if now < then && self.track.is_some() {
                 tracing::info!(
@@ -1010,10 +1102,16 @@ impl StreamMemory {
         {
             self.blind_gap_at = Some(now);
             self.ghost = None;
+            // A robot carried is not seen by its wheels either.
+            self.carried = None;
         }
         if self.ghost.is_some_and(|g| now.since(&g.at) > GHOST_KEEP_S) {
             self.ghost = None;
         }
+        self.carried = self
+            .carried
+            .take()
+            .and_then(|c| c.carried(f.robot_odometry.as_ref(), now));
         let answered = !f.odometry && r.status == proto::Status::Localized as i32;
         let fix = if answered {
             wire::pose(r.pose.as_ref())
@@ -1049,7 +1147,31 @@ impl StreamMemory {
             .last_fix
             .as_ref()
             .filter(|l| l.map_id == r.map_id && l.frame == f.frame);
-        let continues = self.ghost.filter(|g| g.continued_by(&pose, &now));
+        let mut continues = self.ghost.filter(|g| g.continued_by(&pose, &now));
+        // A look-alike refused only by where the robot's odometry carried the camera, whose
+        // fixes moved otherwise than that odometry (wheels that spin while the robot stands): the
+        // odometry is wrong, and bounds nothing until the track stands again.
+        if continues
+            .is_some_and(|g| g.of_odometry && !g.moved_with(&pose, f.robot_odometry.as_ref()))
+        {
+            tracing::info!(
+                "the map's fixes moved otherwise than the robot's odometry; it no longer bounds them"
+            );
+            self.carried = None;
+            self.ghost = None;
+            continues = None;
+        }
+        let beyond_odometry = self
+            .carried
+            .as_ref()
+            .filter(|c| c.map_id == r.map_id && c.frame == f.frame)
+            .map(|c| {
+                (
+                    (pose.translation.vector - c.pose.translation.vector).norm(),
+                    TELL_MAX_M + GATE_SIGMAS * c.sigma_m,
+                )
+            })
+            .filter(|&(off_m, bound_m)| off_m > bound_m);
         let unreachable = last.and_then(|last| {
             let since_fix_s = now.since(&last.at);
             let from_fix_m = (pose.translation.vector - last.position_m).norm();
@@ -1061,7 +1183,12 @@ impl StreamMemory {
                 .is_some_and(|gap| gap.since(&last.at) > 0.0);
             (!blind && from_fix_m > reach_m).then_some((from_fix_m, since_fix_s, reach_m))
         });
-        let (reason, born_off_m, born_bound_m) = match (continues, unreachable, beyond_chain) {
+        let (reason, born_off_m, born_bound_m, of_odometry) = match (
+            continues,
+            unreachable,
+            beyond_chain,
+            beyond_odometry,
+        ) {
             (Some(g), ..) => (
                 format!(
                     "tracking: the map's fix continues a look-alike the stream refused before (it began {:.1} m from where the camera could be, {:.1} m off at most), so it is taken for one again (send relocalize to accept a jump)",
@@ -1069,22 +1196,37 @@ impl StreamMemory {
                 ),
                 g.born_off_m,
                 g.born_bound_m,
+                g.of_odometry,
             ),
-            (None, Some((from_fix_m, since_fix_s, reach_m)), _) => (
+            (None, Some((from_fix_m, since_fix_s, reach_m)), ..) => (
                 format!(
                     "tracking: the map's fix lies {from_fix_m:.1} m from the stream's last map fix {since_fix_s:.1} s earlier, farther than the camera can have moved since ({reach_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
                 ),
                 from_fix_m,
                 reach_m,
+                false,
             ),
-            (None, None, Some((off_m, bound_m))) => (
+            (None, None, Some((off_m, bound_m)), _) => (
                 format!(
                     "tracking: the map's fix lies {off_m:.1} m from where the frames' own odometry carried the camera since the last map fix, farther than that odometry can be off ({bound_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
                 ),
                 off_m,
                 bound_m,
+                false,
             ),
-            (None, None, None) => return,
+            (None, None, None, Some((off_m, bound_m))) => (
+                format!(
+                    "tracking: the map's fix lies {off_m:.1} m from where the robot's odometry carried the camera since the stream's track last stood, farther than that odometry can be off ({bound_m:.1} m), so it is taken for a look-alike (send relocalize to accept a jump)"
+                ),
+                off_m,
+                bound_m,
+                true,
+            ),
+            (None, None, None, None) => return,
+        };
+        let (born_m, born_odometry) = match continues {
+            Some(g) => (g.born_m, g.born_odometry),
+            None => (pose.translation.vector, f.robot_odometry),
         };
         self.ghost = Some(Ghost {
             position_m: pose.translation.vector,
@@ -1092,6 +1234,9 @@ impl StreamMemory {
             at: now,
             born_off_m,
             born_bound_m,
+            born_m,
+            born_odometry,
+            of_odometry,
         });
         f.off_track = None;
         if !answered {
@@ -1129,6 +1274,7 @@ impl StreamMemory {
         if relocalize {
             self.ghost = None;
             self.last_fix = None;
+            self.carried = None;
             self.last_frame_at = Some(Moment::now(stamp_s));
         } else {
             self.screen_look_alike(r, &mut f);
@@ -1160,6 +1306,7 @@ impl StreamMemory {
             }
         }
         let off_track = f.off_track;
+        let robot_odometry = f.robot_odometry;
         let odometry = f.odometry;
         let gap = f.track_gap;
         let (convention, frames) = (f.convention, f.frames);
@@ -1197,6 +1344,17 @@ impl StreamMemory {
                     at: t.anchored_at,
                 });
             }
+        }
+        // An established track is where the robot's odometry carries the camera from.
+        if let Some(t) = self.track.as_ref().filter(|t| t.established && t.confirmed) {
+            self.carried = robot_odometry.map(|odometry| Carried {
+                map_id: t.map_id.clone(),
+                frame: t.frame,
+                pose: Isometry3::from_parts(t.position_m.into(), t.rotation),
+                sigma_m: t.sigma_m,
+                odometry,
+                at: Moment::now(stamp_s),
+            });
         }
         let track = &self.track;
         tracing::debug!(
@@ -2154,17 +2312,18 @@ mod tests {
     fn map_fixes_that_agree_overrule_wrong_odometry() {
         let mut m = StreamMemory::default();
         started(&mut m, Some(0.0));
-        // Odometry (slipping wheels) says 3 m; the robot stood still.
-        through(&mut m, missed(), Followup::default(), 0.5, Some(3.0));
+        // Odometry (slipping wheels) says 2 m in a second, a robot's pace; the robot stood still.
+        through(&mut m, missed(), Followup::default(), 0.5, Some(1.0));
+        through(&mut m, missed(), Followup::default(), 1.0, Some(2.0));
         let answers: Vec<_> = (0..4)
             .map(|k| {
-                let t = 0.6 + 0.1 * k as f64;
+                let t = 1.1 + 0.1 * k as f64;
                 through(
                     &mut m,
                     fix_at(0.05, 90, 0.95),
                     Followup::default(),
                     t,
-                    Some(3.0),
+                    Some(2.0),
                 )
             })
             .collect();
@@ -2175,6 +2334,109 @@ mod tests {
         assert!(
             answers[2..].iter().all(localized),
             "agreeing fixes take over within three frames: {answers:?}"
+        );
+        // An odometry that jumps 3 m in half a second was reset: it carries nothing, and the
+        // map's fix where the robot stood is answered at once.
+        let mut m = StreamMemory::default();
+        started(&mut m, Some(0.0));
+        through(&mut m, missed(), Followup::default(), 0.5, Some(3.0));
+        let r = through(
+            &mut m,
+            fix_at(0.05, 90, 0.95),
+            Followup::default(),
+            0.6,
+            Some(3.0),
+        );
+        assert!(localized(&r), "{r:?}");
+    }
+
+    #[test]
+    fn the_robots_odometry_keeps_a_dropped_track_from_a_look_alike() {
+        // The robot drives along x at 1 m/s; after 2 s the map contradicts its track (dropped),
+        // then it sees nothing the map matches until, at x = 12 (12 s), a copy of the mapped rooms
+        // 10 m away gives strong fixes that follow its motion, frame after frame.
+        let run = |with_odometry: bool| {
+            let mut m = StreamMemory::default();
+            let odo = |x: f64| with_odometry.then_some(x);
+            started(&mut m, odo(0.0));
+            let mut answers = Vec::new();
+            for k in 1..=20 {
+                let t = 0.1 * k as f64;
+                let f = Followup {
+                    track_lost: k == 20,
+                    ..Followup::default()
+                };
+                through(&mut m, missed(), f, t, odo(t));
+            }
+            for k in 21..=120 {
+                let t = 0.1 * k as f64;
+                through(&mut m, missed(), Followup::default(), t, odo(t));
+            }
+            for k in 121..=160 {
+                let t = 0.1 * k as f64;
+                answers.push(through(
+                    &mut m,
+                    fix_at(t - 10.0, 120, 0.95),
+                    Followup::default(),
+                    t,
+                    odo(t),
+                ));
+            }
+            answers
+        };
+        let with = run(true);
+        assert!(!with.iter().any(localized), "{with:?}");
+        assert!(
+            with.iter()
+                .all(|r| r.cause == proto::NotLocalizedCause::LookAlike as i32),
+            "{with:?}"
+        );
+        assert!(
+            with[0].reason.contains("robot's odometry"),
+            "{}",
+            with[0].reason
+        );
+        // Without it, 12 s is time enough to have gone there: the look-alike is taken.
+        let without = run(false);
+        assert!(without.iter().any(localized), "{without:?}");
+    }
+
+    #[test]
+    fn wheels_that_spin_while_the_robot_stands_are_overruled_by_the_map() {
+        // The map contradicts the track, and for 3 s the wheels spin (2 m/s) while the robot
+        // stands at x = 0; the map's fixes there are look-alikes by the odometry, until they
+        // have stood while it moved on.
+        let mut m = StreamMemory::default();
+        started(&mut m, Some(0.0));
+        for k in 1..=30 {
+            let t = 0.1 * k as f64;
+            let f = Followup {
+                track_lost: k == 1,
+                ..Followup::default()
+            };
+            through(&mut m, missed(), f, t, Some(2.0 * t));
+        }
+        let answers: Vec<_> = (31..=50)
+            .map(|k| {
+                let t = 0.1 * k as f64;
+                through(
+                    &mut m,
+                    fix_at(0.05, 120, 0.95),
+                    Followup::default(),
+                    t,
+                    Some(2.0 * t),
+                )
+            })
+            .collect();
+        assert!(
+            answers[0].reason.contains("robot's odometry"),
+            "{}",
+            answers[0].reason
+        );
+        let first = answers.iter().position(localized);
+        assert!(
+            first.is_some_and(|k| k <= 12) && answers[first.unwrap()..].iter().all(localized),
+            "{answers:?}"
         );
     }
 

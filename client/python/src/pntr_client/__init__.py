@@ -11,7 +11,8 @@
 `Client(addr, frame_convention="ros")` answers in ROS conventions (z-up map frame, optical camera
 axes: the pose is map_from_camera_optical); `map_to_ros` / `ros_to_map` convert a pose yourself.
 `Client.localize_stream(frames)` sends a stream of frames over one call (a `Frame` with
-`relocalize=True` is searched over the whole map, ignoring the stream's track), `Client.map_info()`
+`relocalize=True` is searched over the whole map, ignoring the stream's track; `continuation=` with
+`answer.as_continuation(stamp_s)` of an earlier stream's last answer continues its track), `Client.map_info()`
 describes the map. A `Prior` (or `answer.as_prior(radius_m)`) restricts the search to where the
 camera roughly is. gRPC failures raise `PntrError` subclasses (see `pntr_client.errors`); malformed
 inputs raise ValueError before anything is sent. `pntr_client.hpointloc` reads HPointLoc files (needs
@@ -22,7 +23,7 @@ from importlib import metadata as _metadata
 
 from pntr_client._geometry import map_to_ros, ros_from_map_world, ros_to_map, rotate_covariance
 from pntr_client._messages import make_request
-from pntr_client._values import Answer, Frame, MapInfo, Prior
+from pntr_client._values import Answer, Continuation, Frame, MapInfo, Prior
 from pntr_client.client import Client
 from pntr_client.errors import (
     CancelledError,
@@ -45,6 +46,7 @@ __all__ = [
     "Answer",
     "CancelledError",
     "Client",
+    "Continuation",
     "DeadlineExceededError",
     "Frame",
     "InvalidArgumentError",

@@ -11,7 +11,7 @@ import numpy.typing as npt
 
 from pntr_client._geometry import check_pose, matrix_to_quaternion, pose_matrix, quaternion_to_matrix, ros_from_map_world
 from pntr_client._proto import localizer_pb2 as pb2
-from pntr_client._values import Answer, Frame, MapInfo, Prior
+from pntr_client._values import Answer, Continuation, Frame, MapInfo, Prior
 
 # The camera the server assumes when a request has no intrinsics (HPointLoc), and the only size it
 # accepts then.
@@ -188,6 +188,14 @@ def pose_message(pose: npt.NDArray[np.float64]) -> pb2.Pose:
         translation=pb2.Vector3(x=float(pose[0, 3]), y=float(pose[1, 3]), z=float(pose[2, 3])),
         rotation=pb2.Quaternion(w=w, x=x, y=y, z=z),
     )
+
+
+def continuation_message(c: Continuation) -> pb2.TrackContinuation:
+    """The TrackContinuation message of a `Continuation` (already validated by its constructor)."""
+    msg = pb2.TrackContinuation(pose=pose_message(c.pose), sigma_m=c.sigma_m)
+    if c.stamp_s is not None:
+        msg.stamp_s = c.stamp_s
+    return msg
 
 
 def prior_message(prior: Prior) -> pb2.Prior:

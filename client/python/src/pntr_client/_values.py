@@ -96,6 +96,40 @@ class Prior:
 
 
 @dataclass(frozen=True, eq=False)
+class Continuation:
+    """Where an earlier stream left the camera, for a new `Client.localize_stream` that continues
+    its track (after a server restart, a dropped connection, a bad frame that ended the stream):
+    the new stream's first frame is then held to the camera's motion since, as the earlier
+    stream's next frame would have been, instead of being judged alone.
+
+    Attributes:
+        pose: 4x4 float64 world_from_camera (metres) of the earlier stream's last LOCALIZED answer,
+            in the new stream's frame convention (an answer's pose already is).
+        stamp_s: that frame's capture stamp (its `Frame.stamp_s`, the same clock as the new
+            stream's stamps); None = the pose is taken as of the new stream's first frame.
+        sigma_m: its position uncertainty, metres, one standard deviation; 0 = a map fix's (5 cm).
+
+    Invalid values raise ValueError.
+    """
+
+    pose: npt.NDArray[np.float64]
+    stamp_s: float | None = None
+    sigma_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "pose", _frozen(check_pose(self.pose, "continuation.pose")))
+        s = float(self.sigma_m)
+        if not (math.isfinite(s) and s >= 0.0):
+            raise ValueError(f"continuation.sigma_m must be a finite number >= 0 (metres), got {self.sigma_m}")
+        object.__setattr__(self, "sigma_m", s)
+        if self.stamp_s is not None:
+            t = float(self.stamp_s)
+            if not (math.isfinite(t) and t >= 0.0):
+                raise ValueError(f"continuation.stamp_s must be a finite number of seconds >= 0, got {self.stamp_s}")
+            object.__setattr__(self, "stamp_s", t)
+
+
+@dataclass(frozen=True, eq=False)
 class Frame:
     """One RGB-D frame for `Client.localize_stream` (a dict with the same keys works too).
 
@@ -230,6 +264,19 @@ class Answer:
         if self.pose is None:
             raise ValueError(f"as_prior: this answer is {self.status} and has no pose to use as a prior")
         return Prior(self.pose, covariance=self.covariance, radius_m=radius_m)
+
+    def as_continuation(self, stamp_s: float | None = None) -> Continuation:
+        """This LOCALIZED answer as the `Continuation` of a new stream: its pose, the capture stamp
+        of its frame (`stamp_s`, the frame's `Frame.stamp_s`), and the position uncertainty of its
+        covariance (the root of the largest position variance; 0 without one). Raises ValueError
+        when the answer has no pose.
+        """
+        if self.pose is None:
+            raise ValueError(f"as_continuation: this answer is {self.status} and has no pose to continue from")
+        sigma_m = 0.0
+        if self.covariance is not None:
+            sigma_m = math.sqrt(max(0.0, float(np.max(np.diag(self.covariance)[:3]))))
+        return Continuation(self.pose, stamp_s=stamp_s, sigma_m=sigma_m)
 
 
 @dataclass(frozen=True)

@@ -15,13 +15,14 @@ import numpy.typing as npt
 from pntr_client._messages import (
     answer_from_response,
     as_frame,
+    continuation_message,
     frame_convention_value,
     make_request,
     map_info_from_message,
 )
 from pntr_client._proto import localizer_pb2 as pb2
 from pntr_client._proto import localizer_pb2_grpc as pb2_grpc
-from pntr_client._values import Answer, Frame, MapInfo, Prior
+from pntr_client._values import Answer, Continuation, Frame, MapInfo, Prior
 from pntr_client.errors import error_from_rpc
 
 # Large enough for a 4K RGB-D frame sent raw (3840 x 2160 x (3 + 4) bytes is about 58 MiB).
@@ -172,6 +173,7 @@ class Client:
         *,
         timeout_s: float | None = None,
         frame_convention: str | None = None,
+        continuation: Continuation | None = None,
     ) -> Iterator[Answer]:
         """Localize a stream of frames over one LocalizeStream call; yields one `Answer` per frame, in
         the order sent (the server may use the stream's last verified pose: `Answer.mode` TRACKING).
@@ -184,6 +186,11 @@ class Client:
             map_id: the map to localize every frame in; "" means the server's only map.
             timeout_s: deadline of the whole stream, seconds; None (default) for none.
             frame_convention: "map" or "ros" for every frame's answer and prior [the client's].
+            continuation: where an earlier stream left the camera (`Answer.as_continuation` of its
+                last LOCALIZED answer), sent with the first frame: re-opening a stream after a
+                server restart or a dropped connection then continues its track, and the first
+                frame's map fix is held to the camera's motion since (a look-alike is refused as
+                it would have been). Ignored when the first frame has `relocalize=True`.
 
         Raises:
             ValueError: a frame is malformed (the message names the frame's index); raised after the
@@ -194,6 +201,11 @@ class Client:
         convention = frame_convention or self._frame_convention
         if convention is not None:
             frame_convention_value(convention)
+        if continuation is not None and not isinstance(continuation, Continuation):
+            raise ValueError(
+                "continuation must be a pntr_client.Continuation(pose, stamp_s=None, sigma_m=0.0), got "
+                f"{type(continuation).__name__} (an Answer becomes one with answer.as_continuation(stamp_s))"
+            )
 
         def requests() -> Iterator[pb2.LocalizeRequest]:
             # Runs in gRPC's sending thread: an exception here would only cancel the call, so keep it
@@ -201,7 +213,7 @@ class Client:
             try:
                 for i, item in enumerate(frames):
                     f = as_frame(item, i)
-                    yield make_request(
+                    req = make_request(
                         f.rgb,
                         f.depth,
                         f.intrinsics,
@@ -214,6 +226,9 @@ class Client:
                         odometry=f.odometry,
                         where=f"frame {i}: ",
                     )
+                    if i == 0 and continuation is not None:
+                        req.continuation.CopyFrom(continuation_message(continuation))
+                    yield req
             except Exception as e:  # noqa: BLE001 - re-raised in the caller's thread below
                 failure.append(e)
 
