@@ -302,6 +302,18 @@ fn a_tracked_drive_stays_localized_between_map_views_and_wrong_keyframes_give_no
             loc.status, loc.reason
         );
         assert!(!loc.odometry, "seed {seed}");
+        // The contradicted hop goes with the answer as the camera's motion (not an answer), with
+        // the keyframe its chain goes on with: the stream judges map fixes by it.
+        let carried = loc.contradicted.as_ref().expect("the contradicted hop");
+        assert!(
+            (carried.pose.translation.vector - at).norm() < 0.3,
+            "seed {seed}: {:?}",
+            carried.pose
+        );
+        assert!(
+            carried.keyframe.is_some() && carried.sigma_m.is_some(),
+            "seed {seed}"
+        );
         match loc.status {
             Status::Localized => {
                 assert_eq!(loc.mode, Mode::Global, "seed {seed}");

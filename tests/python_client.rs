@@ -917,7 +917,7 @@ fn typed_api_against_a_real_server() {
         assert_eq!(e["unauthenticated"], true, "{e}");
         assert!(!e["message"].as_str().unwrap().contains("api-t0ken"), "{e}");
     }
-    assert_eq!(r["value_errors"].as_object().unwrap().len(), 15);
+    assert_eq!(r["value_errors"].as_object().unwrap().len(), 18);
 
     // Priors: answered through the prior region, and still verified.
     for name in ["prior_position", "prior_answer"] {

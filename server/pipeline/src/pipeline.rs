@@ -405,6 +405,12 @@ pub struct Localization {
     /// ([`MAX_TRACK_CONTRADICTION`]), so the frame was searched for over the whole map instead; the
     /// stream drops its track (an answer, LOCALIZED or not, is then a first fix).
     pub track_lost: bool,
+    /// With [`Self::track_lost`]: where the frame's odometry carried the camera, which the map
+    /// contradicted, and the keyframe its chain goes on with. Not an answer: the camera's motion,
+    /// by which a stream still judges map fixes (issue 73: a right track the map contradicted in
+    /// a doorway, where its views saw into another room, was dropped, and a copy of the mapped
+    /// rooms beyond was taken once the time since allowed the distance).
+    pub contradicted: Option<Contradicted>,
     /// For a map answer of a tracked frame whose keyframe also gave it a LOCALIZED pose (registered,
     /// on track, inside the mapped area): how far the map's pose lies from the frame's own odometry
     /// pose (metres, degrees), before they were fused; `None` otherwise. How
@@ -462,10 +468,31 @@ struct Tracked {
 }
 
 /// Why the keyframe did not answer a tracked frame, and whether the track is lost with it (the map
-/// contradicted the pose the hop gave).
+/// contradicted the pose the hop gave: then the hop itself, [`Contradicted`]).
 struct Refusal {
     why: String,
     lost: bool,
+    contradicted: Option<Contradicted>,
+}
+
+/// The position uncertainty of a 6x6 pose covariance (ROS order, metres² first): the root of the
+/// trace of its position block, metres.
+pub fn position_sigma_m(covariance: &[f64; 36]) -> f64 {
+    (covariance[0] + covariance[7] + covariance[14])
+        .max(0.0)
+        .sqrt()
+}
+
+/// A tracked frame's odometry pose that the map contradicted ([`Localization::contradicted`]).
+#[derive(Debug, Clone)]
+pub struct Contradicted {
+    /// `world_from_camera`, map frame and axes.
+    pub pose: Isometry3<f64>,
+    /// Its position uncertainty by the chain's covariance and drift, metres (one standard
+    /// deviation; `None` without a covariance).
+    pub sigma_m: Option<f64>,
+    /// The keyframe the chain goes on with (when the caller asked for keyframes).
+    pub keyframe: Option<Arc<Keyframe>>,
 }
 
 /// The query as the tracking paths see it: features, back-projected keypoints (OpenCV query frame)
@@ -789,7 +816,7 @@ impl Pipeline {
         };
         // A tracked stream: the keyframe first. It answers unless its map fix is old enough to
         // re-anchor (`map_first`: the map answers, and the hop is the track's word on that answer).
-        let mut odometry_refusal = None;
+        let mut odometry_refusal: Option<Refusal> = None;
         let mut hop = None;
         if let Some(key) = &opts.keyframe {
             match self.odometry_answer(key, &frame, opts, &mut times, t0)? {
@@ -802,6 +829,9 @@ impl Pipeline {
         // the frame is searched for over the whole map, as a stream's first frame is (its tracking
         // region lies around a wrong pose, where a look-alike would be found again).
         let track_lost = odometry_refusal.as_ref().is_some_and(|r| r.lost);
+        let contradicted = odometry_refusal
+            .as_mut()
+            .and_then(|r| r.contradicted.take());
         let untracked;
         let opts = if track_lost {
             untracked = LocalizeOptions {
@@ -891,7 +921,11 @@ impl Pipeline {
             None => loc,
         };
         if loc.status == Status::Localized {
-            let loc = Localization { track_lost, ..loc };
+            let loc = Localization {
+                track_lost,
+                contradicted,
+                ..loc
+            };
             return Ok(self.settle(loc, &frame, opts, hop));
         }
         // The map did not answer: the keyframe's hop, when the map was tried first.
@@ -912,6 +946,7 @@ impl Pipeline {
             cause: loc.cause.or(Some(Cause::NoMatch)),
             times,
             track_lost,
+            contradicted,
             ..loc
         })
     }
@@ -939,7 +974,13 @@ impl Pipeline {
         }
         let Tracked { key, hop, pose } = match found {
             Ok(found) => found,
-            Err(why) => return Ok(Err(Refusal { why, lost: false })),
+            Err(why) => {
+                return Ok(Err(Refusal {
+                    why,
+                    lost: false,
+                    contradicted: None,
+                }))
+            }
         };
         // A chain past its length answers nothing where the map reaches (drift: the map must
         // answer); beyond the map it goes on, not LOCALIZED, as the camera's motion (issue 73: a
@@ -950,7 +991,11 @@ impl Pipeline {
             .explained(thumb, &convert_axes(&pose, self.axes, CameraAxes::OpenCv));
         let outside = explained.filter(|&share| share < MIN_EXPLAINED);
         if let Some(why) = hop.worn().filter(|_| outside.is_none()) {
-            return Ok(Err(Refusal { why, lost: false }));
+            return Ok(Err(Refusal {
+                why,
+                lost: false,
+                contradicted: None,
+            }));
         }
         // Where the map has views of what the frame sees, they must not contradict the pose: a
         // track that slipped (odometry that lost the camera's motion along a striped corridor, a
@@ -962,9 +1007,18 @@ impl Pipeline {
             .as_ref()
             .and_then(|a| Some((a.contradiction()?, a.deciding())))
             .filter(|&(c, _)| c > MAX_TRACK_CONTRADICTION);
+        let covariance = hop.covariance.map(|c| odometry::with_drift(&c, hop.path_m));
         if let Some((c, views)) = contradicted {
             times.total = t0.elapsed().as_secs_f64();
+            let keyframe = opts.want_keyframe.then(|| {
+                odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
+            });
             return Ok(Err(Refusal {
+                contradicted: Some(Contradicted {
+                    pose,
+                    sigma_m: covariance.as_ref().map(position_sigma_m),
+                    keyframe,
+                }),
                 why: format!(
                     "the map contradicts the tracked pose: each of the {views} nearby map views that look at what the frame sees saw through at least {:.0}% of it (at most {:.0}%), so the track slipped and is dropped",
                     c * 100.0,
@@ -973,7 +1027,6 @@ impl Pipeline {
                 lost: true,
             }));
         }
-        let covariance = hop.covariance.map(|c| odometry::with_drift(&c, hop.path_m));
         let keyframe = opts.want_keyframe.then(|| {
             odometry::next_keyframe(&key, &hop, frame.features, frame.points, thumb.clone())
         });
@@ -1024,6 +1077,7 @@ impl Pipeline {
             off_track: None,
             keyframe,
             track_lost: false,
+            contradicted: None,
             track_gap: None,
             track_slipped: false,
         }))
@@ -1517,6 +1571,7 @@ impl Pipeline {
                 off_track: None,
                 keyframe: None,
                 track_lost: false,
+                contradicted: None,
                 track_gap: None,
                 track_slipped: false,
             });
@@ -1595,6 +1650,7 @@ impl Pipeline {
             off_track: None,
             keyframe: None,
             track_lost: false,
+            contradicted: None,
             track_gap: None,
             track_slipped: false,
         })

@@ -509,7 +509,7 @@ impl LocalizerService {
         let sigma_m = loc
             .covariance
             .as_deref()
-            .map(|c| (c[0] + c[7] + c[14]).max(0.0).sqrt());
+            .map(pntr_pipeline::pipeline::position_sigma_m);
         let response = proto::LocalizeResponse {
             status: if localized {
                 proto::Status::Localized
@@ -592,6 +592,7 @@ impl LocalizerService {
             frame: lm.frame,
             serial: lm.serial,
             track_lost: loc.track_lost,
+            contradicted: loc.contradicted.clone(),
             track_gap: loc.track_gap,
             track_slipped: loc.track_slipped,
             stamp_s: None,

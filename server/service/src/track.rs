@@ -84,6 +84,12 @@ pub const GHOST_KEEP_S: f64 = 3.0;
 /// meanwhile (carried, or put elsewhere by a simulator's reset) is not bounded by the time since
 /// the last map fix ([`reach_m`] holds again from the next map fix).
 pub const BLIND_GAP_S: f64 = 2.0;
+/// Uncertainty added to a track's position when the map contradicts it
+/// ([`pntr_pipeline::pipeline::Localization::contradicted`]), metres (one standard deviation): the
+/// track may have slipped (right poses: at most 20% of a frame seen through by the map's views;
+/// slipped ones pass 30% beyond about 0.3 m), or the map's views see past something new. The
+/// frames' odometry goes on carrying it, not answered, until a map fix agrees.
+pub const CONTRADICTED_SIGMA_M: f64 = 0.5;
 /// Uncertainty a robot's odometry (`LocalizeRequest.odometry`) adds to the stream's position: this
 /// share of the distance it says the camera moved (wheel odometry: 1-5%).
 pub const ROBOT_ODOMETRY_DRIFT: f64 = 0.05;
@@ -354,6 +360,10 @@ struct Track {
     /// metres) nor by a continuation: a map fix far beyond what that chain can be off is a
     /// look-alike however many agree ([`StreamMemory::screen_look_alike`]).
     visual: bool,
+    /// The map contradicted the pose the frames' odometry carried the track to
+    /// ([`CONTRADICTED_SIGMA_M`]): the track goes on by that odometry, not answered, until a map
+    /// fix agrees with it (and keeps bounding where map fixes may lie).
+    contradicted: bool,
 }
 
 /// A map answer refused because it lay outside a track's bounds (see [`Track::challenged`]).
@@ -503,8 +513,11 @@ pub(crate) struct Followup {
     pub(crate) frame: u64,
     pub(crate) serial: u64,
     /// The map contradicted the stream's track ([`pntr_pipeline::pipeline::Localization::track_lost`]): it is dropped before
-    /// this answer is taken.
+    /// this answer is taken, unless `contradicted` carries it on.
     pub(crate) track_lost: bool,
+    /// [`pntr_pipeline::pipeline::Localization::contradicted`]: where the frames' odometry carried
+    /// the track the map contradicted, and the keyframe its chain goes on with.
+    pub(crate) contradicted: Option<pntr_pipeline::pipeline::Contradicted>,
     /// [`pntr_pipeline::pipeline::Localization::track_gap`]: how far a re-anchoring map answer lay from the frame's own
     /// odometry pose (metres, degrees).
     pub(crate) track_gap: Option<(f64, f64)>,
@@ -686,6 +699,7 @@ impl Track {
             outside: false,
             odometry: f.robot_odometry,
             visual: !f.odometry || previous.is_none_or(|p| p.visual),
+            contradicted: false,
         })
     }
 
@@ -720,6 +734,7 @@ impl Track {
             outside: false,
             odometry: None,
             visual: false,
+            contradicted: false,
         }
     }
 
@@ -770,6 +785,32 @@ impl Track {
         })
     }
 
+    /// The track where the frame's odometry carried it when the map contradicted that pose (`c`,
+    /// a frame captured `now` with robot odometry `odometry`): not answered, its uncertainty grown
+    /// by [`CONTRADICTED_SIGMA_M`] (once: the larger of the track's and the chain's plus that),
+    /// its chain going on with `c`'s keyframe.
+    fn contradicted_at(
+        self,
+        c: pntr_pipeline::pipeline::Contradicted,
+        now: Moment,
+        odometry: Option<Isometry3<f64>>,
+    ) -> Track {
+        Track {
+            position_m: c.pose.translation.vector,
+            rotation: c.pose.rotation,
+            at: now,
+            keyframe: c.keyframe,
+            sigma_m: self
+                .sigma_m
+                .max(c.sigma_m.unwrap_or(self.sigma_m) + CONTRADICTED_SIGMA_M),
+            outside: true,
+            contradicted: true,
+            challenger: None,
+            odometry: odometry.or(self.odometry),
+            ..self
+        }
+    }
+
     /// A map answer that verified but lay outside the track's bounds (`pose`, map frame, with its
     /// calibrated `confidence`). A track rests on two agreeing map fixes; when two answers more
     /// confident than the track's fix agree with each other (within a second, inside each other's
@@ -794,7 +835,10 @@ impl Track {
         // Where the frames' own motion carried the camera beyond the map's surfaces, a map answer
         // elsewhere is a look-alike however often it repeats (issue 73): the track leaves that
         // state by a fix where the motion puts the camera, or once its chain ends.
-        if (confidence <= self.confidence && !stronger) || (self.established && self.outside) {
+        // A track the map contradicted may have slipped: agreeing fixes within the bounds mend it.
+        if (confidence <= self.confidence && !stronger)
+            || (self.established && self.outside && !self.contradicted)
+        {
             return None;
         }
         let now = Moment::now(stamp_s);
@@ -820,6 +864,7 @@ impl Track {
                 outside: false,
                 odometry: None,
                 visual: true,
+                contradicted: false,
             });
         }
         let c = Challenger {
@@ -863,6 +908,7 @@ impl Track {
             outside: false,
             odometry: None,
             visual: true,
+            contradicted: false,
         })
     }
 
@@ -895,6 +941,7 @@ impl Track {
             // answered at once (as the frame alone would be), a weak one establishes it once
             // it follows the camera's motion from a view the camera has moved on to.
             map_first: !self.established
+                || self.contradicted
                 || (anchor_age_s >= REANCHOR_AFTER_S
                     && self
                         .map_tried_at
@@ -1125,21 +1172,27 @@ impl StreamMemory {
         let established = self.track.as_ref().filter(|t| {
             t.established && t.confirmed && t.map_id == r.map_id && t.serial == f.serial
         });
-        let off_motion = established.and_then(|t| {
+        let off_motion = established.map(|t| {
             let off_m = (pose.translation.vector - t.position_m).norm();
-            let gate = t.gate_m(&now)?;
-            Some((off_m, gate, t))
+            (off_m, t.gate_m(&now), t)
         });
-        if off_motion.is_some_and(|(off_m, gate, _)| off_m <= gate) {
+        if off_motion.is_some_and(|(off_m, gate, _)| gate.is_some_and(|gate| off_m <= gate)) {
             return;
         }
-        // A track the frames' own odometry carried since its last map fix, where that motion can
-        // tell: a fix farther off than the chain can be wrong is a look-alike (a chain that
-        // slipped less far is the challenger rule's to mend; a robot's odometry, which resets,
-        // always is).
+        // A track the frames' own odometry carried since its last map fix: a fix farther off
+        // than the chain can be wrong, plus what the camera can have moved since the chain's last
+        // pose, is a look-alike (a chain that slipped less far is the challenger rule's to mend;
+        // a robot's odometry has its own bound, [`Carried`]).
+        // (Not after a gap with no frames: the frames did not see where the camera went.)
         let beyond_chain = off_motion
-            .filter(|(_, _, t)| t.visual)
-            .map(|(off_m, _, t)| (off_m, TELL_MAX_M + GATE_SIGMAS * t.sigma_m))
+            .filter(|(_, _, t)| {
+                t.visual && !self.blind_gap_at.is_some_and(|gap| gap.since(&t.at) > 0.0)
+            })
+            .map(|(off_m, _, t)| {
+                let bound_m =
+                    TELL_MAX_M + GATE_SIGMAS * t.sigma_m + UNMEASURED_SPEED_MPS * now.since(&t.at);
+                (off_m, bound_m)
+            })
             .filter(|&(off_m, bound_m)| off_m > bound_m);
         // Otherwise it must lie where the camera can be since the last map fix of an established
         // track (this one's, or the one the map contradicted or that is being re-acquired).
@@ -1267,9 +1320,22 @@ impl StreamMemory {
         f.stamp_s = stamp_s;
         f.robot_odometry = self.odometry.take();
         if f.track_lost {
-            tracing::info!("the map contradicted the stream's track; it is dropped");
-            self.track = None;
             self.doubt = true;
+            let now = Moment::now(stamp_s);
+            // An established track goes on where the frames' odometry carried it, not answered:
+            // the camera's motion still bounds where map fixes may lie.
+            self.track = match (self.track.take(), f.contradicted.take()) {
+                (Some(t), Some(c))
+                    if t.established && t.map_id == r.map_id && t.serial == f.serial =>
+                {
+                    tracing::info!("the map contradicted the stream's track; it is followed by the frames' odometry, not answered, until a map fix agrees");
+                    Some(t.contradicted_at(c, now, f.robot_odometry))
+                }
+                _ => {
+                    tracing::info!("the map contradicted the stream's track; it is dropped");
+                    None
+                }
+            };
         }
         if relocalize {
             self.ghost = None;
@@ -1304,6 +1370,18 @@ impl StreamMemory {
                 f.keyframe = None;
                 beyond_motion(r, off_m, gate);
             }
+        }
+        // A track the map contradicted answers nothing from its own odometry: the pose goes on as
+        // the camera's motion until a map fix agrees with it.
+        if f.odometry
+            && r.status == proto::Status::Localized as i32
+            && self.track.as_ref().is_some_and(|t| t.contradicted)
+        {
+            f.dead_reckoned = wire::pose(r.pose.as_ref());
+            r.status = proto::Status::NotLocalized as i32;
+            r.cause = proto::NotLocalizedCause::Unverified as i32;
+            r.reason = "tracking: the map contradicted this stream's track (its views saw through the frame's surfaces at the tracked pose), so the camera's motion is followed but not answered until a map fix agrees with it".into();
+            without_pose(r);
         }
         let off_track = f.off_track;
         let robot_odometry = f.robot_odometry;
@@ -2438,6 +2516,71 @@ mod tests {
             first.is_some_and(|k| k <= 12) && answers[first.unwrap()..].iter().all(localized),
             "{answers:?}"
         );
+    }
+
+    #[test]
+    fn a_track_the_map_contradicts_goes_on_by_the_frames_odometry_unanswered() {
+        // The map contradicts a right track in a doorway (its views see into the next room):
+        // the track goes on where the frames' odometry carried it, not answered; a copy of the
+        // mapped rooms 7.8 m away is refused however strong its fixes, and a map fix where the
+        // track is answers again.
+        let mut m = StreamMemory::default();
+        started(&mut m, None);
+        let contradicted = |x: f64| Followup {
+            track_lost: true,
+            contradicted: Some(pntr_pipeline::pipeline::Contradicted {
+                pose: Isometry3::translation(x, 0.0, 0.0),
+                sigma_m: Some(0.05),
+                keyframe: None,
+            }),
+            ..Followup::default()
+        };
+        let r = through(&mut m, missed(), contradicted(0.1), 0.1, None);
+        assert!(!localized(&r));
+        let t = m.track.as_ref().expect("the track goes on");
+        assert!(t.contradicted && (t.position_m.x - 0.1).abs() < 1e-9);
+        assert_eq!(r.track_state, proto::TrackState::Carried as i32);
+        // The frames' odometry answers nothing while the map has not agreed.
+        let hop = Followup {
+            odometry: true,
+            ..Followup::default()
+        };
+        let r = through(&mut m, answer(0.2, proto::Mode::Tracking), hop, 0.2, None);
+        assert!(!localized(&r), "{r:?}");
+        assert!(
+            r.reason.starts_with("tracking: the map contradicted"),
+            "{}",
+            r.reason
+        );
+        assert!((m.track.as_ref().unwrap().position_m.x - 0.2).abs() < 1e-9);
+        // The look-alike, strong and agreeing with itself, frame after frame.
+        for k in 0..10 {
+            let t = 0.3 + 0.1 * k as f64;
+            let r = through(
+                &mut m,
+                fix_at(7.8 + 0.01 * k as f64, 150, 0.97),
+                Followup::default(),
+                t,
+                None,
+            );
+            assert_eq!(r.cause, proto::NotLocalizedCause::LookAlike as i32, "{r:?}");
+        }
+        assert!((m.track.as_ref().unwrap().position_m.x - 0.2).abs() < 1e-9);
+        // The frames' odometry goes on; then a map fix where it put the camera.
+        let hop = Followup {
+            odometry: true,
+            ..Followup::default()
+        };
+        through(&mut m, answer(0.22, proto::Mode::Tracking), hop, 1.3, None);
+        let r = through(
+            &mut m,
+            fix_at(0.25, 120, 0.95),
+            Followup::default(),
+            1.35,
+            None,
+        );
+        assert!(localized(&r), "{r:?}");
+        assert!(!m.track.as_ref().unwrap().contradicted);
     }
 
     #[test]
