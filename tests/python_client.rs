@@ -743,7 +743,7 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
                         "apart": [summary(a) for a in c.localize_stream(apart)]}
     # A stream re-opened with where the last one left the camera continues its track: a first
     # frame 10 m from that pose 0.1 s later is a look-alike, the same frame continuing from its
-    # own place is answered.
+    # own place is answered; map fixes that agree overrule the wrong continuation.
     here = base.as_continuation(stamp_s=69.9)
     moved = base.pose.copy()
     moved[0, 3] += 10.0
@@ -755,7 +755,9 @@ with pc.Client(addr, token=token, timeout_s=120) as c:
     one = [pc.Frame(rgb, depth, stamp_s=70.0)]
     report["continuation"] = {"here": [summary(a) for a in c.localize_stream(one, continuation=here)],
                               "away": [summary(a) for a in c.localize_stream(one, continuation=away)],
-                              "none": [summary(a) for a in c.localize_stream(one)]}
+                              "none": [summary(a) for a in c.localize_stream(one)],
+                              "overruled": [summary(a) for a in c.localize_stream(
+                                  [pc.Frame(rgb, depth, stamp_s=70.0 + 0.1 * j) for j in range(5)], continuation=away)]}
 
     # ROS conventions, per call and per client: the same answer, re-expressed with the package's own
     # conversion; a ROS answer taken as the next prior is read in ROS conventions.
@@ -1020,6 +1022,10 @@ fn typed_api_against_a_real_server() {
     }
     assert_eq!(cont["away"][0]["status"], "NOT_LOCALIZED", "{cont}");
     assert_eq!(cont["away"][0]["cause"], "LOOK_ALIKE", "{cont}");
+    // A wrong continuation is the client's word: map fixes that agree overrule it.
+    let overruled = cont["overruled"].as_array().unwrap();
+    assert_eq!(overruled[0]["cause"], "LOOK_ALIKE", "{cont}");
+    assert_eq!(overruled[4]["status"], "LOCALIZED", "{cont}");
     let ids: Vec<&str> = reloc["with"]
         .as_array()
         .unwrap()

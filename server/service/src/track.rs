@@ -364,6 +364,10 @@ struct Track {
     /// ([`CONTRADICTED_SIGMA_M`]): the track goes on by that odometry, not answered, until a map
     /// fix agrees with it (and keeps bounding where map fixes may lie).
     contradicted: bool,
+    /// The track rests on a continuation (`LocalizeRequest.continuation`), not on a map fix of
+    /// this stream: it bounds map fixes through its gate, but it is the client's word, which may
+    /// be wrong, so it is no [`LastFix`] and agreeing map fixes take it over (the challenger rule).
+    continued: bool,
 }
 
 /// A map answer refused because it lay outside a track's bounds (see [`Track::challenged`]).
@@ -700,6 +704,7 @@ impl Track {
             odometry: f.robot_odometry,
             visual: !f.odometry || previous.is_none_or(|p| p.visual),
             contradicted: false,
+            continued: f.odometry && same_map && previous.is_some_and(|p| p.continued),
         })
     }
 
@@ -712,11 +717,28 @@ impl Track {
         stamp_s: Option<f64>,
         sigma_m: f64,
     ) -> Self {
+        Self::continued_on(
+            (map.id.clone(), map.frame, map.serial),
+            pose,
+            stamp_s,
+            sigma_m,
+        )
+    }
+
+    /// [`Track::continued`] on the map of id, [`LoadedMap::frame`] and [`LoadedMap::serial`]
+    /// `map`.
+    fn continued_on(
+        map: (String, u64, u64),
+        pose: Isometry3<f64>,
+        stamp_s: Option<f64>,
+        sigma_m: f64,
+    ) -> Self {
         let at = Moment::now(stamp_s);
+        let (map_id, frame, serial) = map;
         Track {
-            map_id: map.id.clone(),
-            frame: map.frame,
-            serial: map.serial,
+            map_id,
+            frame,
+            serial,
             position_m: pose.translation.vector,
             rotation: pose.rotation,
             at,
@@ -735,6 +757,7 @@ impl Track {
             odometry: None,
             visual: false,
             contradicted: false,
+            continued: true,
         }
     }
 
@@ -865,6 +888,7 @@ impl Track {
                 odometry: None,
                 visual: true,
                 contradicted: false,
+                continued: false,
             });
         }
         let c = Challenger {
@@ -909,6 +933,7 @@ impl Track {
             odometry: None,
             visual: true,
             contradicted: false,
+            continued: false,
         })
     }
 
@@ -1409,7 +1434,11 @@ impl StreamMemory {
                 self.track = Some(moved);
             }
         }
-        if let Some(t) = self.track.as_ref().filter(|t| t.established && t.confirmed) {
+        if let Some(t) = self
+            .track
+            .as_ref()
+            .filter(|t| t.established && t.confirmed && !t.continued)
+        {
             if self
                 .last_fix
                 .as_ref()
@@ -1423,8 +1452,13 @@ impl StreamMemory {
                 });
             }
         }
-        // An established track is where the robot's odometry carries the camera from.
-        if let Some(t) = self.track.as_ref().filter(|t| t.established && t.confirmed) {
+        // An established track is where the robot's odometry carries the camera from (not a
+        // continuation's, the client's word, which map fixes may overrule).
+        if let Some(t) = self
+            .track
+            .as_ref()
+            .filter(|t| t.established && t.confirmed && !t.continued)
+        {
             self.carried = robot_odometry.map(|odometry| Carried {
                 map_id: t.map_id.clone(),
                 frame: t.frame,
@@ -2581,6 +2615,42 @@ mod tests {
         );
         assert!(localized(&r), "{r:?}");
         assert!(!m.track.as_ref().unwrap().contradicted);
+    }
+
+    #[test]
+    fn a_wrong_continuation_is_overruled_by_agreeing_map_fixes() {
+        // A client re-opened its stream with a continuation 2 m (then 10 m) from where the camera
+        // is: the first map fix is refused, agreeing ones take over within three frames.
+        for off_m in [2.0, 10.0] {
+            let mut m = StreamMemory {
+                track: Some(Track::continued_on(
+                    ("m".into(), 0, 0),
+                    Isometry3::translation(off_m, 0.0, 0.0),
+                    Some(-0.1),
+                    0.0,
+                )),
+                ..StreamMemory::default()
+            };
+            let answers: Vec<_> = (0..5)
+                .map(|k| {
+                    let t = 0.1 * k as f64;
+                    through(
+                        &mut m,
+                        fix_at(0.01 * k as f64, 120, 0.95),
+                        Followup::default(),
+                        t,
+                        None,
+                    )
+                })
+                .collect();
+            assert_eq!(
+                answers[0].cause,
+                proto::NotLocalizedCause::LookAlike as i32,
+                "{off_m}: {:?}",
+                answers[0]
+            );
+            assert!(answers[2..].iter().all(localized), "{off_m}: {answers:?}");
+        }
     }
 
     #[test]

@@ -117,16 +117,20 @@ class Continuation:
     sigma_m: float = 0.0
 
     def __post_init__(self) -> None:
+        # Imported here: the message helpers import these value types.
+        from pntr_client._messages import check_stamp
+
+        if np.shape(self.pose) != (4, 4):
+            raise ValueError(
+                f"continuation.pose must be a 4x4 world_from_camera matrix, got shape {np.shape(self.pose)} "
+                "(the last LOCALIZED answer's pose: answer.as_continuation(stamp_s))"
+            )
         object.__setattr__(self, "pose", _frozen(check_pose(self.pose, "continuation.pose")))
         s = float(self.sigma_m)
         if not (math.isfinite(s) and s >= 0.0):
             raise ValueError(f"continuation.sigma_m must be a finite number >= 0 (metres), got {self.sigma_m}")
         object.__setattr__(self, "sigma_m", s)
-        if self.stamp_s is not None:
-            t = float(self.stamp_s)
-            if not (math.isfinite(t) and t >= 0.0):
-                raise ValueError(f"continuation.stamp_s must be a finite number of seconds >= 0, got {self.stamp_s}")
-            object.__setattr__(self, "stamp_s", t)
+        object.__setattr__(self, "stamp_s", check_stamp(self.stamp_s, "continuation."))
 
 
 @dataclass(frozen=True, eq=False)
