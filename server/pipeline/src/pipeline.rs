@@ -403,7 +403,8 @@ pub struct Localization {
     pub keyframe: Option<Arc<Keyframe>>,
     /// The stream's track is lost: the map contradicted the pose its keyframe carried the frame to
     /// ([`MAX_TRACK_CONTRADICTION`]), so the frame was searched for over the whole map instead; the
-    /// stream drops its track (an answer, LOCALIZED or not, is then a first fix).
+    /// stream follows an established track on by [`Self::contradicted`], not answered, and drops
+    /// one that is not established (an answer, LOCALIZED or not, is then a first fix).
     pub track_lost: bool,
     /// With [`Self::track_lost`]: where the frame's odometry carried the camera, which the map
     /// contradicted, and the keyframe its chain goes on with. Not an answer: the camera's motion,
@@ -1020,7 +1021,7 @@ impl Pipeline {
                     keyframe,
                 }),
                 why: format!(
-                    "the map contradicts the tracked pose: each of the {views} nearby map views that look at what the frame sees saw through at least {:.0}% of it (at most {:.0}%), so the track slipped and is dropped",
+                    "the map contradicts the tracked pose: each of the {views} nearby map views that look at what the frame sees saw through at least {:.0}% of it (at most {:.0}%), so the track may have slipped: it is not answered until a map fix agrees",
                     c * 100.0,
                     MAX_TRACK_CONTRADICTION * 100.0
                 ),

@@ -794,8 +794,14 @@ impl Track {
         }
         let (then, now) = (self.odometry?, f.robot_odometry?);
         let at = Moment::now(f.stamp_s);
-        // A reset or a jump of the odometry carries nothing: the last pose stays.
-        let moved = odometry_step(&then, &now, at.since(&self.at))?;
+        // A reset or a jump of the odometry carries nothing: the last pose stays, and the next
+        // step is measured from the odometry's new frame.
+        let Some(moved) = odometry_step(&then, &now, at.since(&self.at)) else {
+            return Some(Track {
+                odometry: Some(now),
+                ..self.clone()
+            });
+        };
         let pose = Isometry3::from_parts(self.position_m.into(), self.rotation) * moved;
         Some(Track {
             position_m: pose.translation.vector,
@@ -829,7 +835,8 @@ impl Track {
             outside: true,
             contradicted: true,
             challenger: None,
-            odometry: odometry.or(self.odometry),
+            // This frame's (none: the robot's odometry carries the track no further).
+            odometry,
             ..self
         }
     }
@@ -1184,6 +1191,10 @@ impl StreamMemory {
             .carried
             .take()
             .and_then(|c| c.carried(f.robot_odometry.as_ref(), now));
+        // A look-alike refused only by the robot's odometry ends with that bound.
+        if self.carried.is_none() && self.ghost.is_some_and(|g| g.of_odometry) {
+            self.ghost = None;
+        }
         let answered = !f.odometry && r.status == proto::Status::Localized as i32;
         let fix = if answered {
             wire::pose(r.pose.as_ref())
@@ -1342,6 +1353,7 @@ impl StreamMemory {
         map: (&str, u64),
         n: u64,
     ) {
+        let taken_at = Instant::now();
         f.stamp_s = stamp_s;
         f.robot_odometry = self.odometry.take();
         if f.track_lost {
@@ -1453,19 +1465,26 @@ impl StreamMemory {
             }
         }
         // An established track is where the robot's odometry carries the camera from (not a
-        // continuation's, the client's word, which map fixes may overrule).
-        if let Some(t) = self
-            .track
-            .as_ref()
-            .filter(|t| t.established && t.confirmed && !t.continued)
-        {
+        // continuation's, the client's word, which map fixes may overrule), when this frame moved
+        // it (a track left where it was, with no motion measured, is no newer than `carried`),
+        // and not after a gap with no frames since its last map fix (a robot carried: its wheels
+        // did not see it either).
+        let now = Moment::now(stamp_s);
+        let blind_gap_at = self.blind_gap_at;
+        if let Some(t) = self.track.as_ref().filter(|t| {
+            t.established
+                && t.confirmed
+                && !t.continued
+                && t.at.at >= taken_at
+                && !blind_gap_at.is_some_and(|gap| gap.since(&t.anchored_at) > 0.0)
+        }) {
             self.carried = robot_odometry.map(|odometry| Carried {
                 map_id: t.map_id.clone(),
                 frame: t.frame,
                 pose: Isometry3::from_parts(t.position_m.into(), t.rotation),
                 sigma_m: t.sigma_m,
                 odometry,
-                at: Moment::now(stamp_s),
+                at: now,
             });
         }
         let track = &self.track;
@@ -2511,6 +2530,29 @@ mod tests {
         // Without it, 12 s is time enough to have gone there: the look-alike is taken.
         let without = run(false);
         assert!(without.iter().any(localized), "{without:?}");
+    }
+
+    #[test]
+    fn a_robot_put_elsewhere_is_not_held_by_its_old_odometry() {
+        // The robot sent no frames for 2.5 s (carried, a simulator's reset) and its wheels did
+        // not turn; the first frame after the gap matches nothing, then strong fixes 8 m away
+        // agree frame after frame: they take the track over within a few frames.
+        let mut m = StreamMemory::default();
+        started(&mut m, Some(0.0));
+        through(&mut m, missed(), Followup::default(), 2.5, Some(0.0));
+        let answers: Vec<_> = (1..=6)
+            .map(|k| {
+                let t = 2.5 + 0.1 * k as f64;
+                through(
+                    &mut m,
+                    fix_at(8.0, 150, 0.95),
+                    Followup::default(),
+                    t,
+                    Some(0.0),
+                )
+            })
+            .collect();
+        assert!(answers[2..].iter().all(localized), "{answers:?}");
     }
 
     #[test]
